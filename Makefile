@@ -1,0 +1,61 @@
+# pemamoe: every entry point of the project. `make help` lists them.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+SCALE ?= small
+PYTEST_ARGS ?= -n 2
+
+.PHONY: help test figures export check-export lab bench clean lock venv
+
+help:
+	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
+	@echo "make figures [SCALE=ci|small|paper]  regenerate paper_figures/ with papermill (default small)"
+	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
+	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
+	@echo "make bench                 print the performance figures"
+	@echo "make lock                  regenerate environment.lock from requirements.in"
+	@echo "make clean                 remove build outputs and caches (keeps .venv and results/)"
+
+# The environment is rebuilt from scratch whenever the lock or the package metadata is newer than
+# the last install, so .venv never drifts from environment.lock.
+$(STAMP): environment.lock pyproject.toml
+	rm -rf $(VENV)
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r environment.lock
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
+	@touch $@
+
+venv: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pemamoe.literate check
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+figures: $(STAMP)
+	$(PY) -m pemamoe figures --scale $(SCALE)
+
+export: $(STAMP)
+	$(PY) -m pemamoe.literate export
+
+check-export: $(STAMP)
+	$(PY) -m pemamoe.literate check
+
+# Project-local JupyterLab settings: .py files open in the Jupytext notebook view by default.
+lab: $(STAMP)
+	@mkdir -p $(VENV)/share/jupyter/lab/settings
+	@echo '{"@jupyterlab/docmanager-extension:plugin": {"defaultViewers": {"python": "Jupytext Notebook"}}}' \
+		> $(VENV)/share/jupyter/lab/settings/overrides.json
+	$(VENV)/bin/jupyter lab --notebook-dir=.
+
+bench: $(STAMP)
+	$(PY) benchmarks/run.py
+
+lock:
+	bash tools/lock.sh $(PYTHON)
+
+clean:
+	rm -rf build .pytest_cache .hypothesis
+	find . -name __pycache__ -type d -not -path './$(VENV)/*' -prune -exec rm -rf {} +
