@@ -975,8 +975,8 @@ def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
 #
 # ### Our observation dimension
 #
-# The environment notebook defines the observation layout; we ask it for the dimension and fall
-# back to a fixed value while that module is not available.
+# The environment notebook defines the observation layout (04_environment); we ask it for the
+# dimension, so the cost table follows any change to the layout or to the number of users.
 
 # %%
 import matplotlib.pyplot as plt
@@ -986,13 +986,9 @@ from pemamoe.core import by_scale, save_figure, write_table
 
 torch.manual_seed(seed)
 if our_obs_dim is None:
-    try:  # TODO(env): remove this fallback once pemamoe.env is exported
-        from pemamoe.env import EnvConfig, observation_dim
+    from pemamoe.env import EnvConfig, observation_dim
 
-        our_obs_dim = int(observation_dim(EnvConfig()))
-    except ImportError:
-        print("environment module not available; using obs_dim 129")
-        our_obs_dim = 129
+    our_obs_dim = int(observation_dim(EnvConfig()))
 print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 
 # %% [markdown]

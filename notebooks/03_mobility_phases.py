@@ -1,0 +1,492 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 03 · User mobility and the phase model
+#
+# The environment is non-stationary on purpose. A *phase* is a regime of the disaster scene: how
+# fast and how erratically people move, how far a UAV can serve, how much crowding of UAVs is
+# penalised, and what data rate each user asks for. Phases switch abruptly, and the agents are
+# never told which phase they are in; they can only notice its consequences.
+#
+# This notebook builds the two halves of that:
+#
+# * `pemamoe/mobility.py`: users grouped around a few hotspots whose centres wander across the
+#   area (reference-point group mobility, RPGM), each user following its group with a
+#   Gauss–Markov velocity of its own;
+# * `pemamoe/phases.py`: the per-phase parameter table, the demand classes, and one
+#   `PhaseSchedule` object that says which phase is active at any tick, whether the ticks are
+#   training iterations (the trainer) or environment steps (a standalone environment).
+
+# %%
+#| default_exp mobility
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+
+# %% [markdown]
+# ## The phase table
+#
+# The paper gives three phases, 0/1/2, with rising user speed (0.2, 0.5, 0.8 m/s) and direction
+# jitter (0.2, 0.5, 0.8), a service radius of 200 m in the calm phase and 150 m in the others, and
+# a growing penalty on overlapping UAVs (20, 40, 80). Demand comes in three classes, L, M and H,
+# asking for 0.5, 1 and 2 Mbit/s and worth 5, 10 and 20 when met.
+#
+# **Demand modes.** In the paper's `cycle` mode every user holds the class of the phase: everybody
+# is L in phase 0, M in phase 1, H in phase 2. We also offer a `mix` mode in which each user draws
+# its class from the phase's probabilities (by default mostly L in phase 0, mostly M in phase 1,
+# mostly H in phase 2), which makes the regimes overlap and the class mix itself informative.
+#
+# **A held-out regime.** The paper names randomised and unseen phases as future work. They cost
+# little here: `PhaseConfig` carries a fourth regime (index 3) with parameters outside the training
+# range (faster users, 1.2 m/s; more jitter; a 120 m radius; a mixed demand leaning to H). A
+# schedule can insert it every k-th segment, or an evaluation can set it directly, to measure
+# generalisation rather than re-adaptation.
+
+# %%
+#| export phases
+import bisect
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+CLASS_NAMES = ("L", "M", "H")
+DEMAND_MODES = ("cycle", "mix")
+
+
+@dataclass(frozen=True)
+class PhaseConfig:
+    """Per-phase parameters (index 0, 1, 2: the paper's phases; index 3: the held-out regime)."""
+
+    user_speed_mps: tuple = (0.2, 0.5, 0.8)
+    direction_jitter: tuple = (0.2, 0.5, 0.8)
+    service_radius_m: tuple = (200.0, 150.0, 150.0)
+    overlap_weight: tuple = (20.0, 40.0, 80.0)
+    rate_threshold_bps: tuple = (0.5e6, 1.0e6, 2.0e6)  # demand classes L, M, H
+    class_reward: tuple = (5.0, 10.0, 20.0)
+    demand_mode: str = "cycle"
+    mix_probs: tuple = ((0.6, 0.3, 0.1), (0.3, 0.5, 0.2), (0.1, 0.3, 0.6))
+    held_out_speed_mps: float = 1.2
+    held_out_jitter: float = 1.0
+    held_out_radius_m: float = 120.0
+    held_out_overlap_weight: float = 60.0
+    held_out_demand_probs: tuple = (0.2, 0.3, 0.5)
+
+    def __post_init__(self):
+        def fail(name, allowed):
+            raise ValueError(f"PhaseConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        n = len(self.user_speed_mps)
+        if n < 1:
+            fail("user_speed_mps", "a non-empty tuple (one value per phase)")
+        for name in ("user_speed_mps", "direction_jitter", "service_radius_m", "overlap_weight"):
+            values = getattr(self, name)
+            if len(values) != n:
+                fail(name, f"a tuple of {n} values (one per phase, like user_speed_mps)")
+        for name in ("user_speed_mps", "direction_jitter", "overlap_weight"):
+            if any(not math.isfinite(v) or v < 0 for v in getattr(self, name)):
+                fail(name, "finite and >= 0 for every phase")
+        if any(not math.isfinite(v) or v <= 0 for v in self.service_radius_m):
+            fail("service_radius_m", "> 0 for every phase")
+        if len(self.rate_threshold_bps) != 3 or any(v <= 0 for v in self.rate_threshold_bps):
+            fail("rate_threshold_bps", "three positive rates (L, M, H)")
+        if len(self.class_reward) != 3 or any(v < 0 for v in self.class_reward):
+            fail("class_reward", "three non-negative rewards (L, M, H)")
+        if self.demand_mode not in DEMAND_MODES:
+            fail("demand_mode", f"one of {', '.join(DEMAND_MODES)}")
+        if self.demand_mode == "cycle" and n > 3:
+            fail("demand_mode", "'mix' when there are more than 3 phases (cycle gives phase p class p)")
+        if len(self.mix_probs) != n or any(not _is_distribution(p) for p in self.mix_probs):
+            fail("mix_probs", f"{n} probability triples (L, M, H), each summing to 1")
+        if not _is_distribution(self.held_out_demand_probs):
+            fail("held_out_demand_probs", "a probability triple (L, M, H) summing to 1")
+        for name in ("held_out_speed_mps", "held_out_jitter", "held_out_overlap_weight"):
+            if getattr(self, name) < 0:
+                fail(name, ">= 0")
+        if self.held_out_radius_m <= 0:
+            fail("held_out_radius_m", "> 0")
+
+    @property
+    def n_phases(self) -> int:
+        """The training phases (3 in the paper)."""
+        return len(self.user_speed_mps)
+
+    @property
+    def n_regimes(self) -> int:
+        """Training phases plus the held-out regime (its index is n_phases)."""
+        return self.n_phases + 1
+
+    def table(self, name: str) -> np.ndarray:
+        """Values of a per-phase field for every regime, the held-out one last."""
+        held = {"user_speed_mps": self.held_out_speed_mps, "direction_jitter": self.held_out_jitter,
+                "service_radius_m": self.held_out_radius_m, "overlap_weight": self.held_out_overlap_weight}[name]
+        return np.array([*getattr(self, name), held], dtype=float)
+
+    def demand_probs(self) -> np.ndarray:
+        """(n_regimes, 3) class probabilities per regime, as used in `mix` mode."""
+        return np.array([*self.mix_probs, self.held_out_demand_probs], dtype=float)
+
+
+def _is_distribution(p) -> bool:
+    return len(p) == 3 and all(v >= 0 for v in p) and abs(sum(p) - 1.0) < 1e-9
+
+
+def phase_values(cfg: PhaseConfig, phase):
+    """(speed, jitter, radius, overlap_weight) arrays for a phase index array (B,)."""
+    phase = np.asarray(phase, dtype=int)
+    if phase.size and (phase.min() < 0 or phase.max() >= cfg.n_regimes):
+        raise ValueError(f"phase indices must be in [0, {cfg.n_regimes}), got {np.unique(phase).tolist()}")
+    return tuple(cfg.table(name)[phase] for name in
+                 ("user_speed_mps", "direction_jitter", "service_radius_m", "overlap_weight"))
+
+
+def sample_demand_classes(cfg: PhaseConfig, phase, n_users: int, rng) -> np.ndarray:
+    """(B, N) demand classes (0=L, 1=M, 2=H) for environments in phases `phase` (B,).
+
+    Draws B x N uniforms in every mode, so the random numbers consumed do not depend on the mode
+    or the phase. In `cycle` mode a training phase p gives every user class p; the held-out regime
+    always draws from its probabilities.
+    """
+    phase = np.asarray(phase, dtype=int)
+    u = rng.random((phase.shape[0], n_users))
+    cdf = np.cumsum(cfg.demand_probs()[phase], axis=-1)  # (B, 3)
+    drawn = (u[..., None] >= cdf[:, None, :2]).sum(-1)
+    if cfg.demand_mode == "cycle":
+        cyclic = np.broadcast_to(np.minimum(phase, 2)[:, None], drawn.shape)
+        return np.where((phase < cfg.n_phases)[:, None], cyclic, drawn)
+    return drawn
+
+
+# %% [markdown]
+# ## One phase clock for the trainer and the environment
+#
+# `PhaseSchedule` maps a tick to a phase. In the paper's setting the ticks are training iterations
+# and the phase advances every L = 1200 of them (3 phases × 3 cycles over 10,800 iterations); a
+# standalone environment can use the same object with its own step counter as the tick. Options:
+#
+# * `order="random"`: a seeded random order in which no phase follows itself;
+# * `min_period`/`max_period`: seeded random durations, uniform in that range;
+# * `held_out_every=k`: the held-out regime is inserted after every k regular segments.
+#
+# The fixed cyclic schedule is a closed formula. The others draw their segments from the seed,
+# lazily and in order, as far as the ticks asked for; `phase_at` is then a binary search, and the
+# same seed always gives the same sequence however far it is read.
+
+# %%
+#| export phases
+@dataclass(frozen=True)
+class PhaseSchedule:
+    """Which phase is active at each tick (iteration or env step); see the notebook for options."""
+
+    period: int = 1200
+    n_phases: int = 3
+    order: str = "cyclic"  # "cyclic" | "random"
+    min_period: int | None = None  # with max_period: random durations in [min_period, max_period]
+    max_period: int | None = None
+    held_out_every: int = 0  # insert the held-out regime (index n_phases) after every k regular segments
+    seed: int = 0
+    # Segments of randomised schedules, generated lazily from the seed as far as ticks are asked for.
+    _segments: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        def fail(name, allowed):
+            raise ValueError(f"PhaseSchedule.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        if not isinstance(self.period, (int, np.integer)) or self.period < 1:
+            fail("period", "an integer >= 1")
+        if not isinstance(self.n_phases, (int, np.integer)) or self.n_phases < 1:
+            fail("n_phases", "an integer >= 1")
+        if self.order not in ("cyclic", "random"):
+            fail("order", "'cyclic' or 'random'")
+        if self.order == "random" and self.n_phases < 2:
+            fail("n_phases", ">= 2 for a random order that never repeats a phase")
+        if (self.min_period is None) != (self.max_period is None):
+            fail("min_period", "set together with max_period (or both None)")
+        if self.min_period is not None and not (1 <= self.min_period <= self.max_period):
+            fail("min_period", f"an integer in [1, max_period={self.max_period}]")
+        if not isinstance(self.held_out_every, (int, np.integer)) or self.held_out_every < 0:
+            fail("held_out_every", "an integer >= 0")
+        self._segments.update(starts=[0], phases=[], regular=0, previous=-1,
+                              rng=np.random.default_rng(self.seed))
+
+    @property
+    def closed_form(self) -> bool:
+        """The paper's fixed cycle needs no segment list: phase = (tick // period) mod n_phases."""
+        return self.order == "cyclic" and self.min_period is None and not self.held_out_every
+
+    def _extend_to(self, tick: int) -> None:
+        seg = self._segments
+        while seg["starts"][-1] <= tick:
+            if self.held_out_every and seg["regular"] and seg["regular"] % self.held_out_every == 0 \
+                    and seg["phases"] and seg["phases"][-1] != self.n_phases:
+                phase = self.n_phases
+            else:
+                if self.order == "random":
+                    choices = [p for p in range(self.n_phases) if p != seg["previous"]]
+                    phase = int(choices[seg["rng"].integers(len(choices))])
+                else:
+                    phase = seg["regular"] % self.n_phases
+                seg["regular"] += 1
+                seg["previous"] = phase
+            length = self.period if self.min_period is None else int(
+                seg["rng"].integers(self.min_period, self.max_period + 1))
+            seg["phases"].append(phase)
+            seg["starts"].append(seg["starts"][-1] + length)
+
+    def phase_at(self, tick: int) -> int:
+        if tick < 0:
+            raise ValueError(f"tick must be >= 0, got {tick}")
+        if self.closed_form:
+            return (tick // self.period) % self.n_phases
+        self._extend_to(tick)
+        return self._segments["phases"][bisect.bisect_right(self._segments["starts"], tick) - 1]
+
+    def is_switch(self, tick: int) -> bool:
+        """True at a tick where the phase differs from the previous tick's (never at tick 0)."""
+        return tick > 0 and self.phase_at(tick) != self.phase_at(tick - 1)
+
+    def switch_ticks(self, horizon: int) -> list:
+        """Every switch tick in [1, horizon)."""
+        return [t for t in range(1, horizon) if self.is_switch(t)]
+
+
+# %% [markdown]
+# ## Hotspots and users
+#
+# Users are split into G hotspots (20 users in 3 groups: 7, 7 and 6), and the membership never
+# changes. A hotspot's centre walks straight toward a waypoint at 1.2 times the phase's user speed
+# and draws a new waypoint every 10 steps. Each user's velocity has two parts:
+#
+# 1. a **Gauss–Markov** update that keeps most of the previous velocity (memory α = 0.9), pulls its
+#    magnitude toward the nominal speed v₀, and adds Gaussian noise;
+# 2. an **RPGM blend** that mixes in a pull toward the group centre (follow gain κ = 0.3) plus a
+#    small follow noise (0.15 m/s).
+#
+# Positions then advance one slot (60 s) and reflect off the borders of the area (the velocity
+# component that crossed a border changes sign).
+#
+# **Direction jitter.** The paper tabulates both a fixed GM noise (0.08 m/s) and a phase-dependent
+# "direction jitter" (0.2/0.5/0.8) without saying how they combine. We read the jitter as a noise
+# level *relative to the phase's nominal speed*: the GM noise standard deviation is
+# `gm_noise + jitter × v₀`. Calm phases then move nearly in straight lines (0.08 + 0.04 m/s of noise
+# at 0.2 m/s), and the evacuation phase is erratic (0.08 + 0.64 m/s at 0.8 m/s), which is the
+# qualitative contrast the paper describes.
+#
+# **Batches and randomness.** Every array has a leading batch axis B, and one step draws a fixed
+# count of random numbers (B×N×2 GM normals, B×N×2 follow normals, B×G×2 waypoint uniforms),
+# whether or not a hotspot retargets. A generator whose row b is environment b's own stream (the
+# environment's `BatchRandom`) therefore makes environment b's motion independent of the batch.
+
+# %%
+#| export
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class MobilityConfig:
+    area_m: float = 1000.0
+    n_users: int = 20
+    n_hotspots: int = 3
+    slot_s: float = 60.0
+    user_height_m: float = 1.5
+    gm_memory: float = 0.9
+    gm_noise_mps: float = 0.08
+    follow_gain: float = 0.3
+    follow_noise_mps: float = 0.15
+    centre_speed_factor: float = 1.2
+    retarget_every: int = 10
+    spawn_spread_m: float = 60.0  # users start around their centre with this standard deviation
+    centre_margin: float = 0.15  # centres start at least this fraction of the side from a border
+
+    def __post_init__(self):
+        def fail(name, allowed):
+            raise ValueError(f"MobilityConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
+
+        if not self.area_m > 0:
+            fail("area_m", "> 0")
+        if not isinstance(self.n_hotspots, int) or self.n_hotspots < 1:
+            fail("n_hotspots", "an integer >= 1")
+        if not isinstance(self.n_users, int) or self.n_users < self.n_hotspots:
+            fail("n_users", f"an integer >= n_hotspots ({self.n_hotspots}): every hotspot needs a user")
+        if not self.slot_s > 0:
+            fail("slot_s", "> 0")
+        if self.user_height_m < 0:
+            fail("user_height_m", ">= 0")
+        if not 0 <= self.gm_memory < 1:
+            fail("gm_memory", "in [0, 1)")
+        if not 0 <= self.follow_gain <= 1:
+            fail("follow_gain", "in [0, 1]")
+        for name in ("gm_noise_mps", "follow_noise_mps", "centre_speed_factor", "spawn_spread_m"):
+            if getattr(self, name) < 0:
+                fail(name, ">= 0")
+        if not isinstance(self.retarget_every, int) or self.retarget_every < 1:
+            fail("retarget_every", "an integer >= 1")
+        if not 0 <= self.centre_margin < 0.5:
+            fail("centre_margin", "in [0, 0.5)")
+
+
+class MobilityState(NamedTuple):
+    user_xy: np.ndarray  # (B, N, 2)
+    user_vel: np.ndarray  # (B, N, 2) m/s
+    centre_xy: np.ndarray  # (B, G, 2)
+    waypoint_xy: np.ndarray  # (B, G, 2)
+    steps_to_retarget: np.ndarray  # (B,) int
+
+
+def hotspot_membership(n_users: int, n_hotspots: int) -> np.ndarray:
+    """(N,) hotspot of each user, groups as even as possible (20 users, 3 hotspots: 7, 7, 6)."""
+    sizes = [n_users // n_hotspots + (g < n_users % n_hotspots) for g in range(n_hotspots)]
+    return np.repeat(np.arange(n_hotspots), sizes)
+
+
+def reflect_into_area(xy, area_m: float):
+    """Fold positions back into [0, area] like a mirror; return (positions, flipped-sign mask)."""
+    period = 2.0 * area_m
+    folded = np.mod(xy, period)
+    flipped = folded > area_m
+    # An odd number of reflections (folded position in the upper half-period) reverses the motion.
+    return np.where(flipped, period - folded, folded), flipped
+
+
+def init_mobility(cfg: MobilityConfig, batch: int, rng) -> MobilityState:
+    """Hotspot centres away from the borders, users scattered around them, waypoints anywhere."""
+    S, G, N = cfg.area_m, cfg.n_hotspots, cfg.n_users
+    margin = cfg.centre_margin * S
+    centre = rng.uniform(margin, S - margin, size=(batch, G, 2))
+    waypoint = rng.uniform(0.0, S, size=(batch, G, 2))
+    member = hotspot_membership(N, G)
+    user, _ = reflect_into_area(centre[:, member] + cfg.spawn_spread_m * rng.standard_normal((batch, N, 2)), S)
+    heading = rng.standard_normal((batch, N, 2))
+    vel = 0.1 * heading  # a small initial drift in a random direction; GM rescales it to v0
+    return MobilityState(user, vel, centre, waypoint, np.full(batch, cfg.retarget_every))
+
+
+def step_mobility(state: MobilityState, speed_mps, jitter, cfg: MobilityConfig, rng) -> MobilityState:
+    """Advance every environment one slot; speed_mps and jitter are (B,) phase values."""
+    S, dt, eps = cfg.area_m, cfg.slot_s, 1e-9
+    B, N, _ = state.user_xy.shape
+    G = state.centre_xy.shape[1]
+    v0 = np.asarray(speed_mps, dtype=float)[:, None, None]
+    jit = np.asarray(jitter, dtype=float)[:, None, None]
+    xi = rng.standard_normal((B, N, 2))
+    eta = rng.standard_normal((B, N, 2))
+    new_waypoints = rng.uniform(0.0, S, size=(B, G, 2))
+
+    # Hotspot centres: straight toward the waypoint, without overshooting it; retarget on schedule.
+    to_wp = state.waypoint_xy - state.centre_xy
+    dist = np.linalg.norm(to_wp, axis=-1, keepdims=True)
+    step = np.minimum(cfg.centre_speed_factor * v0 * dt, dist)
+    centre = state.centre_xy + step * to_wp / (dist + eps)
+    countdown = state.steps_to_retarget - 1
+    retarget = countdown <= 0
+    waypoint = np.where(retarget[:, None, None], new_waypoints, state.waypoint_xy)
+    countdown = np.where(retarget, cfg.retarget_every, countdown)
+
+    # Users: Gauss-Markov velocity, blended with a pull toward the group centre (RPGM).
+    a = cfg.gm_memory
+    v = state.user_vel
+    speed = np.linalg.norm(v, axis=-1, keepdims=True)
+    sigma = cfg.gm_noise_mps + jit * v0
+    v_gm = a * v + (1 - a) * v0 * v / (speed + eps) + math.sqrt(1 - a * a) * sigma * xi
+    member = hotspot_membership(N, G)
+    to_centre = centre[:, member] - state.user_xy
+    pull = v0 * to_centre / (np.linalg.norm(to_centre, axis=-1, keepdims=True) + eps)
+    k = cfg.follow_gain
+    v_new = (1 - k) * v_gm + k * pull + cfg.follow_noise_mps * eta
+    user, flipped = reflect_into_area(state.user_xy + v_new * dt, S)
+    v_new = np.where(flipped, -v_new, v_new)
+    return MobilityState(user, v_new, centre, waypoint, countdown)
+
+# %% [markdown]
+# ## Pictures
+#
+# User trajectories under each phase's mobility (one panel per regime, same seed), and the drift
+# of the hotspot centres.
+
+# %%
+import matplotlib.pyplot as plt
+
+from pemamoe.core import by_scale, save_figure
+from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values
+
+mob_cfg, phase_cfg = MobilityConfig(), PhaseConfig()
+steps = by_scale(scale, ci=16, small=32, paper=64)
+regimes = list(range(phase_cfg.n_regimes))
+fig, axes = plt.subplots(1, len(regimes), figsize=(4 * len(regimes), 4), sharey=True)
+drift = {}
+for ax, regime in zip(axes, regimes):
+    rng = np.random.default_rng(seed)
+    state = init_mobility(mob_cfg, 1, rng)
+    speed, jitter, _, _ = phase_values(phase_cfg, np.array([regime]))
+    path, centres = [state.user_xy[0]], [state.centre_xy[0]]
+    for _ in range(steps):
+        state = step_mobility(state, speed, jitter, mob_cfg, rng)
+        path.append(state.user_xy[0])
+        centres.append(state.centre_xy[0])
+    path, centres = np.stack(path), np.stack(centres)
+    drift[regime] = centres
+    member = hotspot_membership(mob_cfg.n_users, mob_cfg.n_hotspots)
+    for n in range(mob_cfg.n_users):
+        ax.plot(path[:, n, 0], path[:, n, 1], lw=0.8, color=f"C{member[n]}", alpha=0.8)
+    ax.scatter(path[-1, :, 0], path[-1, :, 1], s=10, color="black", zorder=3)
+    name = "held-out" if regime == phase_cfg.n_phases else f"phase {regime}"
+    ax.set_title(f"{name}: v0={speed[0]:.1f} m/s, jitter={jitter[0]:.1f}")
+    ax.set_xlim(0, mob_cfg.area_m)
+    ax.set_ylim(0, mob_cfg.area_m)
+    ax.set_aspect("equal")
+fig.suptitle(f"User trajectories over {steps} slots of {mob_cfg.slot_s:.0f} s (colour: hotspot)")
+save_figure(fig, "mobility_trajectories", figures_dir)
+plt.show()
+
+# %%
+fig, ax = plt.subplots(figsize=(5, 5))
+for regime, centres in drift.items():
+    for g in range(mob_cfg.n_hotspots):
+        ax.plot(centres[:, g, 0], centres[:, g, 1], color=f"C{regime}", lw=1.2,
+                label=f"regime {regime}" if g == 0 else None)
+        ax.scatter(*centres[0, g], color=f"C{regime}", marker="o", s=15)
+ax.set_xlim(0, mob_cfg.area_m)
+ax.set_ylim(0, mob_cfg.area_m)
+ax.set_aspect("equal")
+ax.legend(fontsize=8)
+ax.set_title("Hotspot-centre drift (dots: start)")
+save_figure(fig, "mobility_hotspot_drift", figures_dir)
+plt.show()
+
+# %% [markdown]
+# And the schedule variants over 30 ticks: the paper's fixed cycle, random durations, a random
+# order, and the fixed cycle with the held-out regime inserted after every third segment.
+
+# %%
+variants = {
+    "fixed cycle (paper)": PhaseSchedule(period=5),
+    "random durations 3-8": PhaseSchedule(period=5, min_period=3, max_period=8, seed=seed),
+    "random order": PhaseSchedule(period=5, order="random", seed=seed),
+    "held-out after every 3": PhaseSchedule(period=5, held_out_every=3),
+}
+ticks = np.arange(60)
+fig, ax = plt.subplots(figsize=(9, 3))
+for i, (name, sched) in enumerate(variants.items()):
+    ax.step(ticks, [sched.phase_at(int(t)) + 5 * i for t in ticks], where="post", label=name)
+ax.set_yticks([5 * i + 1.5 for i in range(len(variants))], list(variants))
+ax.set_xlabel("tick (training iteration or environment step)")
+ax.set_title("Phase schedules (each trace: phase 0-2, 3 = held-out)")
+save_figure(fig, "phases_schedules", figures_dir)
+plt.show()
