@@ -1,0 +1,277 @@
+"""Tests of the MAPPO trainer (notebook 07, pemamoe/mappo.py). Everything runs at the ci scale."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+import pemamoe.mappo as mappo
+from pemamoe.mappo import (
+    METHODS,
+    TIMING_COLUMNS,
+    EpisodeTracker,
+    RunningNorm,
+    TrainConfig,
+    bootstrap_values,
+    collect_rollout,
+    compute_gae,
+    train,
+)
+from pemamoe.phase_controller import PhaseController, PhaseControllerConfig
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def ci(method="pemamoe", **kw):
+    return TrainConfig.for_scale("ci", method=method, seed=3, **kw)
+
+
+# --- GAE -----------------------------------------------------------------------------------------
+def test_gae_hand_computed_with_truncation_and_termination():
+    # two environments, gamma 0.9, lambda 0.5
+    rewards = torch.tensor([[1.0, 0.0], [2.0, 1.0], [3.0, 1.0]])
+    values = torch.tensor([[0.5, 1.0], [1.0, 1.0], [2.0, 1.0]])
+    dones = torch.tensor([[1, 0], [0, 0], [1, 0]], dtype=torch.bool)
+    # env 0: truncated after step 0 (V(final) = 10), terminated after step 2 (bootstrap 0)
+    final = torch.tensor([[10.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    last = torch.tensor([99.0, 4.0])  # env 1 continues: V(s_3) = 4
+    nv = bootstrap_values(values, last, dones, final)
+    assert nv.tolist() == [[10.0, 1.0], [2.0, 1.0], [0.0, 4.0]]
+    adv, ret = compute_gae(rewards, values, nv, dones, gamma=0.9, gae_lambda=0.5)
+    # env 0: step 2: 3 - 2 = 1; step 1: (2 + 1.8 - 1) + 0.45 * 1 = 3.25; step 0: 1 + 9 - 0.5 = 9.5 (no carry)
+    # env 1: deltas 0 + 0.9 - 1 = -0.1, 1 + 0.9 - 1 = 0.9, 1 + 3.6 - 1 = 3.6
+    a2 = 3.6
+    a1 = 0.9 + 0.45 * a2
+    a0 = -0.1 + 0.45 * a1
+    expected = torch.tensor([[9.5, a0], [3.25, a1], [1.0, a2]], dtype=torch.float64)
+    assert torch.allclose(adv, expected, atol=1e-12)
+    assert torch.allclose(ret, expected + values.double(), atol=1e-12)
+
+
+def test_rollout_bootstraps_truncation_from_final_state():
+    # episodes of 3 slots, rollout of 5: truncation at steps 2 of every env; an MLP critic is deterministic
+    cfg = ci("mlp", env_overrides={"episode_steps": 3}, rollout_steps=5, num_minibatches=5)
+    torch.manual_seed(0)
+    venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
+    actor, critic, opt, ctrl = mappo._build(cfg, venv.obs_dim, venv.state_dim)
+    norm = RunningNorm(True)
+    norm.update(torch.tensor([0.0, 10.0, 20.0]))
+    obs, state, _ = venv.reset()
+    settings = ctrl.begin_iteration(0)
+    finals = []
+    real_step = venv.step
+
+    def spy(actions):
+        out = real_step(actions)
+        if "final_state" in out[5]:
+            finals.append(out[5]["final_state"].copy())
+        return out
+
+    venv.step = spy
+    ro, *_ = collect_rollout(venv, actor, critic, norm, obs, state, 5, settings, EpisodeTracker(cfg.num_envs), 0)
+    assert ro.dones[2].all() and not ro.dones[[0, 1, 3, 4]].any()
+    with torch.no_grad():
+        v_final = norm.denormalize(critic(torch.from_numpy(finals[0]))[0].double())
+    assert torch.allclose(ro.next_values[2], v_final)
+    assert torch.equal(ro.next_values[:2], ro.values[1:3])
+
+
+def test_running_norm_matches_batch_statistics():
+    norm = RunningNorm(True)
+    x = torch.randn(1000, dtype=torch.float64) * 7 + 3
+    for chunk in x.split(137):
+        norm.update(chunk)
+    assert norm.mean == pytest.approx(float(x.mean()), rel=1e-10)
+    assert norm.var == pytest.approx(float(x.var(unbiased=False)), rel=1e-10)
+    assert torch.allclose(norm.denormalize(norm.normalize(x)), x)
+    off = RunningNorm(False)
+    off.update(x)
+    assert torch.equal(off.normalize(x), x)
+
+
+# --- every method trains at ci scale -------------------------------------------------------------
+EXPECTED = [
+    "iteration", "phase", "switch", "env_steps", "episode_return", "coverage", "served_users", "uav_using_rate",
+    "energy_rate_kj", "collisions_per_episode", "step/reward", "step/coverage", "approx_kl", "clip_frac",
+    "explained_variance", "policy_loss", "value_loss", "entropy", "kl_ref", "lr/head", "lr/critic", "ent_coef",
+    "kl_coef", "clip_coef", "temperature/policy", "early_stop_epoch", "sps", "rollout_time", "update_time",
+    "rank/stable/mean", "dormant/paper/mean", "router/policy/p0", "action/std_x", "first_ratio_dev",
+]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_each_method_trains_and_logs(method, tmp_path):
+    cfg = ci(method, iterations=3)  # 48 slots: every env finishes one 32-slot episode
+    res = train(cfg, tmp_path / method)
+    m = res.metrics
+    assert len(m) == 3 and m["iteration"].tolist() == [0, 1, 2]
+    missing = [c for c in EXPECTED if c not in m.columns]
+    assert not missing, missing
+    # the ratio is exactly 1 before the first gradient step of every iteration (routing replayed)
+    assert (m["first_ratio_dev"] == 0.0).all()
+    assert (m["gradient_steps"] > 0).all()
+    assert np.isfinite(m[["policy_loss", "value_loss", "approx_kl", "sps"]].to_numpy()).all()
+    assert m["env_steps"].tolist() == [cfg.batch_env_steps * (i + 1) for i in range(3)]
+    if method != "mlp":
+        assert "router/value/p0" in m.columns
+    eps = res.episodes
+    assert len(eps) > 0 and {"return", "phase", "served_users", "collisions", "env"} <= set(eps.columns)
+
+
+def test_first_ratio_is_exactly_one_directly():
+    for method in ("mlp", "smoe", "pemamoe"):
+        cfg = ci(method)
+        torch.manual_seed(0)
+        venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
+        actor, critic, opt, ctrl = mappo._build(cfg, venv.obs_dim, venv.state_dim)
+        obs, state, _ = venv.reset()
+        s = ctrl.begin_iteration(0)
+        ro, *_ = collect_rollout(venv, actor, critic, RunningNorm(), obs, state, cfg.rollout_steps, s,
+                                EpisodeTracker(cfg.num_envs), 0)
+        N, U = cfg.batch_env_steps, venv.n_agents
+        idx = torch.randperm(N)[: N // 2]
+        route = None if ro.actor_routing is None else ro.actor_routing.reshape(N, U).select(idx).reshape(-1)
+        logp, _, _ = actor.evaluate(ro.obs.reshape(N, U, -1)[idx].reshape(-1, venv.obs_dim),
+                                    ro.actions.reshape(N, U, -1)[idx].reshape(-1, 2), route,
+                                    None if route is None else route.temperature)
+        assert torch.equal(logp, ro.logprobs.reshape(N, U)[idx].reshape(-1)), method
+
+
+# --- phase clock -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("L,iters", [(2, 6), (3, 7)])
+def test_switch_calls_on_switch_exactly_at_multiples_of_L(L, iters, monkeypatch):
+    calls = []
+    real = PhaseController.on_switch
+
+    def spy(self, t):
+        calls.append(t)
+        return real(self, t)
+
+    monkeypatch.setattr(PhaseController, "on_switch", spy)
+    res = train(ci(phase_length_iters=L, iterations=iters, diag_every=10))
+    assert calls == [t for t in range(1, iters) if t % L == 0]
+    m = res.metrics
+    assert m.loc[m["switch"], "iteration"].tolist() == calls
+    assert m["phase"].tolist() == [(t // L) % 3 for t in range(iters)]
+    # the controller acts at the switch: KL anchor on, log-std reset, LR dropped
+    first = m[m["iteration"] == L].iloc[0]
+    assert first["kl_coef"] > 0 and first["lr/head"] < m["lr/head"].iloc[0]
+
+
+# --- resume, files, done.json -------------------------------------------------------------------
+def _comparable(df):
+    return df.drop(columns=[c for c in TIMING_COLUMNS if c in df.columns]).reset_index(drop=True)
+
+
+@pytest.mark.parametrize("method", ["pemamoe", "mlp"])
+def test_resume_continues_exactly(method, tmp_path):
+    cfg = ci(method, iterations=6, checkpoint_every=2)
+    straight = train(cfg, tmp_path / "straight")
+    part = train(cfg, tmp_path / "resumed", max_iterations=3)
+    assert not part.finished and not (tmp_path / "resumed" / "done.json").exists()
+    ck = torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=True)
+    assert ck["iteration"] == 3
+    resumed = train(cfg, tmp_path / "resumed", resume=True)
+    assert resumed.resumed_from == 3 and resumed.finished
+    pd.testing.assert_frame_equal(_comparable(straight.metrics), _comparable(resumed.metrics))
+    pd.testing.assert_frame_equal(straight.episodes, resumed.episodes)
+    for a, b in ((straight.actor, resumed.actor), (straight.critic, resumed.critic)):
+        for (na, pa), (nb, pb) in zip(a.state_dict().items(), b.state_dict().items()):
+            assert na == nb and torch.equal(pa, pb), na
+
+
+def test_run_dir_files_are_complete_and_atomic(tmp_path):
+    cfg = ci("smoe", iterations=4, checkpoint_every=2)
+    res = train(cfg, tmp_path)
+    assert TrainConfig.from_dict(json.loads((tmp_path / "config.json").read_text())) == cfg
+    m = pd.read_parquet(tmp_path / "metrics.parquet")
+    assert len(m) == 4
+    pd.testing.assert_frame_equal(m, res.metrics)
+    assert len(pd.read_parquet(tmp_path / "episodes.parquet")) == len(res.episodes)
+    done = json.loads((tmp_path / "done.json").read_text())
+    assert done["finished"] and done["iterations"] == 4 and done["config_hash"] == cfg.config_hash()
+    torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert not list(tmp_path.glob("*.tmp")) and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_done_json_short_circuits(tmp_path, monkeypatch):
+    cfg = ci("mlp", iterations=2)
+    first = train(cfg, tmp_path)
+
+    def boom(*a, **k):
+        raise AssertionError("recomputed a finished run")
+
+    monkeypatch.setattr(mappo, "_train", boom)
+    again = train(cfg, tmp_path, resume=True)
+    assert again.from_cache
+    pd.testing.assert_frame_equal(again.metrics, first.metrics)
+    for (_, a), (_, b) in zip(first.actor.state_dict().items(), again.actor.state_dict().items()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="different config"):
+        train(cfg.replace(seed=4), tmp_path, resume=True)
+    # a baseline ignores the phase controller: its settings do not make a different run
+    other = cfg.replace(controller=cfg.controller.without("noise_injection"))
+    assert other.config_hash() == cfg.config_hash()
+    assert train(other, tmp_path, resume=True).from_cache
+    pem = cfg.replace(method="pemamoe")
+    assert pem.replace(controller=other.controller).config_hash() != pem.config_hash()
+
+
+# --- configuration -------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "field,value",
+    [("method", "transformer"), ("num_envs", 0), ("rollout_steps", 2.5), ("iterations", -1), ("lr", 0.0),
+     ("gamma", 1.5), ("gae_lambda", -0.1), ("clip_coef", 0), ("vf_coef", -1.0), ("target_kl", 0.0),
+     ("max_grad_norm", float("nan")), ("num_minibatches", 3), ("adam_betas", (0.9, 1.0)), ("anneal_lr", 1),
+     ("phase_length_iters", 0), ("n_phases", 4), ("weight_decay", -1e-4), ("env_overrides", {"phase_clock": "env"})],
+)
+def test_invalid_config_raises_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=f"TrainConfig.{field}"):
+        TrainConfig(**{field: value})
+
+
+def test_presets_and_overrides():
+    paper = TrainConfig.for_scale("paper")
+    assert paper.total_env_steps == 22_118_400 and paper.iterations == 10_800
+    assert paper.phase_length_iters * 9 == paper.iterations
+    assert (paper.update_epochs, paper.num_minibatches, paper.lr, paper.clip_coef, paper.vf_coef) == (8, 32, 3e-4, 0.15, 2.0)
+    assert paper.controller == PhaseControllerConfig()
+    small = TrainConfig.for_scale("small", method="moe", seed=2, noise_gamma=0.01, without="lr_drop")
+    assert small.iterations == 9 * small.phase_length_iters
+    assert small.controller.noise_gamma == 0.01 and not small.controller.lr_drop
+    assert small.controller.lr_warmup_iters < PhaseControllerConfig().lr_warmup_iters
+    assert TrainConfig.for_scale("small").config_hash() != small.config_hash()
+    assert TrainConfig.from_dict(small.to_dict()) == small
+    with pytest.raises(ValueError, match="unknown override"):
+        TrainConfig.for_scale("ci", bogus=1)
+    with pytest.raises(ValueError, match="scale"):
+        TrainConfig.for_scale("huge")
+
+
+def test_evaluate_policy_is_deterministic():
+    cfg = ci("smoe")
+    torch.manual_seed(0)
+    actor, *_ = mappo._build(cfg, mappo.observation_dim(cfg.env_config()), mappo.state_dim(cfg.env_config()))
+    a = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
+    b = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
+    assert len(a) == 3 and (a["phase"] == 2).all()
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_force_controller_runs_noise_only_for_a_baseline():
+    from pemamoe.phase_controller import MECHANISMS
+
+    others = [m for m in MECHANISMS if m != "noise_injection"]
+    cfg = ci("moe", force_controller=True, without=others, iterations=3)
+    assert cfg.controller_enabled and cfg.config_hash() != ci("moe", iterations=3).config_hash()
+    m = train(cfg).metrics
+    assert m.loc[m["switch"], "noised_experts"].gt(0).all()  # noise after the switch's epochs
+    assert (m["kl_coef"] == 0).all() and m["lr/head"].nunique() == 1
