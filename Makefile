@@ -5,6 +5,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SCALE ?= small
+BACKEND ?= local
+WORKERS ?= 2
 PYTEST_ARGS ?= -n 2
 
 .PHONY: help test figures export check-export lab bench clean lock venv
@@ -35,7 +37,7 @@ test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 figures: $(STAMP)
-	$(PY) -m pemamoe figures --scale $(SCALE)
+	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS)
 
 export: $(STAMP)
 	$(PY) -m pemamoe.literate export

@@ -249,13 +249,29 @@ PAPER_COUNTERPARTS = {
 }
 
 
+def notebook_parameters(notebook) -> set:
+    """Names assigned in a notebook's cell tagged "parameters" (so callers pass only those)."""
+    import ast
+
+    text = Path(notebook).read_text(encoding="utf-8")
+    marker = '# %% tags=["parameters"]'
+    if marker not in text:
+        return set()
+    body = text.split(marker, 1)[1].split("\n# %%", 1)[0]
+    return {t.id for node in ast.parse(body).body if isinstance(node, ast.Assign)
+            for t in node.targets if isinstance(t, ast.Name)}
+
+
 def figure_notebooks(root=None) -> list:
     """The numbered notebooks (NN_name.py), in paper order."""
     return sorted((Path(root or REPO_ROOT) / "notebooks").glob("[0-9][0-9]_*.py"))
 
 
-def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600) -> Path:
-    """Execute every notebook at `scale` into `figures_dir`; write its README; return its path."""
+def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600, **extra) -> Path:
+    """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
+
+    extra: further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
+    """
     import subprocess
     import time
 
@@ -268,7 +284,9 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
         start = time.perf_counter()
         print(f"[figures] {nb.name} (scale={scale}) ...", flush=True)
-        run_notebook(nb, {"scale": scale, "figures_dir": str(figures_dir)}, timeout=timeout)
+        declared = notebook_parameters(nb)
+        params = {"scale": scale, "figures_dir": str(figures_dir), **{k: v for k, v in extra.items() if k in declared}}
+        run_notebook(nb, params, timeout=timeout)
         print(f"[figures] {nb.name} done in {time.perf_counter() - start:.1f} s", flush=True)
         for p in figures_dir.iterdir():
             if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
@@ -286,7 +304,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
     readme = Path(figures_dir) / "README.md"
     rows = _read_provenance(readme)
-    command = f"make figures SCALE={scale}"
+    command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
     for name, nb in records.items():
         stem = name.rsplit(".", 1)[0]
         counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")

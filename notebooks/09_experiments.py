@@ -1,0 +1,652 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 09 · Experiments: every comparison figure from real runs
+#
+# This notebook reproduces section VI of the paper: the four methods (MLP, dense MoE, sparse MoE
+# and PE-MAMoE) trained with the same MAPPO pipeline on the phase-switching environment, compared
+# on plasticity indicators (feature rank, dormant neurons), task performance (return, normalised
+# IQM), routing, and the system metrics (collisions, energy, served users, UAV using rate, mean
+# action).
+#
+# Compute and plotting are separate. The first half defines **sweeps**: a run is a point
+# (method, seed, ablation, noise level, scale) whose resolved training configuration is hashed to
+# name its folder under `results/`. A sweep skips every run whose folder holds `done.json`, and a
+# run killed half-way resumes from its last checkpoint, so rerunning a sweep after an interruption
+# only does the missing work. The second half only *reads* those folders and draws; changing a plot
+# never retrains.
+#
+# Runs execute on a local process pool by default (each worker single-threaded so 2 cores are not
+# oversubscribed) or as Ray tasks, on a local Ray instance or on a cluster given its address.
+
+# %%
+#| default_exp sweep
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+seeds = None  # None: the scale's default (ci: 1, small: 3, paper: 3)
+methods = ("mlp", "moe", "smoe", "pemamoe")
+backend = "local"  # "local" | "ray"
+workers = 2
+ray_address = None
+results_dir = "results"
+
+# %%
+#| export
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+import multiprocessing as mp
+
+from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
+from pemamoe.mappo import METHODS, TrainConfig
+
+BACKENDS = ("local", "ray")
+
+# %% [markdown]
+# ## A run, and its place in the cache
+#
+# `RunSpec` names a run the way an experiment table would: the method, the seed, the scale, which
+# phase-controller mechanisms are switched off (an ablation), the noise level γ, and any further
+# training overrides. `to_config` resolves it to the full `TrainConfig`; the cache key is the hash
+# of that resolved configuration, so two specs that mean the same run share one folder, and any
+# change to a default (a new preset, say) gives new folders instead of silently reusing stale ones.
+
+# %%
+#| export
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
+
+    method: str
+    seed: int = 0
+    scale: str = "small"
+    without: tuple = ()  # phase-controller mechanisms switched off (ablation)
+    noise_gamma: float | None = None  # None: the preset's gamma0
+    overrides: tuple = ()  # further TrainConfig.for_scale overrides, as sorted (key, value) pairs
+    tag: str = field(default="", compare=False)  # which experiment asked for it; not part of the run
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"RunSpec.method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        check_scale(self.scale)
+        object.__setattr__(self, "without", tuple(sorted(self.without)))
+        object.__setattr__(self, "overrides", tuple(sorted(dict(self.overrides).items())))
+
+    def to_config(self) -> TrainConfig:
+        extra = dict(self.overrides)
+        if self.without:
+            extra["without"] = self.without
+        if self.noise_gamma is not None:
+            extra["noise_gamma"] = self.noise_gamma
+        return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
+
+    def run_dir(self, results_dir) -> Path:
+        return Path(results_dir) / self.scale / self.to_config().run_name()
+
+    def label(self) -> str:
+        parts = [self.method, f"seed {self.seed}"]
+        if self.without:
+            parts.append("without " + "+".join(self.without))
+        if self.noise_gamma is not None:
+            parts.append(f"gamma {self.noise_gamma:g}")
+        return ", ".join(parts)
+
+
+def is_done(spec: RunSpec, results_dir) -> bool:
+    return (spec.run_dir(results_dir) / "done.json").is_file()
+
+
+# %% [markdown]
+# ## Executing one run, and many
+#
+# `execute_run` is what a worker runs: it caps torch at the worker's thread budget, resolves the
+# spec and calls `train`, which resumes from a checkpoint if one is there and returns at once if
+# the run is already done. `run_sweep` drops finished runs first, then hands the rest to a backend:
+#
+# * `local`: a `ProcessPoolExecutor` with the `spawn` start method (no fork of a process that has
+#   already started torch threads);
+# * `ray`: each run is a Ray task needing one CPU. `ray.init(address=...)` joins a cluster when an
+#   address is given (or `RAY_ADDRESS` is set) and starts a local Ray instance otherwise.
+#
+# Both backends return the run folders in the order of the specs.
+
+# %%
+#| export
+def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
+    """Train one run (resuming or skipping as its folder allows); return its folder."""
+    import torch
+
+    from pemamoe.mappo import train
+
+    torch.set_num_threads(threads)
+    run_dir = spec.run_dir(results_dir)
+    start = time.perf_counter()
+    train(spec.to_config(), run_dir, resume=True, threads=threads)
+    marker = run_dir / "sweep.json"
+    if not marker.exists():
+        atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start})
+    return str(run_dir)
+
+
+def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
+              threads_per_run: int = 1, verbose: bool = True) -> list:
+    """Run every spec not yet done; return all run folders, in the order of `specs`."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    specs = list(specs)
+    results_dir = Path(results_dir)
+    # Two specs can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's
+    # gamma = 0.005 point): key by run folder so that such a run is trained once, not twice at once.
+    by_folder = {}
+    for spec in specs:
+        by_folder.setdefault(spec.run_dir(results_dir), spec)
+    todo = [spec for folder, spec in by_folder.items() if not (folder / "done.json").is_file()]
+    if verbose:
+        print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
+              f"on {backend} ({workers} workers)", flush=True)
+    if todo:
+        start = time.perf_counter()
+        runner = _run_local if backend == "local" else _run_ray
+        runner(todo, results_dir, workers, address, threads_per_run, verbose)
+        if verbose:
+            print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
+    return [s.run_dir(results_dir) for s in specs]
+
+
+# %%
+#| exporti
+def _run_local(todo, results_dir, workers, address, threads, verbose):
+    if workers == 1:
+        for spec in todo:
+            execute_run(spec, results_dir, threads)
+            if verbose:
+                print(f"[sweep] done: {spec.label()}", flush=True)
+        return
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(execute_run, spec, str(results_dir), threads): spec for spec in todo}
+        for future in as_completed(futures):
+            future.result()  # re-raise a worker's error here, naming nothing lost: others finish
+            if verbose:
+                print(f"[sweep] done: {futures[future].label()}", flush=True)
+
+
+def _run_ray(todo, results_dir, workers, address, threads, verbose):
+    import ray
+
+    address = address or os.environ.get("RAY_ADDRESS")
+    started_here = not ray.is_initialized()
+    if started_here:
+        if address:
+            ray.init(address=address, log_to_driver=verbose)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=verbose,
+                     runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+    try:
+        task = ray.remote(num_cpus=threads)(execute_run)
+        refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            ray.get(done[0])
+            if verbose:
+                print(f"[sweep] done: {refs[done[0]].label()}", flush=True)
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+# %% [markdown]
+# ## The paper's experiments as sweeps
+#
+# * **main**: the four methods, each with every seed;
+# * **noise**: PE-MAMoE at γ ∈ {0.001, 0.005, 0.01} and MoE at the same γ (see notebook 10 for how
+#   noise enters MoE);
+# * **tricks**: PE-MAMoE with one mechanism removed at a time: entropy reset/annealing, log-std
+#   reset, learning-rate drop and warm-up, noise injection.
+#
+# `default_seeds` gives the scale's number of seeds. The paper trained one seed per method; we use
+# three at the `small` and `paper` scales and report the number on every figure.
+
+# %%
+#| export
+NOISE_GAMMAS = (0.001, 0.005, 0.01)
+TRICKS = {
+    "entropy annealing": "entropy_reset",
+    "log-std reset": "log_std_reset",
+    "LR annealing": "lr_drop",
+    "noise injection": "noise_injection",
+}
+
+
+def default_seeds(scale: str) -> tuple:
+    return tuple(range(by_scale(scale, ci=1, small=3, paper=3)))
+
+
+def main_specs(scale: str, seeds=None, methods=METHODS) -> list:
+    seeds = default_seeds(scale) if seeds is None else tuple(seeds)
+    return [RunSpec(m, s, scale, tag="main") for m in methods for s in seeds]
+
+
+def trick_specs(scale: str, seeds=None) -> list:
+    seeds = default_seeds(scale) if seeds is None else tuple(seeds)
+    return [RunSpec("pemamoe", s, scale, without=(mech,), tag="tricks") for mech in TRICKS.values() for s in seeds]
+
+
+def noise_specs(scale: str, seeds=None, gammas=NOISE_GAMMAS) -> list:
+    """PE-MAMoE at each gamma, and MoE with expert-noise injection alone (every other mechanism off)."""
+    from pemamoe.phase_controller import MECHANISMS
+
+    seeds = default_seeds(scale) if seeds is None else tuple(seeds)
+    noise_only = tuple(m for m in MECHANISMS if m != "noise_injection")
+    return [RunSpec("pemamoe", s, scale, noise_gamma=g, tag="noise") for g in gammas for s in seeds] + [
+        RunSpec("moe", s, scale, noise_gamma=g, without=noise_only, overrides=(("force_controller", True),),
+                tag="noise") for g in gammas for s in seeds]
+
+
+def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
+    """The runs of one experiment ("main", "tricks", "noise") or of "all" of them."""
+    makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
+              "noise": lambda: noise_specs(scale, seeds)}
+    if experiment == "all":
+        return [s for make in makers.values() for s in make()]
+    if experiment not in makers:
+        raise ValueError(f"experiment must be one of {', '.join([*makers, 'all'])}, got {experiment!r}")
+    return makers[experiment]()
+
+
+# %% [markdown]
+# ## Command line
+#
+# `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
+# experiments above; `--address` joins a Ray cluster. It is the same `run_sweep` the notebooks
+# call, so a sweep started from the shell is reused by the notebooks.
+
+# %%
+#| export
+def sweep_cli(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all"])
+    parser.add_argument("--scale", default="small")
+    parser.add_argument("--seeds", type=int, nargs="*", default=None, help="seed list (default: the scale's)")
+    parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--backend", default="local", choices=BACKENDS)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
+    parser.add_argument("--results-dir", default="results")
+    args = parser.parse_args(argv)
+    check_scale(args.scale)
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, tuple(args.methods))
+    run_sweep(specs, args.backend, args.workers, args.results_dir, args.address)
+    return 0
+
+# %% [markdown]
+# ## Reading results back
+#
+# Everything below reads the run folders; nothing trains. `load_runs` stacks the per-iteration logs
+# (`metrics.parquet`) and the per-episode logs (`episodes.parquet`) of a list of run folders into
+# two tidy frames, each row labelled with its run's method, seed, ablation and γ.
+
+# %%
+#| export analysis
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+METHOD_ORDER = ("mlp", "moe", "smoe", "pemamoe")
+METHOD_LABELS = {"mlp": "MLP", "moe": "MoE", "smoe": "SMoE", "pemamoe": "PE-MAMoE"}
+METHOD_COLOURS = {"mlp": "#7f7f7f", "moe": "#1f77b4", "smoe": "#ff7f0e", "pemamoe": "#d62728"}
+
+
+def load_runs(run_dirs) -> tuple:
+    """(metrics, episodes) DataFrames of finished runs, labelled by method/seed/without/gamma/tag."""
+    metrics, episodes = [], []
+    for run_dir in map(Path, run_dirs):
+        if not (run_dir / "done.json").is_file():
+            raise FileNotFoundError(f"{run_dir} has no done.json: run the sweep first")
+        config = json.loads((run_dir / "config.json").read_text())
+        spec = json.loads((run_dir / "sweep.json").read_text())["spec"] if (run_dir / "sweep.json").is_file() else {}
+        label = {
+            "run": run_dir.name,
+            "method": config["method"],
+            "seed": config["seed"],
+            "without": "+".join(spec.get("without", ())) or "none",
+            "noise_gamma": config["controller"]["noise_gamma"],
+            "tag": spec.get("tag", ""),
+        }
+        m = pd.read_parquet(run_dir / "metrics.parquet").assign(**label)
+        e = pd.read_parquet(run_dir / "episodes.parquet").assign(**label)
+        metrics.append(m)
+        episodes.append(e)
+    return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
+
+
+# %% [markdown]
+# ## The paper's summary statistic, and its uncertainty across seeds
+#
+# The paper summarises each method by the **interquartile mean** (IQM) of the per-episode values
+# of a metric recorded during training: sort them, drop the lowest and highest quarter, average the
+# rest. For the bar chart across five metrics it then min–max normalises each metric across the
+# methods, and plots energy and collisions as one minus the normalised value so that taller is
+# better everywhere. We follow that protocol per run, and add what a single seed cannot give: for
+# several seeds, the stratified bootstrap confidence intervals of rliable (IQM across runs), and
+# the probability that PE-MAMoE improves on each baseline.
+
+# %%
+#| export analysis
+# Metric of the per-episode log -> (label, higher is better)
+SUMMARY_METRICS = {
+    "coverage": ("Coverage", True),
+    "return": ("Return", True),
+    "served_users": ("Served users", True),
+    "energy_rate_kj": ("Energy use", False),
+    "collisions": ("Collisions", False),
+}
+
+
+def iqm(values) -> float:
+    """Interquartile mean: the mean of the middle 50 % of the sorted values."""
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    return float(stats.trim_mean(values, 0.25)) if values.size else float("nan")
+
+
+def run_scores(episodes: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd.DataFrame:
+    """One row per run: the IQM of each metric's per-episode values (the paper's protocol)."""
+    keys = ["run", "method", "seed", "without", "noise_gamma", "tag"]
+    return episodes.groupby(keys)[list(metrics)].agg(iqm).reset_index()
+
+
+def normalise_scores(scores: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd.DataFrame:
+    """Min-max normalise each metric over all rows; lower-is-better metrics become 1 - value."""
+    out = scores.copy()
+    for m in metrics:
+        lo, hi = scores[m].min(), scores[m].max()
+        norm = (scores[m] - lo) / (hi - lo) if hi > lo else scores[m] * 0.0 + 0.5
+        out[m] = norm if SUMMARY_METRICS[m][1] else 1.0 - norm
+    return out
+
+
+def bootstrap_iqm(norm_scores: pd.DataFrame, methods, metrics=tuple(SUMMARY_METRICS), reps: int = 2000, seed: int = 0):
+    """rliable stratified-bootstrap IQM across runs, per metric: {method: (point (M,), ci (2, M))}."""
+    from rliable import library as rly
+    from rliable import metrics as rmetrics
+
+    score_dict = {m: norm_scores.loc[norm_scores.method == m, list(metrics)].to_numpy() for m in methods}
+
+    def per_metric_iqm(s):
+        return np.array([rmetrics.aggregate_iqm(s[:, [j]]) for j in range(s.shape[1])])
+
+    point, ci = rly.get_interval_estimates(score_dict, per_metric_iqm, reps=reps,
+                                           random_state=np.random.RandomState(seed))
+    return {m: (point[m], ci[m]) for m in methods}
+
+
+def probability_of_improvement(norm_scores: pd.DataFrame, method: str, baselines, metrics=tuple(SUMMARY_METRICS),
+                               reps: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """P(method > baseline) over runs and metrics (rliable), with a bootstrap interval."""
+    from rliable import library as rly
+    from rliable import metrics as rmetrics
+
+    mine = norm_scores.loc[norm_scores.method == method, list(metrics)].to_numpy()
+    pairs = {b: [mine, norm_scores.loc[norm_scores.method == b, list(metrics)].to_numpy()] for b in baselines}
+    point, ci = rly.get_interval_estimates(pairs, rmetrics.probability_of_improvement, reps=reps,
+                                           random_state=np.random.RandomState(seed))
+    return pd.DataFrame([{"baseline": b, "P(improvement)": point[b], "ci_low": ci[b][0], "ci_high": ci[b][1]}
+                         for b in baselines])
+
+
+def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int = 2000, seed: int = 0):
+    """(point, low, high) of 100 * (IQM_a - IQM_b) / |IQM_b| over runs, bootstrapping runs within each group."""
+    a = scores.loc[a_mask, metric].to_numpy(float)
+    b = scores.loc[b_mask, metric].to_numpy(float)
+    rng = np.random.default_rng(seed)
+
+    def change(x, y):
+        base = iqm(y)
+        return 100.0 * (iqm(x) - base) / abs(base) if base != 0 else float("nan")
+
+    boot = [change(rng.choice(a, a.size), rng.choice(b, b.size)) for _ in range(reps)]
+    low, high = np.nanpercentile(boot, [2.5, 97.5])
+    return change(a, b), float(low), float(high)
+
+
+# %% [markdown]
+# ## Time-series figures
+#
+# Every curve is the mean over seeds with a band from the lowest to the highest seed, phase
+# switches are dashed vertical lines, and the figure says how many seeds and which scale it shows.
+# Curves are smoothed with a short moving average (stated on the axis) because per-iteration values
+# of a few episodes are noisy.
+
+# %%
+#| export analysis
+def smooth(values, window: int):
+    return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
+
+
+def switch_iterations(metrics: pd.DataFrame) -> list:
+    one_run = metrics[metrics.run == metrics.run.iloc[0]]
+    return sorted(one_run.loc[one_run.switch.astype(bool), "iteration"].tolist())
+
+
+def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=METHOD_ORDER, window: int = 5,
+                       label_fn=None):
+    """Mean over seeds and min-max band of `column` against iteration, one curve per method."""
+    for method in methods:
+        sub = metrics[metrics.method == method]
+        if sub.empty or column not in sub:
+            continue
+        table = sub.pivot_table(index="iteration", columns="seed", values=column)
+        table = table.apply(lambda c: pd.Series(smooth(c.to_numpy(), window), index=c.index))
+        mean, lo, hi = table.mean(axis=1), table.min(axis=1), table.max(axis=1)
+        colour = METHOD_COLOURS.get(method)
+        ax.plot(mean.index, mean.to_numpy(), color=colour, lw=1.4,
+                label=(label_fn or METHOD_LABELS.get)(method) if label_fn or method in METHOD_LABELS else method)
+        ax.fill_between(mean.index, lo.to_numpy(), hi.to_numpy(), color=colour, alpha=0.15, lw=0)
+    for t in switch_iterations(metrics):
+        ax.axvline(t, color="0.5", ls="--", lw=0.7)
+    ax.set_xlabel(f"training iteration (curves: {window}-iteration moving average)")
+
+
+def provenance(metrics: pd.DataFrame, scale: str) -> str:
+    seeds = metrics.groupby("method").seed.nunique()
+    n = seeds.min() if len(seeds) else 0
+    return f"scale={scale}, {n} seed{'s' if n != 1 else ''} per method; band: min-max over seeds; dashed: phase switches"
+
+# %% [markdown]
+# ## Run (or reuse) the main comparison
+#
+# At the `ci` scale this trains a few iterations per method in seconds; at `small` it is the
+# default of `make figures`; finished runs under `results/` are reused, never retrained.
+
+# %%
+import dataclasses as _dc
+
+import matplotlib.pyplot as plt
+
+from pemamoe.analysis import (METHOD_COLOURS, METHOD_LABELS, SUMMARY_METRICS, bootstrap_iqm, load_runs,
+                              normalise_scores, plot_over_training, probability_of_improvement, provenance,
+                              run_scores)
+from pemamoe.core import save_figure, write_table
+# Worker processes import what they run by module path, so the sweep must use the package's copies
+# of these definitions, not the ones this notebook's cells just created in __main__.
+from pemamoe.sweep import default_seeds, main_specs, run_sweep
+
+seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
+run_dirs = run_sweep(main_specs(scale, seed_list, methods), backend, workers, results_dir, ray_address)
+metrics, episodes = load_runs(run_dirs)
+note = provenance(metrics, scale)
+print(note, "|", len(episodes), "training episodes")
+
+
+def figure(column, ylabel, name, title, methods_shown=methods):
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    plot_over_training(ax, metrics, column, methods_shown)
+    ax.set_ylabel(ylabel)
+    ax.set_title(f"{title}\n{note}", fontsize=9)
+    ax.legend(fontsize=8, ncol=4)
+    save_figure(fig, name, figures_dir)
+    plt.show()
+
+
+# %% [markdown]
+# ## Plasticity indicators
+#
+# Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
+# trunk), and the dormant-neuron fraction (τ-dormant score, τ = 0.025, averaged over layers and
+# experts).
+
+# %%
+figure("rank/stable/mean", "stable rank (mean over experts)", "results_feature_rank",
+       "Average expert feature rank over training")
+figure("dormant/tau/mean", "dormant fraction (tau = 0.025)", "results_dormant_fraction",
+       "Dormant neuron fraction over training")
+
+# %% [markdown]
+# ## Task performance
+
+# %%
+figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training")
+
+# %%
+scores = run_scores(episodes)
+norm = normalise_scores(scores)
+boot = bootstrap_iqm(norm, [m for m in methods if m in set(norm.method)])
+fig, ax = plt.subplots(figsize=(8, 3.8))
+width = 0.8 / len(boot)
+x = np.arange(len(SUMMARY_METRICS))
+rows = []
+for i, (method, (point, ci)) in enumerate(boot.items()):
+    err = np.vstack([point - ci[0], ci[1] - point])
+    ax.bar(x + i * width, point, width, yerr=err, capsize=3, color=METHOD_COLOURS[method], label=METHOD_LABELS[method])
+    for j, metric in enumerate(SUMMARY_METRICS):
+        rows.append({"method": method, "metric": SUMMARY_METRICS[metric][0], "normalised IQM": point[j],
+                     "ci_low": ci[0][j], "ci_high": ci[1][j]})
+ax.set_xticks(x + width * (len(boot) - 1) / 2, [v[0] for v in SUMMARY_METRICS.values()])
+ax.set_ylabel("normalised IQM (higher is better)")
+ax.set_title("Normalised IQM across five system metrics (energy, collisions: 1 - normalised)\n"
+             f"{note}; error bars: 95 % stratified-bootstrap CI across seeds", fontsize=9)
+ax.legend(fontsize=8, ncol=4)
+save_figure(fig, "results_normalised_iqm", figures_dir)
+plt.show()
+iqm_table = pd.DataFrame(rows)
+write_table(iqm_table.round(3), "results_normalised_iqm", figures_dir)
+raw = scores.groupby("method")[list(SUMMARY_METRICS)].mean().reindex([m for m in methods if m in set(scores.method)])
+print("per-episode IQM of each metric, mean over seeds (raw units):")
+raw.round(3)
+
+# %%
+baselines = [m for m in methods if m != "pemamoe" and m in set(norm.method)]
+if "pemamoe" in set(norm.method) and baselines:
+    poi = probability_of_improvement(norm, "pemamoe", baselines)
+    write_table(poi.round(3), "results_probability_of_improvement", figures_dir)
+    print(poi.round(3))
+
+# %% [markdown]
+# ## Where the routers send their inputs
+#
+# Mean routing probability of each expert on the probe batch, for the policy router and the value
+# router of the three MoE methods.
+
+# %%
+moe_methods = [m for m in methods if m != "mlp"]
+n_experts = sum(c.startswith("router/policy/p") for c in metrics.columns)
+for side in ("policy", "value"):
+    fig, axes = plt.subplots(1, len(moe_methods), figsize=(4 * len(moe_methods), 3.2), sharey=True, squeeze=False)
+    for ax, method in zip(axes[0], moe_methods):
+        sub = metrics[metrics.method == method]
+        for j in range(n_experts):
+            col = f"router/{side}/p{j}"
+            table = sub.pivot_table(index="iteration", columns="seed", values=col)
+            ax.plot(table.index, table.mean(axis=1), label=f"expert {j}")
+            ax.fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.15, lw=0)
+        for t in sorted(sub.loc[sub.switch.astype(bool), "iteration"].unique()):
+            ax.axvline(t, color="0.5", ls="--", lw=0.7)
+        ax.set_title(METHOD_LABELS[method])
+        ax.set_xlabel("training iteration")
+    axes[0, 0].set_ylabel(f"{side}-router probability")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{side.capitalize()}-side expert routing probability ({note})", fontsize=9)
+    save_figure(fig, f"results_router_{side}", figures_dir)
+    plt.show()
+
+# %% [markdown]
+# ## System performance and internal state
+
+# %%
+figure("collisions_per_episode", "collisions per episode", "results_collisions", "Collisions per episode over training")
+figure("energy_rate_kj", "energy per UAV per slot [kJ]", "results_energy_rate", "Mean UAV energy rate over training")
+
+# %%
+fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
+plot_over_training(axes[0], metrics, "served_users", methods)
+axes[0].set_ylabel("served users (mean per slot)")
+plot_over_training(axes[1], metrics, "uav_using_rate", methods)
+axes[1].set_ylabel("UAV using rate")
+axes[0].set_title(f"Served users and UAV using rate over training\n{note}", fontsize=9)
+axes[0].legend(fontsize=8, ncol=4)
+save_figure(fig, "results_service", figures_dir)
+plt.show()
+
+# %%
+fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
+for ax, comp in zip(axes, ("x", "y")):
+    plot_over_training(ax, metrics, f"action/mean_{comp}", methods, window=1)
+    ax.set_ylabel(f"mean action, {comp}")
+axes[0].set_title(f"Mean action response to phase switches (probe batch, deterministic)\n{note}", fontsize=9)
+axes[0].legend(fontsize=8, ncol=4)
+save_figure(fig, "results_mean_action", figures_dir)
+plt.show()
+
+# %% [markdown]
+# ## The parameter table, generated from the configuration objects
+#
+# Every number of the simulation and of training, read from `EnvConfig` and the `paper` preset of
+# `TrainConfig`, so the table cannot drift from the code.
+
+# %%
+from pemamoe.env import EnvConfig
+
+
+def flatten(obj, prefix=""):
+    out = {}
+    for f in _dc.fields(obj):
+        value = getattr(obj, f.name)
+        if _dc.is_dataclass(value):
+            out.update(flatten(value, f"{prefix}{f.name}."))
+        elif not f.name.startswith("_"):
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+params = {**{f"env.{k}": v for k, v in flatten(EnvConfig()).items()},
+          **{f"train.{k}": v for k, v in flatten(TrainConfig.for_scale("paper", "pemamoe", 0)).items()
+             if k not in ("method", "seed")}}
+param_table = pd.DataFrame({"parameter": list(params), "value": [str(v) for v in params.values()]})
+write_table(param_table, "table_parameters", figures_dir)
+print(len(param_table), "parameters")
