@@ -296,8 +296,12 @@ def path_loss_nlos_db(distance_m, cfg: ChannelConfig):
 def large_scale_gain(distance_m, rel_height_m, cfg: ChannelConfig):
     """Expected linear gain (antenna gains included, no fading or shadowing), shape of r and h."""
     p_los = los_probability(distance_m, rel_height_m, cfg)
-    g_los = 10.0 ** (-path_loss_los_db(distance_m, cfg) / 10.0)
-    g_nlos = 10.0 ** (-path_loss_nlos_db(distance_m, cfg) / 10.0)
+    return _expected_gain(p_los, path_loss_los_db(distance_m, cfg), path_loss_nlos_db(distance_m, cfg), cfg)
+
+
+def _expected_gain(p_los, pl_los_db, pl_nlos_db, cfg: ChannelConfig):
+    g_los = 10.0 ** (-pl_los_db / 10.0)
+    g_nlos = 10.0 ** (-pl_nlos_db / 10.0)
     return cfg.antenna_gain * (p_los * g_los + (1.0 - p_los) * g_nlos)
 
 
@@ -376,8 +380,10 @@ class ChannelSample(NamedTuple):
 def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generator) -> ChannelSample:
     """Draw LoS states, fading and shadowing for every (user, UAV) link; see ChannelSample."""
     horizontal, rel_height, distance = link_geometry(uav_xyz, user_xyz, cfg)
-    los = rng.random(distance.shape) < los_probability(distance, rel_height, cfg)
-    path_loss = np.where(los, path_loss_los_db(distance, cfg), path_loss_nlos_db(distance, cfg))
+    p_los = los_probability(distance, rel_height, cfg)
+    pl_los, pl_nlos = path_loss_los_db(distance, cfg), path_loss_nlos_db(distance, cfg)
+    los = rng.random(distance.shape) < p_los
+    path_loss = np.where(los, pl_los, pl_nlos)
     # Both laws are drawn for every link and the state picks one. The count of random numbers a
     # call consumes is then fixed by the shapes alone, whatever the LoS states, so a batch of
     # environments with one stream each can share one call (the environment relies on this).
@@ -397,7 +403,7 @@ def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generat
         fading_power=fading,
         shadowing_db=shadow,
         gain=gain,
-        expected_gain=large_scale_gain(distance, rel_height, cfg),
+        expected_gain=_expected_gain(p_los, pl_los, pl_nlos, cfg),  # = large_scale_gain, reusing the parts
     )
 
 

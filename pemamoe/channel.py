@@ -173,12 +173,16 @@ def path_loss_nlos_db(distance_m, cfg: ChannelConfig):
 def large_scale_gain(distance_m, rel_height_m, cfg: ChannelConfig):
     """Expected linear gain (antenna gains included, no fading or shadowing), shape of r and h."""
     p_los = los_probability(distance_m, rel_height_m, cfg)
-    g_los = 10.0 ** (-path_loss_los_db(distance_m, cfg) / 10.0)
-    g_nlos = 10.0 ** (-path_loss_nlos_db(distance_m, cfg) / 10.0)
+    return _expected_gain(p_los, path_loss_los_db(distance_m, cfg), path_loss_nlos_db(distance_m, cfg), cfg)
+
+
+def _expected_gain(p_los, pl_los_db, pl_nlos_db, cfg: ChannelConfig):
+    g_los = 10.0 ** (-pl_los_db / 10.0)
+    g_nlos = 10.0 ** (-pl_nlos_db / 10.0)
     return cfg.antenna_gain * (p_los * g_los + (1.0 - p_los) * g_nlos)
 
 
-# %% notebooks/01_channel.py, cell 16 (line 320)
+# %% notebooks/01_channel.py, cell 16 (line 324)
 def rician_power(los_shape, k_db, rng: np.random.Generator):
     """Rician fading power |h|^2 with unit mean; k_db is a scalar or broadcasts to los_shape."""
     k = 10.0 ** (np.asarray(k_db, dtype=float) / 10.0)
@@ -204,7 +208,7 @@ def shadowing_db(los_mask, cfg: ChannelConfig, rng: np.random.Generator):
     return sigma * rng.standard_normal(los_mask.shape)
 
 
-# %% notebooks/01_channel.py, cell 18 (line 360)
+# %% notebooks/01_channel.py, cell 18 (line 364)
 class ChannelSample(NamedTuple):
     """One draw of every link's channel; every field is (..., N, U)."""
 
@@ -222,8 +226,10 @@ class ChannelSample(NamedTuple):
 def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generator) -> ChannelSample:
     """Draw LoS states, fading and shadowing for every (user, UAV) link; see ChannelSample."""
     horizontal, rel_height, distance = link_geometry(uav_xyz, user_xyz, cfg)
-    los = rng.random(distance.shape) < los_probability(distance, rel_height, cfg)
-    path_loss = np.where(los, path_loss_los_db(distance, cfg), path_loss_nlos_db(distance, cfg))
+    p_los = los_probability(distance, rel_height, cfg)
+    pl_los, pl_nlos = path_loss_los_db(distance, cfg), path_loss_nlos_db(distance, cfg)
+    los = rng.random(distance.shape) < p_los
+    path_loss = np.where(los, pl_los, pl_nlos)
     # Both laws are drawn for every link and the state picks one. The count of random numbers a
     # call consumes is then fixed by the shapes alone, whatever the LoS states, so a batch of
     # environments with one stream each can share one call (the environment relies on this).
@@ -243,11 +249,11 @@ def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generat
         fading_power=fading,
         shadowing_db=shadow,
         gain=gain,
-        expected_gain=large_scale_gain(distance, rel_height, cfg),
+        expected_gain=_expected_gain(p_los, pl_los, pl_nlos, cfg),  # = large_scale_gain, reusing the parts
     )
 
 
-# %% notebooks/01_channel.py, cell 20 (line 425)
+# %% notebooks/01_channel.py, cell 20 (line 431)
 def reuse_colours(n_uavs: int, reuse_factor: int):
     """Colour c(u) = u mod F of each UAV; shape (U,), dtype int."""
     if int(n_uavs) != n_uavs or n_uavs < 0:
@@ -280,7 +286,7 @@ def interference_w(gain, uav_power_w, weights):
     return received @ np.asarray(weights, dtype=float).T
 
 
-# %% notebooks/01_channel.py, cell 22 (line 469)
+# %% notebooks/01_channel.py, cell 22 (line 475)
 def noise_power_w(bandwidth_hz, cfg: ChannelConfig):
     """Thermal noise N0 * B [W]; -174 dBm/Hz over 1 MHz is -114 dBm."""
     return cfg.noise_w_per_hz * np.asarray(bandwidth_hz, dtype=float)
@@ -310,7 +316,7 @@ def achievable_rate_bps(bandwidth_hz, sinr, cfg: ChannelConfig):
     return np.where(bandwidth > 0, rate, 0.0)
 
 
-# %% notebooks/01_channel.py, cell 24 (line 520)
+# %% notebooks/01_channel.py, cell 24 (line 526)
 def required_sinr(target_rate_bps, bandwidth_hz, cfg: ChannelConfig):
     """gamma* = 2^(R / (alpha B)) - 1; 0 where R == 0, inf where R > 0 and B == 0."""
     rate, bandwidth = _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz)
@@ -335,7 +341,7 @@ def required_power_w(target_rate_bps, bandwidth_hz, gain, interference_w, cfg: C
     return np.where(rate == 0, 0.0, np.where(bandwidth == 0, np.inf, power))
 
 
-# %% notebooks/01_channel.py, cell 25 (line 546)
+# %% notebooks/01_channel.py, cell 25 (line 552)
 def _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz):
     rate = np.asarray(target_rate_bps, dtype=float)
     bandwidth = np.asarray(bandwidth_hz, dtype=float)
