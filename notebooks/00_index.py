@@ -34,8 +34,8 @@
 # | VI-B to VI-E results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
 # | VI-F ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 #
-# Notebooks that do not exist yet are planned in that order; `paper_figures/README.md` lists
-# what is regenerated today, from which command.
+# `paper_figures/README.md` lists every regenerated file with its paper counterpart, the notebook,
+# the scale, the command and the commit.
 #
 # ## How to run everything
 #
@@ -46,6 +46,9 @@
 #   writes the figures and tables into `paper_figures/`. `SCALE=ci` is a smoke run in seconds;
 #   `SCALE=paper` uses the paper's training budget.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks.
+# * `python -m pemamoe sweep --experiment all --scale paper --backend ray --address auto` runs the
+#   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
+#   plots from the cached runs (or trains what is missing, on Ray).
 #
 # This notebook also exports `pemamoe/core.py`: the few utilities every other notebook shares
 # (scales, atomic file writes, figure and table saving, and the headless notebook runner).
@@ -245,7 +248,29 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
 # that the paper describes in equations only.
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
-    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side)",
+    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
+    "table_parameters": "Table 'Simulation and training parameters'",
+    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
+    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
+    "results_mean_return": "Fig. 'Mean return over training'",
+    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
+    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
+    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
+    "results_router_value": "Fig. 'Value-side expert routing probability'",
+    "results_collisions": "Fig. 'Collisions per episode over training'",
+    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
+    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
+    "results_mean_action": "Fig. 'Mean action response to phase switches'",
+    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
+    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
+    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
+    "headline_claims": "(ours) the paper's headline numbers beside ours",
+    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
+    "mappo_training_curves": "(ours) one training run per method, notebook 07",
+    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
+    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
+       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }
 
 
@@ -295,6 +320,10 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
         ).stdout.strip() or "unknown"
+        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
     except OSError:
         commit = "unknown"
     return write_figures_readme(figures_dir, records, scale=scale, commit=commit)

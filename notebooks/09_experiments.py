@@ -416,8 +416,11 @@ def probability_of_improvement(norm_scores: pd.DataFrame, method: str, baselines
     pairs = {b: [mine, norm_scores.loc[norm_scores.method == b, list(metrics)].to_numpy()] for b in baselines}
     point, ci = rly.get_interval_estimates(pairs, rmetrics.probability_of_improvement, reps=reps,
                                            random_state=np.random.RandomState(seed))
-    return pd.DataFrame([{"baseline": b, "P(improvement)": point[b], "ci_low": ci[b][0], "ci_high": ci[b][1]}
-                         for b in baselines])
+    def scalar(x):  # rliable returns length-1 arrays for a scalar statistic
+        return float(np.ravel(x)[0])
+
+    return pd.DataFrame([{"baseline": b, "P(improvement)": scalar(point[b]), "ci_low": scalar(ci[b][0]),
+                          "ci_high": scalar(ci[b][1])} for b in baselines])
 
 
 def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int = 2000, seed: int = 0):
@@ -549,8 +552,10 @@ for i, (method, (point, ci)) in enumerate(boot.items()):
                      "ci_low": ci[0][j], "ci_high": ci[1][j]})
 ax.set_xticks(x + width * (len(boot) - 1) / 2, [v[0] for v in SUMMARY_METRICS.values()])
 ax.set_ylabel("normalised IQM (higher is better)")
+n_seed = int(scores.groupby("method").seed.nunique().min())
 ax.set_title("Normalised IQM across five system metrics (energy, collisions: 1 - normalised)\n"
-             f"{note}; error bars: 95 % stratified-bootstrap CI across seeds", fontsize=9)
+             f"scale={scale}, {n_seed} seeds per method; error bars: 95 % stratified-bootstrap CI across seeds",
+             fontsize=9)
 ax.legend(fontsize=8, ncol=4)
 save_figure(fig, "results_normalised_iqm", figures_dir)
 plt.show()

@@ -98,8 +98,11 @@ def probability_of_improvement(norm_scores: pd.DataFrame, method: str, baselines
     pairs = {b: [mine, norm_scores.loc[norm_scores.method == b, list(metrics)].to_numpy()] for b in baselines}
     point, ci = rly.get_interval_estimates(pairs, rmetrics.probability_of_improvement, reps=reps,
                                            random_state=np.random.RandomState(seed))
-    return pd.DataFrame([{"baseline": b, "P(improvement)": point[b], "ci_low": ci[b][0], "ci_high": ci[b][1]}
-                         for b in baselines])
+    def scalar(x):  # rliable returns length-1 arrays for a scalar statistic
+        return float(np.ravel(x)[0])
+
+    return pd.DataFrame([{"baseline": b, "P(improvement)": scalar(point[b]), "ci_low": scalar(ci[b][0]),
+                          "ci_high": scalar(ci[b][1])} for b in baselines])
 
 
 def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int = 2000, seed: int = 0):
@@ -117,7 +120,7 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
     return change(a, b), float(low), float(high)
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 446)
+# %% notebooks/09_experiments.py, cell 19 (line 449)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

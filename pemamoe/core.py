@@ -3,7 +3,7 @@
 
 __all__ = ['SCALES', 'check_scale', 'by_scale', 'atomic_path', 'atomic_write_text', 'atomic_write_json', 'save_figure', 'write_table', 'REPO_ROOT', 'run_notebook', 'PAPER_COUNTERPARTS', 'notebook_parameters', 'figure_notebooks', 'make_figures', 'write_figures_readme']
 
-# %% notebooks/00_index.py, cell 5 (line 69)
+# %% notebooks/00_index.py, cell 5 (line 72)
 import json
 import os
 import sys
@@ -26,7 +26,7 @@ def by_scale(scale: str, *, ci, small, paper):
     return {"ci": ci, "small": small, "paper": paper}[check_scale(scale)]
 
 
-# %% notebooks/00_index.py, cell 7 (line 101)
+# %% notebooks/00_index.py, cell 7 (line 104)
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path beside `path`; on success rename it onto `path`, else delete it."""
@@ -53,7 +53,7 @@ def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
-# %% notebooks/00_index.py, cell 9 (line 136)
+# %% notebooks/00_index.py, cell 9 (line 139)
 def save_figure(fig, name: str, figures_dir, dpi: int = 150) -> list:
     """Write `fig` as `<figures_dir>/<name>.png` and `.pdf`, atomically; return the two paths."""
     out = []
@@ -74,7 +74,7 @@ def write_table(df, name: str, figures_dir, floatfmt: str = ".4g") -> list:
     return [md, csv]
 
 
-# %% notebooks/00_index.py, cell 10 (line 158)
+# %% notebooks/00_index.py, cell 10 (line 161)
 def _markdown_table(df, floatfmt: str) -> str:
     # A tiny renderer, so tables do not depend on the optional `tabulate` package.
     def fmt(v):
@@ -88,7 +88,7 @@ def _markdown_table(df, floatfmt: str) -> str:
     return "\n".join([header, rule, *rows])
 
 
-# %% notebooks/00_index.py, cell 12 (line 183)
+# %% notebooks/00_index.py, cell 12 (line 186)
 def _find_repo_root(start: Path) -> Path:
     # Inside the package, __file__ locates the checkout; inside a running notebook there is no
     # __file__, and the kernel's working directory is either the root or notebooks/.
@@ -137,12 +137,34 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
     )
 
 
-# %% notebooks/00_index.py, cell 14 (line 242)
+# %% notebooks/00_index.py, cell 14 (line 245)
 # Paper counterpart of each output, by file stem. Stems not listed are illustrations of a model
 # that the paper describes in equations only.
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
-    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side)",
+    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
+    "table_parameters": "Table 'Simulation and training parameters'",
+    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
+    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
+    "results_mean_return": "Fig. 'Mean return over training'",
+    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
+    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
+    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
+    "results_router_value": "Fig. 'Value-side expert routing probability'",
+    "results_collisions": "Fig. 'Collisions per episode over training'",
+    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
+    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
+    "results_mean_action": "Fig. 'Mean action response to phase switches'",
+    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
+    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
+    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
+    "headline_claims": "(ours) the paper's headline numbers beside ours",
+    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
+    "mappo_training_curves": "(ours) one training run per method, notebook 07",
+    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
+    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
+       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }
 
 
@@ -192,6 +214,10 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
         ).stdout.strip() or "unknown"
+        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
     except OSError:
         commit = "unknown"
     return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
@@ -220,7 +246,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00_index.py, cell 15 (line 326)
+# %% notebooks/00_index.py, cell 15 (line 355)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}
