@@ -355,6 +355,11 @@ class BatchRandom:
 
 # %%
 #| export
+def colour_weights(n_uavs: int, cfg: EnvConfig):
+    """The (U, U) interference weights of cfg's reuse factor and adjacent leakage."""
+    return interference_weights(reuse_colours(n_uavs, cfg.channel.reuse_factor), cfg.channel.adjacent_leakage)
+
+
 class Schedule(NamedTuple):
     """The scheduler's decisions for a batch; (B, N, U) arrays are per (user, UAV) link."""
 
@@ -366,11 +371,13 @@ class Schedule(NamedTuple):
     n_admitted: np.ndarray  # (B, U) int
 
 
-def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radius_m, cfg: EnvConfig) -> Schedule:
+def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radius_m, cfg: EnvConfig,
+                   weights=None) -> Schedule:
     """Association, admission, equal bandwidth split and feasibility power for a batch.
 
     horizontal_m, expected_gain: (B, N, U); target_rate_bps: (B, N); priority: (B, N) int, higher
-    is admitted first (H=2, M=1, L=0); radius_m: (B,) service radius of each environment's phase.
+    is admitted first (H=2, M=1, L=0); radius_m: (B,) service radius of each environment's phase;
+    weights: the (U, U) interference weights (default: from cfg's reuse factor and leakage).
     """
     ch = cfg.channel
     B, N, U = horizontal_m.shape
@@ -387,7 +394,7 @@ def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radiu
     gain = np.take_along_axis(expected_gain, order, axis=1)
     rate = np.take_along_axis(np.broadcast_to(target_rate_bps[..., None], (B, N, U)), order, axis=1)
     # Conservative interference for planning: every other UAV at full power.
-    weights = interference_weights(reuse_colours(U, ch.reuse_factor), ch.adjacent_leakage)
+    weights = colour_weights(U, cfg) if weights is None else weights
     conservative = np.take_along_axis(interference_w(expected_gain, ch.max_tx_power_w, weights), order, axis=1)
 
     k = np.arange(1, cap + 1)
@@ -410,11 +417,10 @@ def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radiu
     return Schedule(covered, nearest, admitted, power_w, bandwidth, n_admitted)
 
 
-def realised_rates(schedule: Schedule, gain, cfg: EnvConfig):
+def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
     """Realised per-user rate (B, N) and SINR (B, N, U) on this slot's channel `gain` (B, N, U)."""
     ch = cfg.channel
-    U = gain.shape[-1]
-    weights = interference_weights(reuse_colours(U, ch.reuse_factor), ch.adjacent_leakage)
+    weights = colour_weights(gain.shape[-1], cfg) if weights is None else weights
     radiated = schedule.power_w.sum(axis=1)  # (B, U): what each UAV actually transmits
     link_sinr = sinr(schedule.power_w, gain, noise_power_w(schedule.bandwidth_hz, ch), interference_w(gain, radiated, weights))
     rate = np.where(schedule.admitted, achievable_rate_bps(schedule.bandwidth_hz, link_sinr, ch), 0.0)
@@ -558,8 +564,7 @@ class UAVBatchCore:
             raise ValueError(f"expected {self.B} seeds, got {len(seeds)}")
         self.rng = BatchRandom(seeds, cfg.rng_chunk)
         self.schedule = schedule or PhaseSchedule(period=cfg.phase_period_steps)
-        ch = cfg.channel
-        self.weights = interference_weights(reuse_colours(cfg.n_uavs, ch.reuse_factor), ch.adjacent_leakage)
+        self.weights = colour_weights(cfg.n_uavs, cfg)  # fixed for the env's life: computed once
         self.clock = np.zeros(self.B, dtype=int)  # steps since construction: the env's phase clock
         self.phase = np.zeros(self.B, dtype=int)
         self.t = np.zeros(self.B, dtype=int)  # step within the episode
@@ -697,8 +702,8 @@ class UAVBatchCore:
         _, _, radius, overlap_weight = phase_values(cfg.phases, phase)
         demand = self.demand[rows]
         target = np.asarray(cfg.phases.rate_threshold_bps)[demand]
-        plan = schedule_users(link.horizontal_m, link.expected_gain, target, demand, radius, cfg)
-        rate, _ = realised_rates(plan, link.gain, cfg)
+        plan = schedule_users(link.horizontal_m, link.expected_gain, target, demand, radius, cfg, self.weights)
+        rate, _ = realised_rates(plan, link.gain, cfg, self.weights)
         admitted = plan.admitted.any(axis=-1)
         served = admitted & (rate >= target * (1 - 1e-9))
         weight = np.asarray(cfg.phases.class_reward)[demand]
