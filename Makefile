@@ -8,6 +8,7 @@ SCALE ?= small
 BACKEND ?= local
 WORKERS ?= 2
 PYTEST_ARGS ?= -n 2
+LAB_ARGS ?=
 
 .PHONY: help test figures export check-export lab bench clean lock venv
 
@@ -50,7 +51,7 @@ lab: $(STAMP)
 	@mkdir -p $(VENV)/share/jupyter/lab/settings
 	@echo '{"@jupyterlab/docmanager-extension:plugin": {"defaultViewers": {"python": "Jupytext Notebook"}}}' \
 		> $(VENV)/share/jupyter/lab/settings/overrides.json
-	$(VENV)/bin/jupyter lab --notebook-dir=.
+	$(VENV)/bin/jupyter lab --notebook-dir=. $(if $(filter 0,$(shell id -u)),--allow-root,) $(LAB_ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
