@@ -150,7 +150,7 @@ class EnvConfig:
     @classmethod
     def from_overrides(cls, **overrides) -> "EnvConfig":
         """Build a config from keyword overrides: own fields, `section__field`, or a unique field name."""
-        sections = {f.name: f.type for f in dataclasses.fields(cls) if f.name in _SECTIONS}
+        sections = _SECTIONS
         own = {f.name for f in dataclasses.fields(cls)} - set(sections)
         top, nested = {}, {name: {} for name in sections}
         for key, value in overrides.items():
@@ -166,7 +166,7 @@ class EnvConfig:
                     raise ValueError(f"unknown config section {section!r} in {key!r}; sections: {sorted(sections)}")
                 nested[section][name] = value
             else:
-                owners = [s for s in sections if name_in(_SECTIONS[s], key)]
+                owners = [s for s, section_cls in sections.items() if key in _field_names(section_cls)]
                 if not owners:
                     raise ValueError(
                         f"unknown environment setting {key!r}; it is not a field of EnvConfig or of "
@@ -179,7 +179,7 @@ class EnvConfig:
         for section, values in nested.items():
             if values:
                 current = getattr(base, section)
-                unknown = set(values) - {f.name for f in dataclasses.fields(current)}
+                unknown = set(values) - _field_names(current)
                 if unknown:
                     raise ValueError(f"unknown field(s) {sorted(unknown)} for {type(current).__name__}")
                 parts[section] = dataclasses.replace(current, **values)
@@ -189,9 +189,8 @@ class EnvConfig:
 _SECTIONS = {"channel": ChannelConfig, "energy": EnergyConfig, "mobility": MobilityConfig, "phases": PhaseConfig}
 
 
-def name_in(config_class, name: str) -> bool:
-    """True if `name` is a field of the dataclass `config_class`."""
-    return name in {f.name for f in dataclasses.fields(config_class)}
+def _field_names(config) -> set:
+    return {f.name for f in dataclasses.fields(config)}
 
 
 # %% [markdown]
@@ -573,7 +572,7 @@ class UAVBatchCore:
     # -- phases ---------------------------------------------------------------------------
     def set_phase(self, phase: int) -> None:
         """Set the phase of every environment (phase_clock='external', used by the trainer)."""
-        n = self.cfg.phases.n_regimes if hasattr(self.cfg.phases, "n_regimes") else 3
+        n = self.cfg.phases.n_regimes
         if not 0 <= int(phase) < n:
             raise ValueError(f"phase must be in [0, {n}), got {phase!r}")
         self._external_phase = int(phase)

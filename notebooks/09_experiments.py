@@ -110,10 +110,6 @@ class RunSpec:
         return ", ".join(parts)
 
 
-def is_done(spec: RunSpec, results_dir) -> bool:
-    return (spec.run_dir(results_dir) / "done.json").is_file()
-
-
 # %% [markdown]
 # ## Executing one run, and many
 #
