@@ -162,36 +162,35 @@ tricks.round(2)
 # the same phases for as many episodes and reported as a reference row.
 
 # %%
-from pemamoe.env import UAVVectorEnv, kmeans_policy
+from pemamoe.env import rollout_heuristic
 from pemamoe.mappo import TrainConfig
 
 
-def heuristic_episode_scores(policy, scale: str, seeds) -> pd.DataFrame:
-    """Per-episode metrics of a heuristic over the training phase cycle, one block of episodes per phase."""
+def heuristic_episode_scores(policy: str, scale: str, seeds) -> pd.DataFrame:
+    """Per-episode metrics of a heuristic over the training phase cycle (3 cycles of the 3 phases)."""
     cfg = TrainConfig.for_scale(scale, "pemamoe", 0)
-    n_envs, episodes_per_phase = 8, by_scale(scale, ci=1, small=4, paper=8)
+    env_cfg = cfg.env_config()
+    n_envs, episodes, T = 8, by_scale(scale, ci=1, small=4, paper=8), env_cfg.episode_steps
     rows = []
     for s in seeds:
-        env = UAVVectorEnv(n_envs, 1000 + s, **{**cfg.env_overrides, "phase_clock": "external"})
-        for phase in [p % 3 for p in range(9)]:
-            env.set_phase(phase)
-            env.reset()
-            for _ in range(episodes_per_phase):
-                acc = {k: np.zeros(n_envs) for k in ("reward", "coverage", "served_users", "energy_rate_kj", "collisions")}
-                for _ in range(env.cfg.episode_steps):
-                    *_, info = env.step(policy(env.core))
-                    for k in acc:
-                        acc[k] += info[k]
-                T = env.cfg.episode_steps
+        for block in range(9):
+            phase = block % 3
+            # The vector env restarts every env after T slots, so the log splits into whole episodes.
+            logs = rollout_heuristic(policy, n_envs, episodes * T, seed=1000 + 9 * s + block, phase=phase,
+                                     **cfg.env_overrides)
+            per_episode = {k: v.reshape(episodes, T, n_envs) for k, v in logs.items()}
+            summary = {"return": per_episode["reward"].sum(1), "coverage": per_episode["coverage"].mean(1),
+                       "served_users": per_episode["served_users"].mean(1),
+                       "energy_rate_kj": per_episode["energy_rate_kj"].mean(1),
+                       "collisions": per_episode["collisions"].sum(1)}
+            for e in range(episodes):
                 for b in range(n_envs):
-                    rows.append({"run": f"kmeans-s{s}", "method": "kmeans", "seed": s, "phase": phase,
-                                 "return": acc["reward"][b], "coverage": acc["coverage"][b] / T,
-                                 "served_users": acc["served_users"][b] / T,
-                                 "energy_rate_kj": acc["energy_rate_kj"][b] / T, "collisions": acc["collisions"][b]})
+                    rows.append({"run": f"{policy}-s{s}", "method": policy, "seed": s, "phase": phase,
+                                 **{k: float(v[e, b]) for k, v in summary.items()}})
     return pd.DataFrame(rows)
 
 
-kmeans_eps = heuristic_episode_scores(kmeans_policy, scale, seed_list)
+kmeans_eps = heuristic_episode_scores("kmeans", scale, seed_list)
 kmeans_scores = kmeans_eps.groupby(["run", "method", "seed"])[list(SUMMARY_METRICS)].agg(iqm).reset_index()
 pe = main.method == "pemamoe"
 
