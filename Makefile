@@ -35,6 +35,7 @@ venv: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pemamoe.literate check
+	$(PY) -c "from pemamoe.env import compile_step_kernels; compile_step_kernels()"  # once, before the parallel workers
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 figures: $(STAMP)

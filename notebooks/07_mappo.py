@@ -305,10 +305,13 @@ class TrainConfig:
 
     def identity(self) -> dict:
         """What determines the computation: to_dict() without the phase controller for the
-        baselines, which never use it (so a noise sweep over the MoE baseline is one run)."""
+        baselines, which never use it (so a noise sweep over the MoE baseline is one run), plus
+        the fully resolved environment, so a changed environment default (or step engine) can
+        never reuse results computed under the old one."""
         d = self.to_dict()
         if not self.controller_enabled:
             d.pop("controller")
+        d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         return d
 
     def config_hash(self) -> str:

@@ -56,6 +56,7 @@ from pathlib import Path
 import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
+from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import METHODS, TrainConfig
 
 BACKENDS = ("local", "ray")
@@ -162,6 +163,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
               f"on {backend} ({workers} workers)", flush=True)
     if todo:
         start = time.perf_counter()
+        compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         runner(todo, results_dir, workers, address, threads_per_run, verbose)
         if verbose:

@@ -185,10 +185,13 @@ class TrainConfig:
 
     def identity(self) -> dict:
         """What determines the computation: to_dict() without the phase controller for the
-        baselines, which never use it (so a noise sweep over the MoE baseline is one run)."""
+        baselines, which never use it (so a noise sweep over the MoE baseline is one run), plus
+        the fully resolved environment, so a changed environment default (or step engine) can
+        never reuse results computed under the old one."""
         d = self.to_dict()
         if not self.controller_enabled:
             d.pop("controller")
+        d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         return d
 
     def config_hash(self) -> str:
@@ -270,13 +273,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 422)
+# %% notebooks/07_mappo.py, cell 12 (line 425)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 451)
+# %% notebooks/07_mappo.py, cell 14 (line 454)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -309,7 +312,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 507)
+# %% notebooks/07_mappo.py, cell 18 (line 510)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -352,7 +355,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 564)
+# %% notebooks/07_mappo.py, cell 20 (line 567)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -470,7 +473,7 @@ def collect_rollout(venv, actor, critic, value_norm: RunningNorm, obs, state, st
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 723)
+# %% notebooks/07_mappo.py, cell 22 (line 726)
 def _mean(values):
     return float(np.mean(values)) if len(values) else float("nan")
 
@@ -564,7 +567,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 843)
+# %% notebooks/07_mappo.py, cell 24 (line 846)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -617,7 +620,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 896)
+# %% notebooks/07_mappo.py, cell 25 (line 899)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -681,7 +684,7 @@ def load_run(run_dir) -> RunResult:
                      actor, critic, run_dir, finished=(run_dir / "done.json").exists(), from_cache=True)
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 966)
+# %% notebooks/07_mappo.py, cell 27 (line 969)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False) -> RunResult:
     """Run MAPPO for `config` (everything follows from it and its seed).
@@ -873,7 +876,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[2])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1165)
+# %% notebooks/07_mappo.py, cell 29 (line 1168)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -186,6 +186,16 @@ class PhaseSchedule:
         self._extend_to(tick)
         return self._segments["phases"][bisect.bisect_right(self._segments["starts"], tick) - 1]
 
+    def phases_at(self, ticks) -> np.ndarray:
+        """phase_at for an array of ticks (one vectorised step for the paper's fixed cycle)."""
+        ticks = np.asarray(ticks, dtype=np.int64)
+        if ticks.size and ticks.min() < 0:
+            raise ValueError(f"ticks must be >= 0, got min {ticks.min()}")
+        if self.closed_form:
+            return (ticks // self.period) % self.n_phases
+        uniq, inverse = np.unique(ticks, return_inverse=True)
+        return np.array([self.phase_at(int(t)) for t in uniq], dtype=np.int64)[inverse].reshape(ticks.shape)
+
     def is_switch(self, tick: int) -> bool:
         """True at a tick where the phase differs from the previous tick's (never at tick 0)."""
         return tick > 0 and self.phase_at(tick) != self.phase_at(tick - 1)

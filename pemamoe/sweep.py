@@ -15,12 +15,13 @@ from pathlib import Path
 import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
+from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import METHODS, TrainConfig
 
 BACKENDS = ("local", "ray")
 
 
-# %% notebooks/09_experiments.py, cell 6 (line 72)
+# %% notebooks/09_experiments.py, cell 6 (line 73)
 @dataclass(frozen=True)
 class RunSpec:
     """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
@@ -60,7 +61,7 @@ class RunSpec:
         return ", ".join(parts)
 
 
-# %% notebooks/09_experiments.py, cell 8 (line 127)
+# %% notebooks/09_experiments.py, cell 8 (line 128)
 def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
     """Train one run (resuming or skipping as its folder allows); return its folder."""
     import torch
@@ -97,6 +98,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
               f"on {backend} ({workers} workers)", flush=True)
     if todo:
         start = time.perf_counter()
+        compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         runner(todo, results_dir, workers, address, threads_per_run, verbose)
         if verbose:
@@ -104,7 +106,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     return [s.run_dir(results_dir) for s in specs]
 
 
-# %% notebooks/09_experiments.py, cell 9 (line 172)
+# %% notebooks/09_experiments.py, cell 9 (line 174)
 def _run_local(todo, results_dir, workers, address, threads, verbose):
     if workers == 1:
         for spec in todo:
@@ -145,7 +147,7 @@ def _run_ray(todo, results_dir, workers, address, threads, verbose):
             ray.shutdown()
 
 
-# %% notebooks/09_experiments.py, cell 11 (line 226)
+# %% notebooks/09_experiments.py, cell 11 (line 228)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -191,7 +193,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 13 (line 280)
+# %% notebooks/09_experiments.py, cell 13 (line 282)
 def sweep_cli(argv=None) -> int:
     import argparse
 

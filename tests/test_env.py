@@ -46,8 +46,8 @@ def test_render_returns_rgb_frame():
 
 
 # -- seeding and equivalence -------------------------------------------------------------------
-def run_parallel(seed, actions):
-    env = E.make_env()
+def run_parallel(seed, actions, **overrides):
+    env = E.make_env(**overrides)
     obs, _ = env.reset(seed=seed)
     trace = [np.stack([obs[a] for a in env.possible_agents])]
     rewards = []
@@ -71,10 +71,11 @@ def test_same_seed_same_trajectory_different_seed_different():
     assert not np.array_equal(a_obs, c_obs)
 
 
-def test_vector_env_matches_parallel_envs_over_episode_boundaries():
+@pytest.mark.parametrize("engine", E.STEP_ENGINES)
+def test_vector_env_matches_parallel_envs_over_episode_boundaries(engine):
     n_envs, steps = 3, 40  # 40 > 32: crosses an autoreset
     actions = np.random.default_rng(1).uniform(-1, 1, (steps, n_envs, 3, 2))
-    venv = E.make_vector_env(n_envs, seed=11)
+    venv = E.make_vector_env(n_envs, seed=11, step_engine=engine)
     obs, state, _ = venv.reset()
     v_obs, v_rew = [obs.copy()], []
     for t in range(steps):
@@ -90,7 +91,7 @@ def test_vector_env_matches_parallel_envs_over_episode_boundaries():
         v_rew.append(rew.copy())
     v_obs, v_rew = np.stack(v_obs), np.stack(v_rew)
     for i in range(n_envs):
-        p_obs, p_rew = run_parallel(11 + i, actions[:, i])
+        p_obs, p_rew = run_parallel(11 + i, actions[:, i], step_engine=engine)
         np.testing.assert_array_equal(p_obs, v_obs[:, i])
         np.testing.assert_array_equal(p_rew, v_rew[:, i])
 
@@ -137,6 +138,7 @@ def test_out_of_range_action_is_clipped_and_reported():
         ({"n_uavs": 0}, "n_uavs"),
         ({"bandwidth_hz": -1.0}, "bandwidth_hz"),
         ({"no_such_setting": 1}, "no_such_setting"),
+        ({"step_engine": "jax"}, "step_engine"),
     ],
 )
 def test_invalid_configuration_fails_at_construction_naming_the_field(overrides, field):
@@ -262,17 +264,89 @@ def test_batch_random_streams_do_not_depend_on_batch_size():
     assert g.mean() == pytest.approx(1.0, rel=0.05)
 
 
-def test_state_dict_round_trip_continues_exactly():
+@pytest.mark.parametrize("engine", E.STEP_ENGINES)
+def test_state_dict_round_trip_continues_exactly(engine):
     actions = np.random.default_rng(2).uniform(-1, 1, (30, 2, 3, 2))
-    a = E.make_vector_env(2, seed=4)
+    a = E.make_vector_env(2, seed=4, step_engine=engine)
     a.reset()
     for t in range(10):
         a.step(actions[t])
     saved = a.state_dict()
-    b = E.make_vector_env(2, seed=999)  # different seed: everything must come from the state
+    b = E.make_vector_env(2, seed=999, step_engine=engine)  # different seed: everything must come from the state
     b.load_state_dict(saved)
     for t in range(10, 30):  # crosses an episode boundary and random-buffer refills
         oa, sa, ra, *_ = a.step(actions[t])
         ob, sb, rb, *_ = b.step(actions[t])
         np.testing.assert_array_equal(oa, ob)
         np.testing.assert_array_equal(ra, rb)
+
+
+def test_batch_random_draws_survive_later_refills():
+    # Regression: the fast path once returned views of the buffer, which the next refill rewrote
+    # while the caller still held them (Rician x was replaced by future numbers of the stream).
+    for seeds in ([5], [5, 6, 7]):
+        held_rng, fresh_rng = E.BatchRandom(seeds, chunk=100), E.BatchRandom(seeds, chunk=100)
+        held = [held_rng.standard_normal((len(seeds), 30)) for _ in range(12)]  # crosses 3 refills
+        for draw in held:
+            np.testing.assert_array_equal(draw, fresh_rng.standard_normal((len(seeds), 30)))
+
+
+# -- the compiled engine against the numpy reference --------------------------------------------
+def assert_same_step(ref, fast, where):
+    """Discrete outcomes equal; floats equal to 1e-9 relative (bit-identical on the dev machine,
+    but another CPU's numpy may take exp/log10 from a different math library than numba)."""
+    for r, f, name in zip(ref[:5], fast[:5], ("obs", "state", "reward", "terminated", "truncated")):
+        assert r.dtype == f.dtype, (where, name)
+        if r.dtype.kind == "f":
+            np.testing.assert_allclose(f, r, rtol=1e-6 if r.dtype == np.float32 else 1e-9, atol=1e-12,
+                                       err_msg=f"{where}: {name}")
+        else:
+            np.testing.assert_array_equal(f, r, err_msg=f"{where}: {name}")
+    assert list(ref[5]) == list(fast[5]), where
+    for key, r in ref[5].items():
+        r, f = np.asarray(r), np.asarray(fast[5][key])
+        assert r.dtype.kind == f.dtype.kind and r.shape == f.shape, (where, key, r.dtype, f.dtype)
+        if r.dtype.kind == "f":
+            np.testing.assert_allclose(f, r, rtol=1e-9, atol=1e-12, err_msg=f"{where}: info[{key!r}]")
+        else:
+            np.testing.assert_array_equal(f, r, err_msg=f"{where}: info[{key!r}]")
+
+
+def run_both_engines(n_envs, steps, seed, action_seed=0, phase=None, **overrides):
+    envs = [E.make_vector_env(n_envs, seed=seed, step_engine=e, **overrides) for e in ("numpy", "compiled")]
+    if phase is not None:
+        for env in envs:
+            env.set_phase(phase)
+    ref, fast = (env.reset() for env in envs)
+    for r, f, name in zip(ref[:2], fast[:2], ("obs", "state")):
+        np.testing.assert_allclose(f, r, rtol=1e-6, atol=1e-12, err_msg=f"reset: {name}")
+    actions = np.random.default_rng(action_seed).uniform(-1.3, 1.3, (steps, n_envs, envs[0].cfg.n_uavs, 2))
+    for t in range(steps):
+        assert_same_step(envs[0].step(actions[t]), envs[1].step(actions[t]), f"step {t}")
+    for name in ("uav_xy", "battery_j", "demand", "serving", "phase", "clock"):
+        np.testing.assert_array_equal(getattr(envs[1].core, name), getattr(envs[0].core, name), err_msg=name)
+    return envs
+
+
+@pytest.mark.parametrize("overrides", [
+    {},  # the paper's setting
+    {"service_radius_m": (2000.0, 2000.0, 2000.0)},  # every user covered: capacity and budget bind
+    {"reuse_factor": 3, "adjacent_leakage": 0.01},  # non-trivial interference weights
+    {"nakagami_m": 2.5, "rician_k_db": 0.0},  # the gammaincinv path of the NLoS fading
+    {"demand_mode": "mix", "phase_period_steps": 7},  # phase switches with drawn demand classes
+    {"n_uavs": 5, "n_users": 31, "n_hotspots": 4, "max_users_per_uav": 7, "min_separation_m": 300.0},
+])
+def test_compiled_engine_matches_the_numpy_reference(overrides):
+    run_both_engines(4, 70, seed=21, **overrides)  # 70 steps: two autoresets, random-buffer refills
+
+
+def test_compiled_engine_matches_in_the_held_out_regime():
+    run_both_engines(3, 40, seed=5, phase=3, phase_clock="external")
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), n_envs=st.integers(1, 3), radius=st.floats(20.0, 1500.0),
+       n_users=st.integers(3, 25), max_users=st.integers(1, 6))
+def test_compiled_engine_matches_on_random_settings(seed, n_envs, radius, n_users, max_users):
+    run_both_engines(n_envs, 6, seed=seed, action_seed=seed, service_radius_m=(radius, radius, radius),
+                     n_users=n_users, max_users_per_uav=max_users)

@@ -225,6 +225,16 @@ def test_done_json_short_circuits(tmp_path, monkeypatch):
     assert pem.replace(controller=other.controller).config_hash() != pem.config_hash()
 
 
+def test_config_hash_covers_the_resolved_environment(monkeypatch):
+    cfg = TrainConfig.for_scale("ci", "mlp", seed=0)
+    assert cfg.identity()["env"]["step_engine"] == "compiled"
+    assert cfg.replace(env_overrides={"step_engine": "numpy"}).config_hash() != cfg.config_hash()
+    # a changed environment default is a different computation even though no override names it
+    before = cfg.config_hash()
+    monkeypatch.setattr(TrainConfig, "env_config", lambda self: mappo.EnvConfig(collision_penalty=50.0))
+    assert cfg.config_hash() != before
+
+
 # --- configuration -------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "field,value",

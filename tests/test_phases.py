@@ -104,3 +104,16 @@ def test_invalid_phase_config_names_the_field(kwargs, field):
 def test_invalid_schedule_names_the_field(kwargs, field):
     with pytest.raises(ValueError, match=f"PhaseSchedule.{field}"):
         PhaseSchedule(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [
+    dict(period=3),  # closed form
+    dict(period=4, order="random", seed=2),
+    dict(period=5, min_period=2, max_period=7, held_out_every=2),
+])
+def test_phases_at_agrees_with_phase_at(kwargs):
+    s = PhaseSchedule(**kwargs)
+    ticks = np.array([[0, 7, 3], [40, 7, 199]])
+    np.testing.assert_array_equal(s.phases_at(ticks), [[s.phase_at(int(t)) for t in row] for row in ticks])
+    with pytest.raises(ValueError, match="ticks must be >= 0"):
+        s.phases_at([-1])
