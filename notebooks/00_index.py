@@ -26,7 +26,7 @@
 # | III-B channel model | `01_channel.py` | `pemamoe/channel.py` | `channel_*` figures |
 # | III-C energy model | `02_energy.py` | `pemamoe/energy.py` | `energy_power_vs_speed` |
 # | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
-# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py` | reward anatomy table |
+# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py`, `pemamoe/env_kernel.py` | reward anatomy table |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | IV-B plasticity injection, Algorithm 1 | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/diagnostics.py` | schedule figures |
 # | VI-A training setup (MAPPO) | `07_mappo.py` | `pemamoe/mappo.py` | training curves |

@@ -830,9 +830,9 @@ def _info_dict(float_info, int_info, **more) -> dict:
 # The numpy core above is the specification: every formula is one vectorised line that can be
 # read against notebooks 01–03 and the paper. It is also slow for this problem's sizes. A step
 # at 3 UAVs and 20 users makes about a thousand numpy calls, each on a few dozen numbers, so the
-# interpreter's per-call overhead, not arithmetic, sets the pace: about 1.2 ms per PettingZoo step
-# and 20,000 environment steps per second at B = 64, against the 200 µs and 50,000 this project
-# targets.
+# interpreter's per-call overhead, not arithmetic, sets the pace: about 1.1 ms per PettingZoo step
+# and 22,000 environment steps per second at B = 64 (`make bench`, 2-core machine), against the
+# 200 µs and 50,000 this project targets.
 #
 # The compiled engine (`step_engine="compiled"`, the default) runs the same step as explicit loops
 # over environments, UAVs and users, compiled once by numba and cached on disk. It is written to
@@ -841,23 +841,39 @@ def _info_dict(float_info, int_info, **more) -> dict:
 # * **Same random numbers.** Python draws a slot's normals and uniforms from `BatchRandom` in one
 #   block per stream, in the order the reference draws them (user noise, then the channel; waypoints,
 #   LoS states, NLoS fading, demand classes), so every environment reads exactly the numbers it reads
-#   under the numpy engine. The Nakagami powers are turned from uniforms by the same numpy function.
+#   under the numpy engine. NLoS fading powers come from their uniforms by the reference's inversion:
+#   the kernel computes $-\log(1-u)/m$ itself for the default $m = 1$, and scipy's `gammaincinv`
+#   supplies them for any other $m$.
 # * **Same constants.** Derived constants (propulsion powers, the LoS height factor, the Rician
 #   mixture, the interference weights) are computed by the reference functions and handed in as
 #   `KernelParams`.
 # * **Same arithmetic order,** written out expression by expression, so results agree to the last
-#   bit wherever both sides use the same floating-point operations. Where they cannot (numpy sums
-#   small matrices through BLAS; `exp`, `log10` and `pow` may come from different math libraries),
-#   they differ by an ulp or so. The motion of UAVs and users never depends on those values, so
-#   the small differences cannot accumulate along a trajectory. The tests step both engines side by
-#   side through episode ends, phase switches, frequency reuse, Nakagami m ≠ 1 and the `mix` demand
+#   bit wherever both sides use the same floating-point operations. On the development machine they
+#   agree bit for bit in every configuration we tested. Elsewhere they may differ by an ulp (numpy
+#   sums small matrices through BLAS, and may take `exp` or `log10` from a different math library
+#   than numba); the motion of UAVs and users never depends on those values, so such differences
+#   cannot accumulate along a trajectory. The tests step both engines side by side through episode
+#   ends, phase switches, frequency reuse, Nakagami m ≠ 1, the held-out regime and the `mix` demand
 #   mode, and require equal discrete outcomes (admissions, served users, collisions, phases) and
 #   floats equal to 1e-9 relative.
+#
+# The compiled step also skips work the reference does for every link: it computes distances for
+# all links, the large-scale channel only for users inside a service radius, and this slot's
+# realised gain only on the links of admitted users. The random numbers of every link are drawn
+# regardless, so no stream changes. Measured with `make bench`: about 110 µs per PettingZoo step
+# and 83,000 env-steps/s at B = 64, or 60,000 when every user is covered.
 #
 # The scheduler is the one place where loops read better than arrays: per UAV, the attached users
 # are sorted by (priority, distance) with a stable insertion sort, and admission grows k = 1, 2, …
 # until the next user would break the power budget, recomputing the per-user bandwidth B/(F k) and
 # every admitted user's power at each k, exactly as the vectorised version evaluates all k at once.
+#
+# Putting the two engines side by side found a bug in the reference. `BatchRandom` handed out
+# views of its buffer, and refilling the buffer rewrote a draw that a caller still held (the
+# channel draws the Rician $x$, then $y$, and only then uses both; the users' noise is drawn the
+# same way). In roughly one slot in 40, an environment's user noise or Rician fading was built
+# from numbers its stream would hand out again later. Draws are copies now, and a regression test
+# holds on to draws across refills. The runs behind `paper_figures/` were redone after the fix.
 
 # %%
 #| export env_kernel

@@ -691,7 +691,7 @@ def _info_dict(float_info, int_info, **more) -> dict:
     return {key: values[key] for key in _INFO_ORDER if key in values}
 
 
-# %% notebooks/04_environment.py, cell 26 (line 1385)
+# %% notebooks/04_environment.py, cell 26 (line 1401)
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
@@ -739,7 +739,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04_environment.py, cell 28 (line 1442)
+# %% notebooks/04_environment.py, cell 28 (line 1458)
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
@@ -847,7 +847,7 @@ def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UA
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 
-# %% notebooks/04_environment.py, cell 30 (line 1557)
+# %% notebooks/04_environment.py, cell 30 (line 1573)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -884,7 +884,7 @@ def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarr
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04_environment.py, cell 32 (line 1605)
+# %% notebooks/04_environment.py, cell 32 (line 1621)
 def random_policy(core: UAVBatchCore, rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

@@ -3,7 +3,7 @@
 
 __all__ = ['KernelParams', 'kernel_params', 'step_kernel', 'score_kernel']
 
-# %% notebooks/04_environment.py, cell 18 (line 862)
+# %% notebooks/04_environment.py, cell 18 (line 878)
 import math
 from typing import NamedTuple
 
@@ -145,7 +145,7 @@ def kernel_params(cfg) -> KernelParams:
     )
 
 
-# %% notebooks/04_environment.py, cell 20 (line 1009)
+# %% notebooks/04_environment.py, cell 20 (line 1025)
 @numba.njit(cache=True)
 def _reflect(x, area):
     """Mirror x into [0, area]; returns (position, flipped). See mobility.reflect_into_area."""
@@ -231,7 +231,7 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
             user_vel[b, n, d] = -v_new if flipped else v_new
 
 
-# %% notebooks/04_environment.py, cell 22 (line 1101)
+# %% notebooks/04_environment.py, cell 22 (line 1117)
 @numba.njit(cache=True)
 def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, rand_uniform, nakagami,
                rate_frac, serving, float_info, int_info, scratch):
@@ -404,7 +404,7 @@ def _required_power(p, rate, band, gain, interference):
     return gamma * (p.noise_w_per_hz * band + interference) / max(gain, p.min_gain)
 
 
-# %% notebooks/04_environment.py, cell 24 (line 1279)
+# %% notebooks/04_environment.py, cell 24 (line 1295)
 @numba.njit(cache=True)
 def _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state):
     """Write environment b's observations and global state into row i (see build_observations)."""
