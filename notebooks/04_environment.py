@@ -137,6 +137,12 @@ class EnvConfig:
              "an integer >= 1")
         need("rng_chunk", isinstance(self.rng_chunk, int) and self.rng_chunk >= 64, "an integer >= 64")
         need("step_engine", self.step_engine in STEP_ENGINES, f"one of {', '.join(map(repr, STEP_ENGINES))}")
+        if self.step_engine == "compiled":
+            N, U, G = self.mobility.n_users, self.n_uavs, self.mobility.n_hotspots
+            per_slot = max(4 * N + 3 * N * U, 2 * G + 2 * N * U + N)  # normals, uniforms of one slot
+            need("rng_chunk", self.rng_chunk >= per_slot,
+                 f">= {per_slot}, the random numbers one slot of the compiled engine draws per stream "
+                 f"at {N} users and {U} UAVs (raise rng_chunk, or use step_engine='numpy')")
         if self.energy.slot_s != self.mobility.slot_s:
             raise ValueError(
                 f"EnvConfig: energy.slot_s ({self.energy.slot_s}) and mobility.slot_s "
@@ -476,7 +482,7 @@ def reward_terms(served, reward_weight, energy_j, uav_xy, overlap_weight, radius
     terms = {
         "qos": (served * reward_weight).sum(axis=1),
         "energy": cfg.energy_weight_per_kj * energy_j.sum(axis=1) / 1e3,
-        "collision": cfg.collision_penalty * collisions,
+        "collision": float(cfg.collision_penalty) * collisions,
         "overlap": overlap,
     }
     terms["reward"] = terms["qos"] - terms["energy"] - terms["collision"] - terms["overlap"]
@@ -578,7 +584,10 @@ class UAVBatchCore:
         if len(seeds) != self.B:
             raise ValueError(f"expected {self.B} seeds, got {len(seeds)}")
         self.rng = BatchRandom(seeds, cfg.rng_chunk)
-        self.schedule = schedule or PhaseSchedule(period=cfg.phase_period_steps)
+        self.schedule = schedule or PhaseSchedule(period=cfg.phase_period_steps, n_phases=cfg.phases.n_phases)
+        if self.schedule.n_phases != cfg.phases.n_phases:
+            raise ValueError(f"the phase schedule has n_phases={self.schedule.n_phases}, but the environment's "
+                             f"PhaseConfig defines {cfg.phases.n_phases} phases")
         self.weights = colour_weights(cfg.n_uavs, cfg)  # fixed for the env's life: computed once
         self.kernel = None
         if cfg.step_engine == "compiled":
@@ -658,6 +667,12 @@ class UAVBatchCore:
         if not hasattr(self, "uav_xy"):
             self.reset()  # allocates arrays of the right shapes; everything is overwritten below
         arrays = state["arrays"]
+        cfg = self.cfg
+        for name, low, high in (("phase", 0, cfg.phases.n_regimes), ("demand", 0, 3), ("serving", -1, cfg.n_uavs)):
+            values = np.asarray(arrays[name])
+            if values.size and (values.min() < low or values.max() >= high):
+                raise ValueError(f"state array {name!r} must hold integers in [{low}, {high}), "
+                                 f"got values in [{values.min()}, {values.max()}]")
         for name in self._STATE_ARRAYS:
             getattr(self, name)[...] = arrays[name]
         self.mobility = type(self.mobility)(*(np.array(arrays[f"mobility.{k}"]) for k in self.mobility._fields))
@@ -728,7 +743,7 @@ class UAVBatchCore:
         rate, _ = realised_rates(plan, link.gain, cfg, self.weights)
         admitted = plan.admitted.any(axis=-1)
         served = admitted & (rate >= target * (1 - 1e-9))
-        weight = np.asarray(cfg.phases.class_reward)[demand]
+        weight = np.asarray(cfg.phases.class_reward, dtype=float)[demand]
         info = reward_terms(served, weight, energy_j, self.uav_xy[rows], overlap_weight, radius, cfg)
         self.rate_frac[rows] = rate / target
         self.serving[rows] = np.where(admitted, plan.admitted.argmax(axis=-1), -1)
@@ -767,6 +782,8 @@ class UAVBatchCore:
         return BatchRandom.gamma_from_uniform(uniforms, m, 1.0 / m)
 
     def _outputs(self, n):
+        from pemamoe.env_kernel import FLOAT_INFO, INT_INFO
+
         obs_dim, state_size = self._dims
         return (np.empty((n, self.cfg.n_uavs, obs_dim), np.float32), np.empty((n, state_size), np.float32),
                 np.empty((len(FLOAT_INFO), n)), np.empty((len(INT_INFO), n), dtype=np.int64))
@@ -783,7 +800,7 @@ class UAVBatchCore:
         return obs, state, info
 
     def _compiled_step(self, actions):
-        from pemamoe.env_kernel import step_kernel
+        from pemamoe.env_kernel import UAV_INFO, step_kernel
 
         cfg, B, rng = self.cfg, self.B, self.rng
         N, U, G = cfg.n_users, cfg.n_uavs, cfg.mobility.n_hotspots
@@ -811,15 +828,15 @@ class UAVBatchCore:
 
 _NOT_NEEDED = np.zeros((1, 1))  # placeholder for the kernel's nakagami argument when m = 1
 
-# Per-environment outputs of the compiled engine, in the order the numpy reference's info has them.
-FLOAT_INFO = ("qos", "energy", "collision", "overlap", "reward", "coverage", "uav_using_rate", "energy_rate_kj")
-INT_INFO = ("collisions", "served_users", "admitted_users")
-UAV_INFO = ("action_clipped", "move_infeasible", "battery_depleted")
+# The keys of info, in the order the numpy reference's info has them.
 _INFO_ORDER = ("qos", "energy", "collision", "overlap", "reward", "collisions", "coverage", "served_users",
-               "admitted_users", "uav_using_rate", "energy_rate_kj", "phase", *UAV_INFO, "phase_switch")
+               "admitted_users", "uav_using_rate", "energy_rate_kj", "phase", "action_clipped", "move_infeasible",
+               "battery_depleted", "phase_switch")
 
 
 def _info_dict(float_info, int_info, **more) -> dict:
+    from pemamoe.env_kernel import FLOAT_INFO, INT_INFO
+
     values = dict(zip(FLOAT_INFO, float_info), **dict(zip(INT_INFO, int_info)), **more)
     return {key: values[key] for key in _INFO_ORDER if key in values}
 
@@ -848,11 +865,14 @@ def _info_dict(float_info, int_info, **more) -> dict:
 #   mixture, the interference weights) are computed by the reference functions and handed in as
 #   `KernelParams`.
 # * **Same arithmetic order,** written out expression by expression, so results agree to the last
-#   bit wherever both sides use the same floating-point operations. On the development machine they
-#   agree bit for bit in every configuration we tested. Elsewhere they may differ by an ulp (numpy
-#   sums small matrices through BLAS, and may take `exp` or `log10` from a different math library
-#   than numba); the motion of UAVs and users never depends on those values, so such differences
-#   cannot accumulate along a trajectory. The tests step both engines side by side through episode
+#   bit wherever both sides use the same floating-point operations. They cannot everywhere: numpy
+#   sums the interference through a BLAS matrix product and the QoS term pairwise, the kernel in a
+#   plain loop, and another machine's numpy may take `exp` or `log10` from a different math library
+#   than numba. With the default settings (one frequency colour, integer class rewards) those sums
+#   are exact, and on the development machine the two engines' outputs agree bit for bit; with
+#   frequency reuse, intermediate interference values differ by an ulp in about one link in eight.
+#   The motion of UAVs and users never depends on those values, so such differences cannot
+#   accumulate along a trajectory. The tests step both engines side by side through episode
 #   ends, phase switches, frequency reuse, Nakagami m ≠ 1, the held-out regime and the `mix` demand
 #   mode, and require equal discrete outcomes (admissions, served users, collisions, phases) and
 #   floats equal to 1e-9 relative.
@@ -886,6 +906,13 @@ import numpy as np
 from pemamoe.channel import height_correction, interference_weights, reuse_colours
 from pemamoe.energy import propulsion_power_w
 from pemamoe.mobility import hotspot_membership
+
+
+# Rows of the kernels' per-environment outputs, named as in the reference's info (float_info and
+# int_info are written by _score_env, uav_flags by _move_uavs; the tests compare them by name).
+FLOAT_INFO = ("qos", "energy", "collision", "overlap", "reward", "coverage", "uav_using_rate", "energy_rate_kj")
+INT_INFO = ("collisions", "served_users", "admitted_users")
+UAV_INFO = ("action_clipped", "move_infeasible", "battery_depleted")
 
 
 class KernelParams(NamedTuple):
@@ -1110,12 +1137,19 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
 
 
 # %% [markdown]
-# Channel, scheduler, realised rates and objective of one environment. Its per-environment
-# outputs go to rows of `float_info` and `int_info`, in the order of `env.FLOAT_INFO` and
-# `env.INT_INFO`.
+# Channel, scheduler, realised rates and objective of one environment, after the feasibility
+# power rule for a single link. Its per-environment outputs go to the rows of `float_info` and
+# `int_info` named by `FLOAT_INFO` and `INT_INFO`.
 
 # %%
 #| export env_kernel
+@numba.njit(cache=True)
+def _required_power(p, rate, band, gain, interference):
+    """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
+    gamma = math.expm1(rate / (p.implementation_loss * band) * math.log(2.0))
+    return gamma * (p.noise_w_per_hz * band + interference) / max(gain, p.min_gain)
+
+
 @numba.njit(cache=True)
 def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, rand_uniform, nakagami,
                rate_frac, serving, float_info, int_info, scratch):
@@ -1201,7 +1235,7 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
                 n = candidates[j]
                 power[n, u] = _required_power(p, p.rate_threshold_bps[demand[b, n]], band, expected[n, u],
                                               conservative[n, u])
-                bandwidth[n, u] = p.colour_bandwidth_hz / max(k_admit, 1)
+                bandwidth[n, u] = band
                 admitted_of[n] = u
         n_admitted_total += k_admit
     # -- this slot's channel (LoS state, fading, shadowing) on every link of an admitted user
@@ -1279,13 +1313,6 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
     int_info[0, i] = collisions
     int_info[1, i] = served_n
     int_info[2, i] = admitted_n
-
-
-@numba.njit(cache=True)
-def _required_power(p, rate, band, gain, interference):
-    """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
-    gamma = math.expm1(rate / (p.implementation_loss * band) * math.log(2.0))
-    return gamma * (p.noise_w_per_hz * band + interference) / max(gain, p.min_gain)
 
 
 # %% [markdown]

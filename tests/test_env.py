@@ -350,3 +350,43 @@ def test_compiled_engine_matches_in_the_held_out_regime():
 def test_compiled_engine_matches_on_random_settings(seed, n_envs, radius, n_users, max_users):
     run_both_engines(n_envs, 6, seed=seed, action_seed=seed, service_radius_m=(radius, radius, radius),
                      n_users=n_users, max_users_per_uav=max_users)
+
+
+def test_compiled_engine_needs_a_chunk_that_holds_one_slot():
+    with pytest.raises(ValueError, match="rng_chunk"):
+        E.make_vector_env(1, rng_chunk=64)
+    env = E.make_vector_env(1, rng_chunk=64, step_engine="numpy")  # the reference draws in pieces
+    env.reset()
+    env.step(np.zeros((1, 3, 2)))
+
+
+def test_integer_rewards_give_float_terms_on_both_engines():
+    for engine in E.STEP_ENGINES:
+        env = E.make_vector_env(2, seed=0, step_engine=engine, class_reward=(5, 10, 20), collision_penalty=100)
+        env.reset()
+        *_, info = env.step(np.zeros((2, 3, 2)))
+        assert info["qos"].dtype == info["collision"].dtype == np.float64, engine
+
+
+def test_schedule_must_have_the_configs_phases():
+    from pemamoe.phases import PhaseSchedule
+
+    with pytest.raises(ValueError, match="n_phases=6"):
+        E.UAVBatchCore(E.EnvConfig(), 1, [0], schedule=PhaseSchedule(period=1, n_phases=6))
+    two = E.EnvConfig.from_overrides(user_speed_mps=(0.2, 0.5), direction_jitter=(0.2, 0.5),
+                                     service_radius_m=(200.0, 150.0), overlap_weight=(20.0, 40.0),
+                                     mix_probs=((0.6, 0.3, 0.1), (0.3, 0.5, 0.2)), demand_mode="mix",
+                                     phase_period_steps=2)
+    core = E.UAVBatchCore(two, 1, [0])  # the default schedule cycles this config's 2 phases
+    core.reset()
+    phases = [int(core.step(np.zeros((1, 3, 2)))[5]["phase"][0]) for _ in range(8)]
+    assert phases == [0, 0, 1, 1, 0, 0, 1, 1]
+
+
+def test_loading_a_foreign_state_fails_naming_the_array():
+    env = E.make_vector_env(1, seed=0)
+    env.reset()
+    state = env.state_dict()
+    state["arrays"]["phase"][:] = 7
+    with pytest.raises(ValueError, match="'phase'"):
+        E.make_vector_env(1, seed=0).load_state_dict(state)
