@@ -880,8 +880,9 @@ def _info_dict(float_info, int_info, **more) -> dict:
 # The compiled step also skips work the reference does for every link: it computes distances for
 # all links, the large-scale channel only for users inside a service radius, and this slot's
 # realised gain only on the links of admitted users. The random numbers of every link are drawn
-# regardless, so no stream changes. Measured with `make bench`: about 110 µs per PettingZoo step
-# and 83,000 env-steps/s at B = 64, or 60,000 when every user is covered.
+# regardless, so no stream changes. Measured with `make bench`: 110–130 µs per PettingZoo step
+# and 63,000–83,000 env-steps/s at B = 64 (47,000–60,000 when every user is covered), depending on
+# how busy the shared machine is.
 #
 # The scheduler is the one place where loops read better than arrays: per UAV, the attached users
 # are sorted by (priority, distance) with a stable insertion sort, and admission grows k = 1, 2, …
@@ -1531,21 +1532,27 @@ class UAVParallelEnv(ParallelEnv):
         missing = set(self.agents) - set(actions)
         if missing:
             raise ValueError(f"actions missing for agents {sorted(missing)}")
-        for a in self.possible_agents:
-            if np.size(actions[a]) != 2:
-                raise ValueError(f"action of {a} must have 2 entries, got shape {np.shape(actions[a])}")
-        stacked = np.stack([np.asarray(actions[a], dtype=float).reshape(2) for a in self.possible_agents])[None]
-        obs, state, reward, terminated, truncated, info = self.core.step(stacked)
+        try:  # the usual case, one array of 2 numbers per agent, in one call
+            stacked = np.array([actions[a] for a in self.possible_agents], dtype=float)
+        except (TypeError, ValueError):
+            stacked = None
+        if stacked is None or stacked.shape != (len(self.possible_agents), 2):
+            for a in self.possible_agents:
+                if np.size(actions[a]) != 2:
+                    raise ValueError(f"action of {a} must have 2 entries, got shape {np.shape(actions[a])}")
+            stacked = np.stack([np.asarray(actions[a], dtype=float).reshape(2) for a in self.possible_agents])
+        obs, state, reward, terminated, truncated, info = self.core.step(stacked[None])
         self._state = state[0]
         agents = self.agents
+        shared_reward, term, trunc = float(reward[0]), bool(terminated[0]), bool(truncated[0])
         out = (
             {a: obs[0, i] for i, a in enumerate(agents)},
-            {a: float(reward[0]) for a in agents},
-            {a: bool(terminated[0]) for a in agents},
-            {a: bool(truncated[0]) for a in agents},
+            {a: shared_reward for a in agents},
+            {a: term for a in agents},
+            {a: trunc for a in agents},
             _agent_infos(info, 0, agents),
         )
-        if terminated[0] or truncated[0]:
+        if term or trunc:
             self.agents = []
         return out
 
@@ -1563,12 +1570,16 @@ class UAVParallelEnv(ParallelEnv):
 
 def _agent_infos(info: dict, b: int, agents: list) -> dict:
     """Environment b's info as each agent sees it: (B, U) arrays are indexed by agent, (B,) are shared."""
-    rows = {}
+    shared, per_agent = {}, {}
     for key, value in info.items():
-        value = np.asarray(value)
-        per_agent = value.ndim == 2 and value.shape[1] == len(agents)
-        rows[key] = (True, value[b].tolist()) if per_agent else (False, value[b].item() if value.ndim == 1 else value[b])
-    return {a: {key: row[u] if per_agent else row for key, (per_agent, row) in rows.items()}
+        value = value if isinstance(value, np.ndarray) else np.asarray(value)
+        # value[b:b + 1].tolist()[0] gives Python numbers, several times faster than value[b].item()
+        if value.ndim == 2 and value.shape[1] == len(agents):
+            per_agent[key] = value[b:b + 1].tolist()[0]
+        else:
+            shared[key] = value[b:b + 1].tolist()[0] if value.ndim == 1 else value[b]
+    order = list(info)  # every agent's dict keeps info's key order
+    return {a: {key: per_agent[key][u] if key in per_agent else shared[key] for key in order}
             for u, a in enumerate(agents)}
 
 
