@@ -285,3 +285,12 @@ def test_force_controller_runs_noise_only_for_a_baseline():
     m = train(cfg).metrics
     assert m.loc[m["switch"], "noised_experts"].gt(0).all()  # noise after the switch's epochs
     assert (m["kl_coef"] == 0).all() and m["lr/head"].nunique() == 1
+
+
+def test_paper_preset_and_controller_defaults_agree():
+    # BaseSchedule (notebook 06) repeats the paper's PPO values that TrainConfig (notebook 07) holds;
+    # this keeps the two copies from drifting apart.
+    from pemamoe.phase_controller import BaseSchedule
+
+    assert TrainConfig.for_scale("paper").base_schedule() == BaseSchedule()
+    assert TrainConfig().base_schedule() == BaseSchedule()
