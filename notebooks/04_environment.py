@@ -138,11 +138,10 @@ class EnvConfig:
         need("rng_chunk", isinstance(self.rng_chunk, int) and self.rng_chunk >= 64, "an integer >= 64")
         need("step_engine", self.step_engine in STEP_ENGINES, f"one of {', '.join(map(repr, STEP_ENGINES))}")
         if self.step_engine == "compiled":
-            N, U, G = self.mobility.n_users, self.n_uavs, self.mobility.n_hotspots
-            per_slot = max(4 * N + 3 * N * U, 2 * G + 2 * N * U + N)  # normals, uniforms of one slot
+            per_slot = max(slot_draws(self))
             need("rng_chunk", self.rng_chunk >= per_slot,
                  f">= {per_slot}, the random numbers one slot of the compiled engine draws per stream "
-                 f"at {N} users and {U} UAVs (raise rng_chunk, or use step_engine='numpy')")
+                 f"at {self.n_users} users and {self.n_uavs} UAVs (raise rng_chunk, or use step_engine='numpy')")
         if self.energy.slot_s != self.mobility.slot_s:
             raise ValueError(
                 f"EnvConfig: energy.slot_s ({self.energy.slot_s}) and mobility.slot_s "
@@ -200,6 +199,14 @@ class EnvConfig:
                     raise ValueError(f"unknown field(s) {sorted(unknown)} for {type(current).__name__}")
                 parts[section] = dataclasses.replace(current, **values)
         return dataclasses.replace(base, **top, **parts)
+
+
+def slot_draws(cfg: EnvConfig) -> tuple:
+    """(normals, uniforms) one slot draws per environment: users' noise xi and eta (2N each), then
+    the channel's Rician x, y and shadowing (NU each); waypoints (2G), then LoS states, NLoS fading
+    (NU each) and demand classes (N)."""
+    N, U, G = cfg.n_users, cfg.n_uavs, cfg.mobility.n_hotspots
+    return 4 * N + 3 * N * U, 2 * G + 2 * N * U + N
 
 
 _SECTIONS = {"channel": ChannelConfig, "energy": EnergyConfig, "mobility": MobilityConfig, "phases": PhaseConfig}
@@ -806,8 +813,8 @@ class UAVBatchCore:
         N, U, G = cfg.n_users, cfg.n_uavs, cfg.mobility.n_hotspots
         NU = N * U
         # All of a slot's draws at once; per stream this is the reference's order exactly.
-        normals = rng.standard_normal((B, 4 * N + 3 * NU))  # user noise xi, eta; channel x, y, shadowing
-        uniforms = rng.random((B, 2 * G + 2 * NU + N))  # waypoints; LoS; NLoS fading; demand classes
+        n_normals, n_uniforms = slot_draws(cfg)
+        normals, uniforms = rng.standard_normal((B, n_normals)), rng.random((B, n_uniforms))
         nakagami = self._nakagami(uniforms[:, 2 * G + NU:2 * G + 2 * NU])
         old_phase = self.phase.copy()
         self.t += 1
