@@ -709,8 +709,10 @@ class UAVBatchCore:
         new_xy = np.clip(self.uav_xy + step, 0.0, cfg.area_m)
         moved = np.linalg.norm(new_xy - self.uav_xy, axis=-1)
         slot = slot_energy(moved, 0.0, cfg.energy)
-        self.uav_xy = new_xy
-        self.battery_j, depleted = battery_update(self.battery_j, slot.energy_j, cfg.energy)
+        # State arrays are updated in place (as the compiled engine does), never rebound.
+        self.uav_xy[...] = new_xy
+        battery, depleted = battery_update(self.battery_j, slot.energy_j, cfg.energy)
+        self.battery_j[...] = battery
 
         # Users move with the current phase's mobility parameters.
         rows = np.arange(self.B)
@@ -728,8 +730,8 @@ class UAVBatchCore:
         new_phase = self._current_phase(rows)
         fresh_demand = sample_demand_classes(cfg.phases, new_phase, cfg.n_users, rng)
         changed = new_phase != self.phase
-        self.demand = np.where(changed[:, None], fresh_demand, self.demand)
-        self.phase = new_phase
+        self.demand[...] = np.where(changed[:, None], fresh_demand, self.demand)
+        self.phase[...] = new_phase
         info["phase_switch"] = changed
         terminated = depleted.any(axis=-1)
         truncated = self.t >= cfg.episode_steps

@@ -576,8 +576,10 @@ class UAVBatchCore:
         new_xy = np.clip(self.uav_xy + step, 0.0, cfg.area_m)
         moved = np.linalg.norm(new_xy - self.uav_xy, axis=-1)
         slot = slot_energy(moved, 0.0, cfg.energy)
-        self.uav_xy = new_xy
-        self.battery_j, depleted = battery_update(self.battery_j, slot.energy_j, cfg.energy)
+        # State arrays are updated in place (as the compiled engine does), never rebound.
+        self.uav_xy[...] = new_xy
+        battery, depleted = battery_update(self.battery_j, slot.energy_j, cfg.energy)
+        self.battery_j[...] = battery
 
         # Users move with the current phase's mobility parameters.
         rows = np.arange(self.B)
@@ -595,8 +597,8 @@ class UAVBatchCore:
         new_phase = self._current_phase(rows)
         fresh_demand = sample_demand_classes(cfg.phases, new_phase, cfg.n_users, rng)
         changed = new_phase != self.phase
-        self.demand = np.where(changed[:, None], fresh_demand, self.demand)
-        self.phase = new_phase
+        self.demand[...] = np.where(changed[:, None], fresh_demand, self.demand)
+        self.phase[...] = new_phase
         info["phase_switch"] = changed
         terminated = depleted.any(axis=-1)
         truncated = self.t >= cfg.episode_steps
@@ -715,7 +717,7 @@ def _info_dict(float_info, int_info, **more) -> dict:
     return {key: values[key] for key in _INFO_ORDER if key in values}
 
 
-# %% notebooks/04_environment.py, cell 26 (line 1436)
+# %% notebooks/04_environment.py, cell 26 (line 1438)
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
@@ -763,7 +765,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04_environment.py, cell 28 (line 1493)
+# %% notebooks/04_environment.py, cell 28 (line 1495)
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
@@ -881,7 +883,7 @@ def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UA
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 
-# %% notebooks/04_environment.py, cell 30 (line 1618)
+# %% notebooks/04_environment.py, cell 30 (line 1620)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -918,7 +920,7 @@ def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarr
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04_environment.py, cell 32 (line 1666)
+# %% notebooks/04_environment.py, cell 32 (line 1668)
 def random_policy(core: UAVBatchCore, rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

@@ -390,3 +390,16 @@ def test_loading_a_foreign_state_fails_naming_the_array():
     state["arrays"]["phase"][:] = 7
     with pytest.raises(ValueError, match="'phase'"):
         E.make_vector_env(1, seed=0).load_state_dict(state)
+
+
+@pytest.mark.parametrize("engine", E.STEP_ENGINES)
+def test_state_arrays_are_updated_in_place_on_both_engines(engine):
+    env = E.make_vector_env(2, seed=0, step_engine=engine, phase_period_steps=1)
+    env.reset()
+    core = env.core
+    held = {name: getattr(core, name) for name in ("uav_xy", "battery_j", "demand", "phase")}
+    before = {name: array.copy() for name, array in held.items()}
+    env.step(np.full((2, 3, 2), 0.5))
+    for name, array in held.items():
+        assert array is getattr(core, name), name
+        assert not np.array_equal(array, before[name]), name  # it moved, and the held array shows it
