@@ -1402,12 +1402,12 @@ def step_kernel(p, actions, new_phase, uav_xy, battery_j, user_xy, user_vel, cen
                     normals, uniforms)
         _score_env(p, b, b, phase[b], demand, uav_xy, user_xy, energy_j, normals[:, 4 * N:],
                    uniforms[:, 2 * G:], nakagami, rate_frac, serving, float_info, int_info, scratch)
-        # The phase clock has ticked: new demand classes when the phase changed.
+        # The phase clock has ticked: new demand classes when the phase changed (their uniforms
+        # are drawn every slot regardless, as in the reference).
         phase_switch[b] = new_phase[b] != phase[b]
-        for n in range(N):
-            fresh = _draw_demand(p, new_phase[b], uniforms[b, 2 * G + 2 * NU + n])
-            if phase_switch[b]:
-                demand[b, n] = fresh
+        if phase_switch[b]:
+            for n in range(N):
+                demand[b, n] = _draw_demand(p, new_phase[b], uniforms[b, 2 * G + 2 * NU + n])
         phase[b] = new_phase[b]
         _observe_env(p, b, b, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state)
 
