@@ -1440,11 +1440,14 @@ def score_kernel(p, rows, uav_xy, battery_j, user_xy, demand, rate_frac, serving
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
-    def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: EnvConfig | None = None, **overrides):
+    def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: EnvConfig | None = None, *, seeds=None,
+                 **overrides):
         if cfg is not None and overrides:
             raise ValueError("pass either cfg or keyword overrides, not both")
         self.cfg = cfg or EnvConfig.from_overrides(**overrides)
-        seeds = vector_seeds(seed, num_envs)
+        if seeds is None:  # explicit per-environment seeds: a population's members side by side
+            seeds = vector_seeds(seed, num_envs)
+        num_envs = len(seeds)
         self.core = UAVBatchCore(self.cfg, num_envs, seeds)
         self.num_envs = int(num_envs)
         self.n_agents = self.cfg.n_uavs

@@ -44,6 +44,7 @@ our_obs_dim = None  # None: ask pemamoe.env for the observation dimension of Env
 
 # %%
 #| export
+import copy
 import math
 import statistics
 import time
@@ -376,6 +377,9 @@ class RoutingSample(NamedTuple):
             self.temperature.reshape(*lead),
         )
 
+    def to(self, device) -> "RoutingSample":
+        return RoutingSample(*(t.to(device) for t in self))
+
     @staticmethod
     def cat(samples, dim: int = 0) -> "RoutingSample":
         return RoutingSample(*(torch.cat([getattr(s, f) for s in samples], dim) for f in RoutingSample._fields))
@@ -554,6 +558,23 @@ class GaussianActor(nn.Module):
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         raise NotImplementedError
 
+    # The run axis (see "A population of networks" below): the same features for R members at
+    # once, from parameter views p {name: (R, *shape)} and x (R, n, obs_dim) -> ((R, n, hidden),
+    # (probs, experts, weights) or None). tau (R, n), noise (R, n, E) and experts (R, n, k)
+    # are the routing inputs of gated kinds (ignored by ungated ones).
+    def run_features(self, p, x, tau=None, noise=None, experts=None):
+        raise NotImplementedError
+
+    def trunk_parameters(self) -> list:
+        """[(parameter name, expert index or None)]: the trunk ("expert") parameters that the
+        plasticity methods perturb; index e selects slice e of a stacked (E, ...) parameter."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def probe(self, obs, temperature=None) -> dict:
+        """Pre-activations, activations, routing, features and mean on probe rows (diagnostics)."""
+        raise NotImplementedError
+
     def _forward(self, obs, temperature=None, routing=None, deterministic_gate=False, with_aux=False):
         lead = obs.shape[:-1]
         x = obs.reshape(-1, self.obs_dim)
@@ -620,6 +641,13 @@ class MLPActor(GaussianActor):
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         return F.relu(self.fc2(F.relu(self.fc1(x)))), None
 
+    def run_features(self, p, x, tau=None, noise=None, experts=None):
+        h = F.relu(run_linear(x, p["fc1.weight"], p["fc1.bias"]))
+        return F.relu(run_linear(h, p["fc2.weight"], p["fc2.bias"])), None
+
+    def trunk_parameters(self) -> list:
+        return [(name, None) for name in ("fc1.weight", "fc1.bias", "fc2.weight", "fc2.bias")]
+
     @torch.no_grad()
     def probe(self, obs, temperature=None) -> dict:
         x = obs.reshape(-1, self.obs_dim)
@@ -667,6 +695,12 @@ class MoEActor(GaussianActor):
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         out = self.gate(x, temperature, routing, deterministic_gate, with_aux)
         return out.features, out
+
+    def run_features(self, p, x, tau=None, noise=None, experts=None):
+        return run_gate(p, "gate.", x, tau, noise, experts, self.gate)
+
+    def trunk_parameters(self) -> list:
+        return [(f"gate.experts.{n}", e) for e in range(self.gate.n_experts) for n in ("w1", "b1", "w2", "b2")]
 
     @torch.no_grad()
     def probe(self, obs, temperature=None) -> dict:
@@ -750,6 +784,10 @@ class MLPCritic(nn.Module):
         zero = value.new_zeros(())
         return value, {"load_balance": zero, "aux_loss": zero, "router_probs": None, "experts": None}
 
+    def run_features(self, p, x, tau=None, noise=None, experts=None):
+        h = F.relu(run_linear(x, p["fc1.weight"], p["fc1.bias"]))
+        return F.relu(run_linear(h, p["fc2.weight"], p["fc2.bias"])), None
+
     def param_groups(self) -> dict:
         return {"critic": list(self.parameters())}
 
@@ -781,6 +819,9 @@ class MoECritic(nn.Module):
         }
         return value, aux
 
+    def run_features(self, p, x, tau=None, noise=None, experts=None):
+        return run_gate(p, "gate.", x, tau, noise, experts, self.gate)
+
     def param_groups(self) -> dict:
         return {"critic": list(self.parameters())}
 
@@ -793,6 +834,289 @@ class SMoECritic(MoECritic):
 class PEMAMoECritic(SMoECritic):
     kind = "pemamoe"
 
+
+# %% [markdown]
+# ## A population of networks: the run axis
+#
+# Training one small network at a time wastes the CPU: a PPO minibatch step on 192 rows costs
+# mostly fixed per-call overhead (Python, dispatch, allocation), not arithmetic. So the trainer
+# trains R independent runs ("members": different seeds, ablation switches or noise levels) in
+# one process, as one set of tensors with a leading run axis, the way PureJaxRL vectorises seeds.
+#
+# * Each member's parameters are one row of a flat `(R, P)` tensor. `ParamLayout` knows where
+#   every named parameter of the single-run module lives in that row, and `views` hands out
+#   `(R, *shape)` views, so gradients, the optimizer, gradient clipping and noise injection are
+#   a handful of tensor operations for all members together.
+# * Each network kind computes its features for all members with batched matrix products
+#   (`run_features`, built from `run_linear`, `run_experts` and `run_gate` below); member r only
+#   ever reads row r of the parameters and its own rows of the input.
+# * Members are built as single-run modules (same constructor, same seed, so the same
+#   initialisation as a run trained alone) and stacked; `member(r)` copies row r back into a
+#   single-run module for diagnostics, evaluation and checkpoints. A checkpoint of a member is
+#   therefore the same file whether it trained alone or in a population.
+#
+# Why a member's numbers do not depend on its neighbours: every operation is either
+# elementwise, a reduction within one member's slice, or a batched matrix product whose batch
+# entries are computed independently (checked bit for bit in the tests, and by training the same
+# member alone and in populations of different sizes).
+
+# %%
+#| export
+class ParamLayout:
+    """Where each parameter of one member lives in a flat vector of length P.
+
+    A population of R members stores its parameters as one (R, P) tensor; `views(flat)` gives
+    each named parameter as an (R, *shape) view of it, so one optimizer step, one gradient-norm
+    and one noise draw act on all members at once, and member r's numbers are row r.
+    """
+
+    def __init__(self, module: nn.Module):
+        self.names, self.shapes, self.offsets = [], [], []
+        offset = 0
+        for name, p in module.named_parameters():
+            self.names.append(name)
+            self.shapes.append(tuple(p.shape))
+            self.offsets.append(offset)
+            offset += p.numel()
+        self.size = offset
+        self.index = {n: i for i, n in enumerate(self.names)}
+
+    def span(self, name: str) -> tuple:
+        i = self.index[name]
+        return self.offsets[i], self.offsets[i] + math.prod(self.shapes[i])
+
+    def flatten(self, modules) -> torch.Tensor:
+        """(R, P) from R modules of the same architecture (parameters copied)."""
+        rows = []
+        for m in modules:
+            params = dict(m.named_parameters())
+            rows.append(torch.cat([params[n].detach().reshape(-1) for n in self.names]))
+        return torch.stack(rows)
+
+    def views(self, flat: torch.Tensor) -> dict:
+        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat)."""
+        R = flat.shape[0]
+        return {n: flat[:, o:o + math.prod(s)].reshape(R, *s) for n, s, o in zip(self.names, self.shapes, self.offsets)}
+
+    def load_member(self, row: torch.Tensor, module: nn.Module) -> nn.Module:
+        """Copy one member's flat parameters (P,) into a single-run module; returns it."""
+        params = dict(module.named_parameters())
+        with torch.no_grad():
+            for n, s, o in zip(self.names, self.shapes, self.offsets):
+                params[n].copy_(row[o:o + math.prod(s)].reshape(s))
+        return module
+
+    def mask(self, names) -> torch.Tensor:
+        """(P,) bool: True on the parameters named."""
+        m = torch.zeros(self.size, dtype=torch.bool)
+        for n in names:
+            a, b = self.span(n)
+            m[a:b] = True
+        return m
+
+    def expert_index(self, name: str, expert: int) -> torch.Tensor:
+        """Flat indices of slice `expert` along the leading axis of parameter `name` (E, ...)."""
+        a, b = self.span(name)
+        shape = self.shapes[self.index[name]]
+        per = math.prod(shape[1:])
+        return torch.arange(a + expert * per, a + (expert + 1) * per)
+
+
+def run_linear(x, weight, bias):
+    """Member-wise linear layer: x (R, n, in), weight (R, out, in), bias (R, out) -> (R, n, out)."""
+    if weight.shape[1] == 1:
+        # A single output (the value head): torch takes a different matrix-vector path for one
+        # batch entry than for several, and the results differ in the last bit, which would make
+        # a member's values depend on the population size. A product and a row sum do not.
+        return (x * weight[:, :, :].transpose(1, 2).reshape(x.shape[0], 1, -1)).sum(-1, keepdim=True) + bias.unsqueeze(1)
+    return torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+
+
+def run_experts(x, w1, b1, w2, b2):
+    """Every expert of every member on that member's rows: x (R, n, in), w1 (R, E, in, h) ->
+    (R, E, n, h), the ReLU trunk in -> h -> h (one batched matmul per layer over R*E)."""
+    R, E, d, h = w1.shape
+    n = x.shape[1]
+    xe = x.unsqueeze(1).expand(R, E, n, d).reshape(R * E, n, d)
+    a1 = F.relu(torch.baddbmm(b1.reshape(R * E, 1, h), xe, w1.reshape(R * E, d, h)))
+    a2 = F.relu(torch.baddbmm(b2.reshape(R * E, 1, h), a1, w2.reshape(R * E, h, h)))
+    return a2.reshape(R, E, n, h)
+
+
+def run_load_balance(probs, experts, n_experts):
+    """Switch balance loss per member: probs (R, n, E), experts (R, n, k) -> (R,)."""
+    onehot = F.one_hot(experts.reshape(experts.shape[0], -1), n_experts).to(probs.dtype)
+    counts = onehot.sum(1)
+    f = counts / counts.sum(-1, keepdim=True)
+    return n_experts * (f * probs.mean(1)).sum(-1)
+
+
+def run_gate(p, prefix, x, tau, noise, experts, gate):
+    """Gated trunk of every member (the batched GatedExperts): x (R, n, in), tau (R, n),
+    noise (R, n, E) or None (noiseless), experts (R, n, k) to replay or None ->
+    (features (R, n, hidden), (probs (R, n, E), experts (R, n, k) or None, weights))."""
+    sparse, k = gate.sparse, gate.k
+    noisy = gate.noisy and noise is not None
+    logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
+    if noisy:
+        gate_scale = F.softplus(run_linear(x, p[prefix + "noise_gate.weight"], p[prefix + "noise_gate.bias"]))
+        logits = logits + noise * gate_scale
+    probs = torch.softmax(logits, dim=-1)
+    h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
+                    p[prefix + "experts.b2"])  # (R, E, n, hidden)
+    if not sparse:
+        features = torch.einsum("rne,renh->rnh", probs, h)
+        return features, (probs, None, probs)
+    if experts is None:
+        experts = probs.topk(k, dim=-1).indices
+    kept = probs.gather(2, experts)
+    weights = kept / kept.sum(-1, keepdim=True)
+    if k == 1:  # value exactly 1, gradient of the kept probability (Switch-style), as notebook 05's GatedExperts
+        weights = weights.detach() + (kept - kept.detach())
+    R, E, n, hid = h.shape
+    picked = h.permute(0, 2, 1, 3).gather(2, experts.unsqueeze(-1).expand(R, n, k, hid))  # (R, n, k, hidden)
+    features = (picked * weights.unsqueeze(-1)).sum(2)
+    return features, (probs, experts, weights)
+
+
+class PopulationActor:
+    """R actors of one kind as one flat parameter tensor (R, P) with batched forward passes."""
+
+    def __init__(self, members: list):
+        if not members:
+            raise ValueError("a population needs at least one member")
+        self.template = members[0]
+        self.layout = ParamLayout(self.template)
+        self.R = len(members)
+        self.flat = self.layout.flatten(members).requires_grad_(True)
+        self.act_dim = self.template.act_dim
+        self.obs_dim = self.template.obs_dim
+        gate = getattr(self.template, "gate", None)
+        self.n_experts = 1 if gate is None else gate.n_experts
+        self.k = 0 if gate is None else gate.k
+        self.noisy = gate is not None and gate.noisy
+        self.gated = gate is not None
+        self.lb_coef = self.template.cfg.load_balance_coef
+
+    def to(self, device) -> "PopulationActor":
+        self.flat = self.flat.detach().to(device).requires_grad_(True)
+        return self
+
+    def params(self, flat=None) -> dict:
+        return self.layout.views(self.flat if flat is None else flat)
+
+    def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None):
+        """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None)."""
+        p = self.params(flat)
+        feat, gate = self.template.run_features(p, obs, tau, noise, experts)
+        return run_linear(feat, p["head.weight"], p["head.bias"]), p["log_std"], gate
+
+    @torch.no_grad()
+    def act(self, obs, tau, generators, deterministic: bool = False):
+        """Sample actions for every member. obs (R, n, obs_dim), tau (R,) router temperature,
+        generators: one torch.Generator per member (its gate noise, then its action noise).
+        Returns (action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None)."""
+        R, n, _ = obs.shape
+        tau_rows = tau.reshape(R, 1).expand(R, n).contiguous()
+        noise = None
+        if self.noisy and not deterministic:
+            noise = torch.stack([torch.randn(n, self.n_experts, generator=g, device=obs.device) for g in generators])
+        mean, log_std, gate = self.mean_and_gate(obs, tau_rows, noise)
+        if deterministic:
+            action = mean
+        else:
+            eps = torch.stack([torch.randn(n, self.act_dim, generator=g, device=obs.device) for g in generators])
+            action = mean + log_std.exp().unsqueeze(1) * eps
+        logp = gaussian_log_prob(action, mean, log_std)
+        routing = None
+        if gate is not None:
+            if noise is None:
+                noise = obs.new_zeros(R, n, self.n_experts)
+            experts = gate[1] if gate[1] is not None else torch.arange(self.n_experts, device=obs.device).expand(R, n, -1)
+            routing = RoutingSample(noise, experts, tau_rows)
+        return action, logp, routing
+
+    def evaluate(self, obs, action, routing=None, flat=None):
+        """PPO update pass with the stored routing replayed: (log_prob (R, n), entropy (R,),
+        load-balance loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None)."""
+        R, n, _ = obs.shape
+        if routing is None:
+            tau, noise, experts = obs.new_ones(R, n), None, None
+        else:
+            tau, noise = routing.temperature, (routing.noise if self.noisy else None)
+            experts = routing.experts if self.k and self.k < self.n_experts else None
+        mean, log_std, gate = self.mean_and_gate(obs, tau, noise, experts, flat)
+        logp = gaussian_log_prob(action, mean, log_std)
+        entropy = gaussian_entropy(log_std)
+        if gate is None:
+            return logp, entropy, obs.new_zeros(R), mean, log_std, None
+        probs, chosen, _ = gate
+        if chosen is None:  # dense mixing: the balance loss counts each row's top expert
+            chosen = probs.argmax(-1, keepdim=True)
+        return logp, entropy, run_load_balance(probs, chosen, self.n_experts), mean, log_std, chosen
+
+    def member(self, r: int, module=None):
+        """Member r as a single-run module (a copy; `module` is filled in place if given)."""
+        module = module if module is not None else copy.deepcopy(self.template)
+        return self.layout.load_member(self.flat[r].detach().cpu(), module)
+
+
+class PopulationCritic:
+    """R centralised critics of one kind; noiseless gating (see notebook 07 on why)."""
+
+    def __init__(self, members: list):
+        if not members:
+            raise ValueError("a population needs at least one member")
+        self.template = members[0]
+        self.layout = ParamLayout(self.template)
+        self.R = len(members)
+        self.flat = self.layout.flatten(members).requires_grad_(True)
+        gate = getattr(self.template, "gate", None)
+        self.n_experts = 1 if gate is None else gate.n_experts
+        self.gated = gate is not None
+        self.lb_coef = self.template.cfg.load_balance_coef
+
+    def to(self, device) -> "PopulationCritic":
+        self.flat = self.flat.detach().to(device).requires_grad_(True)
+        return self
+
+    def __call__(self, state, tau):
+        """state (R, n, state_dim), tau (R,) -> (value (R, n), load balance (R,), probs or None)."""
+        R, n, _ = state.shape
+        p = self.layout.views(self.flat)
+        feat, gate = self.template.run_features(p, state, tau.reshape(R, 1).expand(R, n), None, None)
+        value = run_linear(feat, p["head.weight"], p["head.bias"]).squeeze(-1)
+        if gate is None:
+            return value, state.new_zeros(R), None
+        probs, chosen, _ = gate
+        if chosen is None:
+            chosen = probs.argmax(-1, keepdim=True)
+        return value, run_load_balance(probs, chosen, self.n_experts), probs
+
+    def member(self, r: int, module=None):
+        module = module if module is not None else copy.deepcopy(self.template)
+        return self.layout.load_member(self.flat[r].detach().cpu(), module)
+
+
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+
+
+def gaussian_log_prob(action, mean, log_std):
+    """Diagonal Gaussian log-density summed over the action axis: (R, n, A) -> (R, n)."""
+    log_std = log_std.unsqueeze(1)
+    return (-((action - mean) ** 2) / (2 * torch.exp(2 * log_std)) - log_std - _HALF_LOG_2PI).sum(-1)
+
+
+def gaussian_entropy(log_std):
+    """Entropy of a diagonal Gaussian per member: log_std (R, A) -> (R,)."""
+    return (0.5 + _HALF_LOG_2PI + log_std).sum(-1)
+
+
+def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
+    """KL(N(mean, std) || N(ref_mean, ref_std)) per row, summed over actions -> (R, n)."""
+    ls, rls = log_std.unsqueeze(1), ref_log_std.unsqueeze(1)
+    var, rvar = torch.exp(2 * ls), torch.exp(2 * rls)
+    return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 # %% [markdown]
 # ## Factories and cost accounting

@@ -61,6 +61,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -70,17 +71,20 @@ import numpy as np
 import pandas as pd
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from pemamoe.core import atomic_path, atomic_write_json, by_scale, check_scale
 from pemamoe.diagnostics import plasticity_diagnostics
-from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
-from pemamoe.nets import ACTOR_KINDS, NetConfig, RoutingSample, make_actor, make_critic
+from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
+from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, make_actor, make_critic
 from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
-    PhaseController,
     PhaseControllerConfig,
-    build_param_groups,
+    RunAdamW,
+    group_index,
+    plasticity_method,
 )
 from pemamoe.phases import PhaseSchedule
 
@@ -153,10 +157,22 @@ from pemamoe.phases import PhaseSchedule
 
 # %%
 #| export
-METHODS = ACTOR_KINDS  # ("mlp", "moe", "smoe", "pemamoe")
+METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
+DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
-TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time")
+# Columns that describe how a run was executed (speed, population size), not what it computed:
+# they differ between two executions of the same run and are left out of every comparison.
+TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
+
+
+def resolve_device(name: str) -> torch.device:
+    """"cpu", "cuda" or "auto" (CUDA when available) -> torch.device."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("TrainConfig.device is 'cuda' but torch sees no CUDA device; use 'cpu' or 'auto'")
+    return torch.device(name)
 
 
 def _is_int(v):
@@ -171,7 +187,7 @@ def _is_real(v):
 class TrainConfig:
     """Every number of one MAPPO run (defaults: the paper's training table; see notebook 07)."""
 
-    method: str = "pemamoe"  # actor and critic kind; the phase controller is on only for "pemamoe"
+    method: str = "pemamoe"  # a name in pemamoe.methods.METHOD_REGISTRY: network kind and plasticity method
     force_controller: bool = False  # True: run the phase controller for a baseline too (e.g. MoE + noise only)
     seed: int = 0
     # budget and phase clock
@@ -208,13 +224,16 @@ class TrainConfig:
     probe_size: int = 512  # rows of the fixed probe batch for the plasticity diagnostics
     diag_every: int = 50  # iterations between diagnostics (also at switches and at the end)
     checkpoint_every: int = 100  # iterations between checkpoints and log flushes
+    device: str = "cpu"  # networks and the update: "cpu", "cuda" or "auto"; the environment stays on the CPU
 
     def __post_init__(self):
         def need(name, ok, allowed):
             if not ok:
                 raise ValueError(f"TrainConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
 
-        need("method", self.method in METHODS, f"one of {', '.join(METHODS)}")
+        need("method", isinstance(self.method, str) and self.method in METHOD_REGISTRY,
+             f"one of {', '.join(METHOD_REGISTRY)}")
+        need("device", self.device in DEVICES, f"one of {', '.join(DEVICES)}")
         need("seed", _is_int(self.seed) and self.seed >= 0, "an int >= 0")
         for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
@@ -266,7 +285,11 @@ class TrainConfig:
 
     @property
     def controller_enabled(self) -> bool:
-        return self.method == "pemamoe" or self.force_controller
+        return self.method_spec().plasticity == "phase_controller" or self.force_controller
+
+    def method_spec(self):
+        """The registry entry of this run's method (network kind, plasticity method, label)."""
+        return method_spec(self.method)
 
     def env_config(self) -> EnvConfig:
         """The environment's config, with the phase clock owned by the trainer."""
@@ -295,12 +318,24 @@ class TrainConfig:
         d["adam_betas"] = list(self.adam_betas)
         return json.loads(json.dumps(d, sort_keys=True))  # plain JSON types only
 
+    def label(self) -> str:
+        """Display label of this run's variant: the method's label, plus any ablation or gamma."""
+        parts = [self.method_spec().label]
+        if self.controller_enabled:
+            off = [m for m in MECHANISMS if not getattr(self.controller, m)]
+            if off:
+                parts.append("w/o " + "+".join(off))
+            if self.force_controller:
+                parts.append("+ controller")
+        return " ".join(parts)
+
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
         d["net"] = NetConfig(**d.get("net", {}))
         d["controller"] = PhaseControllerConfig(**d.get("controller", {}))
         d["adam_betas"] = tuple(d.get("adam_betas", (0.9, 0.999)))
+        d.pop("label", None)
         return cls(**d)
 
     def identity(self) -> dict:
@@ -312,6 +347,7 @@ class TrainConfig:
         if not self.controller_enabled:
             d.pop("controller")
         d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
+        d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         return d
 
     def config_hash(self) -> str:
@@ -387,7 +423,7 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
         lr_warmup_iters=window(ctrl.lr_warmup_iters, r),
         conservative_iters=window(ctrl.conservative_iters, r),
         router_freeze_iters=window(ctrl.router_freeze_iters, r),
-        noise_epochs=window(ctrl.noise_epochs, r_epochs),
+        noise_epochs=window(ctrl.noise_epochs, r if ctrl.noise_window_unit == "iterations" else r_epochs),
         kl_decay=float(ctrl.kl_decay ** (1.0 / r)),
         tau_beta=float(ctrl.tau_beta / r),
     )
@@ -574,113 +610,160 @@ _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
 
 
 class EpisodeTracker:
-    """Running sums of each environment's current episode; one row per finished episode."""
+    """Running sums of each environment's current episode; one row per finished episode.
 
-    def __init__(self, num_envs: int):
-        self.num_envs = num_envs
-        self.episodes = 0
+    With `members` > 1 the environments are split into that many equal blocks (one per run of
+    a population): each block numbers its episodes and its environments from 0, exactly as if
+    it ran alone, and `update` returns one list of rows per member.
+    """
+
+    def __init__(self, num_envs: int, members: int = 1):
+        if num_envs % members:
+            raise ValueError(f"num_envs={num_envs} must split into members={members} equal blocks")
+        self.num_envs, self.members, self.per_member = num_envs, members, num_envs // members
+        self.episodes = np.zeros(members, dtype=np.int64)
         self.ret = np.zeros(num_envs)
         self.length = np.zeros(num_envs, dtype=np.int64)
         self.phase_start = np.full(num_envs, -1, dtype=np.int64)
         self.sums = {k: np.zeros(num_envs) for k in _EPISODE_SUMS + _EPISODE_MEANS}
 
     def update(self, reward, info, terminated, truncated, iteration: int) -> list:
+        """Add one step; returns the finished episodes' rows (a list, or one list per member
+        when members > 1)."""
         phase = np.asarray(info["phase"], dtype=np.int64)
         self.phase_start = np.where(self.length == 0, phase, self.phase_start)
         self.ret += reward
         self.length += 1
         for k in self.sums:
             self.sums[k] += np.asarray(info[k], dtype=float)
-        rows = []
+        rows = [[] for _ in range(self.members)]
         for b in np.flatnonzero(terminated | truncated):
-            n = int(self.length[b])
-            row = {"episode": self.episodes, "iteration": int(iteration), "env": int(b), "phase": int(phase[b]),
-                   "phase_start": int(self.phase_start[b]), "return": float(self.ret[b]), "length": n,
-                   "terminated": bool(terminated[b]), "truncated": bool(truncated[b] and not terminated[b])}
+            n, r = int(self.length[b]), int(b // self.per_member)
+            row = {"episode": int(self.episodes[r]), "iteration": int(iteration), "env": int(b % self.per_member),
+                   "phase": int(phase[b]), "phase_start": int(self.phase_start[b]), "return": float(self.ret[b]),
+                   "length": n, "terminated": bool(terminated[b]), "truncated": bool(truncated[b] and not terminated[b])}
             row.update({k: float(self.sums[k][b]) for k in _EPISODE_SUMS})
             row.update({k: float(self.sums[k][b] / n) for k in _EPISODE_MEANS})
-            rows.append(row)
-            self.episodes += 1
-            self.ret[b], self.length[b] = 0.0, 0
-            for k in self.sums:
-                self.sums[k][b] = 0.0
-        return rows
+            rows[r].append(row)
+            self.episodes[r] += 1
+            self._clear(b)
+        return rows[0] if self.members == 1 else rows
+
+    def _clear(self, b) -> None:
+        self.ret[b], self.length[b] = 0.0, 0
+        for k in self.sums:
+            self.sums[k][b] = 0.0
+
+    def discard_running(self) -> None:
+        """Forget every unfinished episode (the environments were restarted)."""
+        self._clear(slice(None))
+
+    def member_state(self, r: int) -> dict:
+        rows = slice(r * self.per_member, (r + 1) * self.per_member)
+        return {"episodes": int(self.episodes[r]), "ret": torch.from_numpy(self.ret[rows].copy()),
+                "length": torch.from_numpy(self.length[rows].copy()),
+                "phase_start": torch.from_numpy(self.phase_start[rows].copy()),
+                "sums": {k: torch.from_numpy(v[rows].copy()) for k, v in self.sums.items()}}
+
+    def load_member_state(self, r: int, state: dict) -> None:
+        rows = slice(r * self.per_member, (r + 1) * self.per_member)
+        self.episodes[r] = int(state["episodes"])
+        self.ret[rows], self.length[rows] = state["ret"].numpy(), state["length"].numpy()
+        self.phase_start[rows] = state["phase_start"].numpy()
+        for k, v in state["sums"].items():
+            self.sums[k][rows] = v.numpy()
 
     def state_dict(self) -> dict:
-        return {"episodes": self.episodes, "ret": torch.from_numpy(self.ret.copy()),
-                "length": torch.from_numpy(self.length.copy()), "phase_start": torch.from_numpy(self.phase_start.copy()),
-                "sums": {k: torch.from_numpy(v.copy()) for k, v in self.sums.items()}}
+        if self.members != 1:
+            raise ValueError("state_dict() is for a single run; use member_state(r)")
+        return self.member_state(0)
 
     def load_state_dict(self, state: dict) -> None:
-        self.episodes = int(state["episodes"])
-        self.ret, self.length = state["ret"].numpy().copy(), state["length"].numpy().copy()
-        self.phase_start = state["phase_start"].numpy().copy()
-        self.sums = {k: v.numpy().copy() for k, v in state["sums"].items()}
+        self.load_member_state(0, state)
 
 
 class Rollout(NamedTuple):
-    """One iteration's data; leading axes (T, B) = (rollout_steps, num_envs)."""
+    """One iteration's data of a population; leading axes (R, T, B) = (members, rollout_steps, num_envs)."""
 
-    obs: torch.Tensor  # (T, B, U, obs_dim)
-    states: torch.Tensor  # (T, B, state_dim)
-    actions: torch.Tensor  # (T, B, U, act_dim), unclipped samples
-    logprobs: torch.Tensor  # (T, B, U)
-    values: torch.Tensor  # (T, B) V(s_t), de-normalised
-    rewards: torch.Tensor  # (T, B) team reward
-    dones: torch.Tensor  # (T, B) the episode ended at step t (terminated or truncated)
-    next_values: torch.Tensor  # (T, B) value that follows step t (see bootstrap_values)
-    actor_routing: RoutingSample | None  # leading (T, B, U)
-    critic_routing: RoutingSample | None  # leading (T, B)
+    obs: torch.Tensor  # (R, T, B, U, obs_dim)
+    states: torch.Tensor  # (R, T, B, state_dim)
+    actions: torch.Tensor  # (R, T, B, U, act_dim), unclipped samples
+    logprobs: torch.Tensor  # (R, T, B, U)
+    values: torch.Tensor  # (R, T, B) V(s_t), de-normalised, float64
+    rewards: torch.Tensor  # (R, T, B) team reward, float64
+    dones: torch.Tensor  # (R, T, B) the episode ended at step t (terminated or truncated)
+    next_values: torch.Tensor  # (R, T, B) value that follows step t (see bootstrap_values)
+    actor_routing: RoutingSample | None  # leading (R, T, B, U)
+
+
+def _member_view(x, R: int):
+    """(R*B, ...) numpy -> (R, B, ...) tensor (a view)."""
+    t = torch.from_numpy(x)
+    return t.reshape(R, t.shape[0] // R, *t.shape[1:])
 
 
 @torch.no_grad()
-def collect_rollout(venv, actor, critic, value_norm: RunningNorm, obs, state, steps: int, settings,
-                    tracker: EpisodeTracker, iteration: int):
-    """Run `steps` slots of every environment; return (Rollout, next obs, next state, step stats, episode rows)."""
-    B, U = venv.num_envs, venv.n_agents
-    tau_pi, tau_v = settings.policy_temperature, settings.value_temperature
+def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps: int, sched, tracker: EpisodeTracker,
+                    iteration: int, generators, device=None):
+    """Run `steps` slots of every environment of a population of R = actor.R members.
+
+    venv holds R*B environments, member r's in rows r*B..(r+1)*B-1. Values come from the critic
+    with noiseless gating (they enter GAE; see above). Returns (Rollout, next obs, next state,
+    per-member step statistics {key: (R,) array}, per-member lists of finished-episode rows).
+    """
+    R, U = actor.R, venv.n_agents
+    B = venv.num_envs // R
+    device = device or actor.flat.device
+    tau_pi, tau_v = sched.policy_temperature.to(device), sched.value_temperature.to(device)
     buf = {k: [] for k in ("obs", "states", "actions", "logprobs", "values", "rewards", "dones", "final")}
-    a_routes, c_routes, episode_rows = [], [], []
-    step_sums = {k: 0.0 for k in _STEP_KEYS + _AGENT_FLAGS}
+    routes, episode_rows = [], [[] for _ in range(R)]
+    step_sums = {k: np.zeros(R) for k in _STEP_KEYS + _AGENT_FLAGS}
     for _ in range(steps):
-        o, s = torch.from_numpy(obs), torch.from_numpy(state)
-        action, logp, routing = actor.act(o.reshape(B * U, -1), tau_pi)
-        v, caux = critic(s, tau_v)
-        obs, state, reward, terminated, truncated, info = venv.step(action.reshape(B, U, -1).numpy())
+        o, s = _member_view(obs, R), _member_view(state, R)
+        od, sd = o.to(device), s.to(device)
+        action, logp, routing = actor.act(od.reshape(R, B * U, -1), tau_pi, generators)
+        v, _, _ = critic(sd, tau_v)
+        obs, state, reward, terminated, truncated, info = venv.step(action.reshape(R * B, U, -1).cpu().numpy())
         done = terminated | truncated
-        final = torch.zeros(B, dtype=torch.float64)
+        final = torch.zeros(R * B, dtype=torch.float64)
         boot = truncated & ~terminated
-        if boot.any():
+        if boot.any():  # V(final state) for truncated episodes, every member's rows at once
             rows = np.asarray(info["final_rows"])
-            pick = boot[rows]
-            fv, _ = critic(torch.from_numpy(np.asarray(info["final_state"])[pick]), tau_v)
-            final[torch.from_numpy(rows[pick])] = value_norm.denormalize(fv.double())
+            fs = np.zeros_like(state)
+            fs[rows] = np.asarray(info["final_state"])
+            fv, _, _ = critic(_member_view(fs, R).to(device), tau_v)
+            fv = norms.denormalize(fv.double().cpu()).reshape(-1)
+            pick = rows[boot[rows]]
+            final[pick] = fv[pick]
         buf["obs"].append(o), buf["states"].append(s)
-        buf["actions"].append(action.reshape(B, U, -1)), buf["logprobs"].append(logp.reshape(B, U))
-        buf["values"].append(value_norm.denormalize(v.double()))
-        buf["rewards"].append(torch.as_tensor(reward, dtype=torch.float64))
-        buf["dones"].append(torch.as_tensor(done)), buf["final"].append(final)
+        buf["actions"].append(action.reshape(R, B, U, -1)), buf["logprobs"].append(logp.reshape(R, B, U))
+        buf["values"].append(norms.denormalize(v.double().cpu()))
+        buf["rewards"].append(torch.as_tensor(reward, dtype=torch.float64).reshape(R, B))
+        buf["dones"].append(torch.as_tensor(done).reshape(R, B)), buf["final"].append(final.reshape(R, B))
         if routing is not None:
-            a_routes.append(routing.reshape(1, B, U))
-        if caux.get("routing") is not None:
-            c_routes.append(caux["routing"].reshape(1, B))
-        for k in _STEP_KEYS:
-            step_sums[k] += float(np.mean(info[k]))
-        for k in _AGENT_FLAGS:
-            step_sums[k] += float(np.mean(info[k]))
-        episode_rows += tracker.update(np.asarray(reward, dtype=float), info, terminated, truncated, iteration)
-    last_v, _ = critic(torch.from_numpy(state), tau_v)
-    values = torch.stack(buf["values"])
-    dones = torch.stack(buf["dones"])
+            routes.append(routing.reshape(R, 1, B, U))
+        for k in _STEP_KEYS + _AGENT_FLAGS:
+            step_sums[k] += np.asarray(info[k], dtype=float).reshape(R, -1).mean(axis=1)
+        finished = tracker.update(np.asarray(reward, dtype=float), info, terminated, truncated, iteration)
+        for r in range(R):
+            episode_rows[r] += finished[r] if R > 1 else finished
+    last_v, _, _ = critic(_member_view(state, R).to(device), tau_v)
+
+    def stack(name, dev=None):
+        t = torch.stack(buf[name], 1)
+        return t if dev is None else t.to(dev)
+
+    values, dones = stack("values"), stack("dones")
+    next_values = bootstrap_values(values.transpose(0, 1), norms.denormalize(last_v.double().cpu()),
+                                   dones.transpose(0, 1), stack("final").transpose(0, 1)).transpose(0, 1)
     rollout = Rollout(
-        obs=torch.stack(buf["obs"]), states=torch.stack(buf["states"]), actions=torch.stack(buf["actions"]),
-        logprobs=torch.stack(buf["logprobs"]), values=values, rewards=torch.stack(buf["rewards"]), dones=dones,
-        next_values=bootstrap_values(values, value_norm.denormalize(last_v.double()), dones, torch.stack(buf["final"])),
-        actor_routing=RoutingSample.cat(a_routes) if a_routes else None,
-        critic_routing=RoutingSample.cat(c_routes) if c_routes else None,
+        obs=stack("obs", device), states=stack("states", device), actions=stack("actions"), logprobs=stack("logprobs"),
+        values=values, rewards=stack("rewards"), dones=dones, next_values=next_values,
+        actor_routing=RoutingSample.cat(routes, dim=1) if routes else None,
     )
     stats = {f"step/{k}": v / steps for k, v in step_sums.items()}
     return rollout, obs, state, stats, episode_rows
+
 
 # %% [markdown]
 # ## The update: clipped surrogate, value regression, per-minibatch KL stop
@@ -725,89 +808,154 @@ def collect_rollout(venv, actor, critic, value_norm: RunningNorm, obs, state, st
 
 # %%
 #| export
-def _mean(values):
-    return float(np.mean(values)) if len(values) else float("nan")
+class ValueNorms:
+    """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
+
+    def __init__(self, configs):
+        self.norms = [RunningNorm(c.value_norm) for c in configs]
+
+    def _column(self, values, like):
+        t = torch.tensor(values, dtype=torch.float64)
+        return t.reshape(-1, *([1] * (like.ndim - 1)))
+
+    def normalize(self, x):
+        return (x - self._column([n._mean() for n in self.norms], x)) / self._column([n.std for n in self.norms], x)
+
+    def denormalize(self, x):
+        return x * self._column([n.std for n in self.norms], x) + self._column([n._mean() for n in self.norms], x)
+
+    def update(self, returns) -> None:
+        """returns (R, ...): each member's norm sees its own slice."""
+        for r, n in enumerate(self.norms):
+            n.update(returns[r])
 
 
-def ppo_update(actor, critic, optimizer, controller, settings, data: dict, value_norm: RunningNorm,
-               config: TrainConfig, rng: np.random.Generator) -> dict:
-    """`update_epochs` x `num_minibatches` PPO steps on one iteration's flattened data.
+_UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
+                 "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
-    data (leading axis N = T*B environment steps): obs (N, U, obs_dim), actions (N, U, A),
-    logprobs (N, U), advantages (N,), returns (N,) and values (N,) de-normalised, states (N, S),
-    actor_routing (leading (N, U)) or None, critic_routing (leading (N,)) or None.
-    Returns the update statistics (means over the minibatches stepped).
+
+def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """Clip each member's gradient row to norm max_norm (torch's clip_grad_norm_ rule); returns
+    the norms before clipping, (R,)."""
+    norm = torch.linalg.vector_norm(grad, dim=1)
+    grad.mul_((max_norm / (norm + 1e-6)).clamp(max=1.0).unsqueeze(1))
+    return norm
+
+
+def _take(x, rows, idx):
+    """Member-wise gather along axis 1: x (R, N, ...), idx (R, m) -> (R, m, ...)."""
+    return x[rows, idx]
+
+
+def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: dict, norms: ValueNorms,
+               config, rngs, frozen_groups=None) -> dict:
+    """`update_epochs` x `num_minibatches` PPO steps for every member of a population at once.
+
+    data (member axis R, then N = T*B environment steps): obs (R, N, U, obs_dim), actions
+    (R, N, U, A), logprobs (R, N, U), advantages (R, N), returns (R, N), values (R, N)
+    de-normalised, states (R, N, S), actor_routing (leading (R, N, U)) or None.
+    Each member stops at its own target KL (its later minibatches leave it untouched, bit for
+    bit); statistics are summed as tensors and read once, at the end. Returns {stat: (R,) list}.
     """
     obs, actions, old_logp = data["obs"], data["actions"], data["logprobs"]
-    N, U, obs_dim = obs.shape
+    R, N, U, obs_dim = obs.shape
     act_dim = actions.shape[-1]
-    mb_size = N // config.num_minibatches
-    target = value_norm.normalize(data["returns"]).float()
-    old_v = value_norm.normalize(data["values"]).float()
-    adv_all = data["advantages"].float()
-    a_route, c_route = data["actor_routing"], data["critic_routing"]
-    clip, target_kl, ent_coef = settings.clip_coef, settings.target_kl, settings.ent_coef
-    actor_params = [p for p in actor.parameters()]
-    critic_params = list(critic.parameters())
-    log = {k: [] for k in ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
-                           "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")}
-    first_ratio_dev, early_stop_epoch, steps, noised = float("nan"), -1, 0, 0
+    device = actor.flat.device
+    mb = N // config.num_minibatches
+    rows = torch.arange(R, device=device).unsqueeze(1)
+    target = norms.normalize(data["returns"]).float().to(device)
+    old_v = norms.normalize(data["values"]).float().to(device)
+    adv_all = data["advantages"].float().to(device)
+    actions, old_logp, states = actions.to(device), old_logp.to(device), data["states"].to(device)
+    route = data["actor_routing"]
+    clip = sched.clip_coef.to(device).unsqueeze(1)
+    target_kl, ent_coef = sched.target_kl.to(device), sched.ent_coef.to(device)
+    tau_v = sched.value_temperature.to(device)
+    lr_a, lr_c = sched.lr_actor.to(device), sched.lr_critic.to(device)
+    frozen_rows = None
+    if frozen_groups is not None:
+        frozen_rows = frozen_groups.index_select(1, actor_opt.group_of)  # (R, P) True where frozen
+    sums = {k: torch.zeros(R, dtype=torch.float64, device=device) for k in _UPDATE_STATS}
+    steps = torch.zeros(R, dtype=torch.long, device=device)
+    stopped = torch.zeros(R, dtype=torch.bool, device=device)
+    early_stop_epoch = torch.full((R,), -1, dtype=torch.long, device=device)
+    first_ratio_dev = None
+    noised = [0] * R
+    sparse = actor.gated and actor.k < actor.n_experts
     for epoch in range(config.update_epochs):
-        perm = torch.from_numpy(rng.permutation(N))
-        selected, stepped = [], 0
+        live = (~stopped).tolist()  # one host sync per epoch: stopped members draw no permutation
+        perm = torch.from_numpy(np.stack([rngs[r].permutation(N) if live[r] else np.arange(N) for r in range(R)]))
+        perm = perm.to(device)
+        counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None
+        stepped_epoch = torch.zeros(R, dtype=torch.bool, device=device)
         for k in range(config.num_minibatches):
-            idx = perm[k * mb_size:(k + 1) * mb_size]
-            o = obs[idx].reshape(-1, obs_dim)
-            a = actions[idx].reshape(-1, act_dim)
-            route = None if a_route is None else a_route.select(idx).reshape(-1)
-            new_logp, entropy, aux = actor.evaluate(o, a, route, None if route is None else route.temperature)
-            logratio = new_logp - old_logp[idx].reshape(-1)
+            idx = perm[:, k * mb:(k + 1) * mb]
+            o = _take(obs, rows, idx).reshape(R, mb * U, obs_dim)
+            a = _take(actions, rows, idx).reshape(R, mb * U, act_dim)
+            r_sel = None if route is None else RoutingSample(
+                _take(route.noise, rows, idx).reshape(R, mb * U, -1), _take(route.experts, rows, idx).reshape(R, mb * U, -1),
+                _take(route.temperature, rows, idx).reshape(R, mb * U))
+            new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(o, a, r_sel)
+            logratio = new_logp - _take(old_logp, rows, idx).reshape(R, mb * U)
             ratio = logratio.exp()
             with torch.no_grad():
-                approx_kl = float(((ratio - 1) - logratio).mean())
-                clip_frac = float(((ratio - 1.0).abs() > clip).float().mean())
-                if steps == 0:
-                    first_ratio_dev = float((ratio - 1.0).abs().max())
-            if target_kl is not None and approx_kl > target_kl:
-                early_stop_epoch = epoch
-                break
-            mb_adv = adv_all[idx].unsqueeze(1).expand(-1, U).reshape(-1)
+                approx_kl = ((ratio - 1) - logratio).mean(1)
+                clip_frac = ((ratio - 1.0).abs() > clip).float().mean(1)
+                if first_ratio_dev is None:
+                    first_ratio_dev = (ratio - 1.0).abs().amax(1)
+                over = approx_kl > target_kl
+                early_stop_epoch = torch.where(over & ~stopped, epoch, early_stop_epoch)
+                stopped = stopped | over
+                stepping = ~stopped
+            mb_adv = _take(adv_all, rows, idx).unsqueeze(2).expand(R, mb, U).reshape(R, mb * U)
             if config.norm_adv:
-                mb_adv = (mb_adv - mb_adv.mean()) / (mb_adv.std() + 1e-8)
-            pg_loss = torch.max(-mb_adv * ratio, -mb_adv * ratio.clamp(1 - clip, 1 + clip)).mean()
+                mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (mb_adv.std(1, keepdim=True) + 1e-8)
+            pg_loss = torch.max(-mb_adv * ratio, -mb_adv * torch.clamp(ratio, 1 - clip, 1 + clip)).mean(1)
 
-            c_sel = None if c_route is None else c_route.select(idx)
-            v, caux = critic(data["states"][idx], None, c_sel)
+            v, c_lb, _ = critic(_take(states, rows, idx), tau_v)
+            t_mb = _take(target, rows, idx)
             if config.clip_vloss:
-                v_clipped = old_v[idx] + (v - old_v[idx]).clamp(-clip, clip)
-                v_loss = torch.max((v - target[idx]) ** 2, (v_clipped - target[idx]) ** 2).mean()
+                ov = _take(old_v, rows, idx)
+                v_clipped = ov + torch.clamp(v - ov, -clip, clip)
+                v_loss = torch.max((v - t_mb) ** 2, (v_clipped - t_mb) ** 2).mean(1)
             else:
-                v_loss = ((v - target[idx]) ** 2).mean()
-            ent = entropy.mean()
-            kl_ref = controller.kl_penalty(o, route)
-            loss = pg_loss + config.vf_coef * v_loss - ent_coef * ent + kl_ref + aux["aux_loss"] + caux["aux_loss"]
-
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            gn_a = nn.utils.clip_grad_norm_([p for p in actor_params if p.grad is not None], config.max_grad_norm)
-            gn_c = nn.utils.clip_grad_norm_(critic_params, config.max_grad_norm)
-            optimizer.step()
-            steps += 1
-            stepped += 1
-            if route is not None:
-                selected.append(route.experts.reshape(-1))
-            for name, value in (("policy_loss", pg_loss), ("value_loss", v_loss), ("entropy", ent), ("kl_ref", kl_ref),
-                                ("load_balance", aux["load_balance"]), ("critic_load_balance", caux["load_balance"]),
-                                ("approx_kl", approx_kl), ("clip_frac", clip_frac), ("grad_norm_actor", gn_a),
-                                ("grad_norm_critic", gn_c)):
-                log[name].append(value.item() if torch.is_tensor(value) else float(value))
-        if stepped:
-            noised += len(controller.after_epoch(torch.cat(selected) if selected else None))
-        if early_stop_epoch >= 0:
+                v_loss = ((v - t_mb) ** 2).mean(1)
+            kl_ref = plasticity.extra_loss({"obs": o, "tau": None if r_sel is None else r_sel.temperature,
+                                            "noise": None if r_sel is None else r_sel.noise,
+                                            "experts": chosen if sparse else None, "mean": mean, "log_std": log_std})
+            loss = (pg_loss + config.vf_coef * v_loss - ent_coef * entropy
+                    + actor.lb_coef * lb + critic.lb_coef * c_lb)
+            if kl_ref is not None:
+                loss = loss + kl_ref
+            (loss * stepping.to(loss.dtype)).sum().backward()
+            with torch.no_grad():
+                if frozen_rows is not None:
+                    actor.flat.grad.masked_fill_(frozen_rows, 0.0)
+                gn_a = _clip_rows(actor.flat.grad, config.max_grad_norm)
+                gn_c = _clip_rows(critic.flat.grad, config.max_grad_norm)
+            actor_opt.step(lr_a, stepping, frozen_groups)
+            critic_opt.step(lr_c, stepping)
+            plasticity.after_minibatch(stepping)
+            with torch.no_grad():
+                w = stepping.to(torch.float64)
+                steps += stepping.long()
+                stepped_epoch |= stepping
+                for name, value in (("policy_loss", pg_loss), ("value_loss", v_loss), ("entropy", entropy),
+                                    ("kl_ref", kl_ref), ("load_balance", lb), ("critic_load_balance", c_lb),
+                                    ("approx_kl", approx_kl), ("clip_frac", clip_frac), ("grad_norm_actor", gn_a),
+                                    ("grad_norm_critic", gn_c)):
+                    if value is not None:
+                        sums[name] += value.detach().double() * w
+                if counts is not None:
+                    counts += F.one_hot(chosen.reshape(R, -1), actor.n_experts).sum(1).float() * stepping.unsqueeze(1)
+        for r, n in enumerate(plasticity.after_epoch(counts, stepped_epoch)):
+            noised[r] += n
+        if bool(stopped.all()):
             break
-    out = {k: _mean(v) for k, v in log.items()}
-    out.update(early_stop_epoch=early_stop_epoch, gradient_steps=steps, first_ratio_dev=first_ratio_dev,
-               noised_experts=noised)
+    n_steps = steps.double().clamp(min=1)
+    out = {k: torch.where(steps > 0, v / n_steps, torch.nan).tolist() for k, v in sums.items()}
+    out.update(early_stop_epoch=early_stop_epoch.tolist(), gradient_steps=steps.tolist(),
+               first_ratio_dev=first_ratio_dev.double().tolist(), noised_experts=noised)
     return out
 
 
@@ -939,13 +1087,10 @@ class RunResult:
 
 
 def _build(config: TrainConfig, obs_dim: int, state_dim: int):
-    actor = make_actor(config.method, obs_dim, 2, config.net)
-    critic = make_critic(config.method, state_dim, config.net)
-    optimizer = torch.optim.AdamW(build_param_groups(actor, critic, config.lr), lr=config.lr,
-                                  betas=config.adam_betas, eps=config.adam_eps, weight_decay=config.weight_decay)
-    controller = PhaseController(config.controller, actor, optimizer, config.base_schedule(),
-                                 enabled=config.controller_enabled, seed=config.seed + 7)
-    return actor, critic, optimizer, controller
+    """One member's single-run actor and critic, initialised from its seed alone."""
+    torch.manual_seed(config.seed)
+    kind = config.method_spec().network
+    return make_actor(kind, obs_dim, 2, config.net), make_critic(kind, state_dim, config.net)
 
 
 def load_run(run_dir) -> RunResult:
@@ -954,11 +1099,65 @@ def load_run(run_dir) -> RunResult:
     config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
     ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     env_cfg = config.env_config()
-    actor, critic, _, _ = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
+    actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])
     critic.load_state_dict(ckpt["critic"])
     return RunResult(config, pd.read_parquet(run_dir / "metrics.parquet"), pd.read_parquet(run_dir / "episodes.parquet"),
                      actor, critic, run_dir, finished=(run_dir / "done.json").exists(), from_cache=True)
+
+
+def split_env_state(state: dict, rows) -> dict:
+    """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
+    rows = np.asarray(rows)
+    rng = state["rng"]
+    return {"arrays": {k: v[rows].copy() for k, v in state["arrays"].items()},
+            "rng": {"buffers": {k: v[rows].copy() for k, v in rng["buffers"].items()},
+                    "cursor": {k: v[rows].copy() for k, v in rng["cursor"].items()},
+                    "generators": [rng["generators"][i] for i in rows]},
+            "external_phase": state["external_phase"]}
+
+
+def merge_env_states(states: list) -> dict:
+    """Concatenate member environment states (inverse of split_env_state)."""
+    first = states[0]
+    return {"arrays": {k: np.concatenate([s["arrays"][k] for s in states]) for k in first["arrays"]},
+            "rng": {"buffers": {k: np.concatenate([s["rng"]["buffers"][k] for s in states]) for k in first["rng"]["buffers"]},
+                    "cursor": {k: np.concatenate([s["rng"]["cursor"][k] for s in states]) for k in first["rng"]["cursor"]},
+                    "generators": [g for s in states for g in s["rng"]["generators"]]},
+            "external_phase": first["external_phase"]}
+
+
+# Fields that members of one population may set differently; every other field is shared.
+MEMBER_FIELDS = ("seed", "controller", "force_controller")
+
+
+def check_population(configs) -> None:
+    """Raise ValueError naming the first field on which two members disagree in a shared setting."""
+    if not configs:
+        raise ValueError("a population needs at least one TrainConfig")
+    for c in configs:
+        if not isinstance(c, TrainConfig):
+            raise ValueError(f"population members must be TrainConfig objects, got {type(c).__name__}")
+    ref = configs[0].identity()
+    for c in configs[1:]:
+        other = c.identity()
+        for key in sorted(set(ref) | set(other)):
+            if key in MEMBER_FIELDS:
+                continue
+            if ref.get(key) != other.get(key):
+                raise ValueError(f"population members must share {key!r}: {ref.get(key)!r} (seed {configs[0].seed}) "
+                                 f"vs {other.get(key)!r} (seed {c.seed}); members may differ only in "
+                                 f"{', '.join(MEMBER_FIELDS)}")
+    names = {plasticity_name(c) for c in configs}
+    if len(names - {"none", "phase_controller"}) > 0 and len(names) > 1:
+        raise ValueError(f"population members must share one plasticity method, got {sorted(names)}")
+
+
+def plasticity_name(config: TrainConfig) -> str:
+    spec = config.method_spec()
+    return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
+
+
 
 # %% [markdown]
 # ### `train`
@@ -969,21 +1168,59 @@ def load_run(run_dir) -> RunResult:
 # %%
 #| export
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
-          threads: int | None = 1, verbose: bool = False) -> RunResult:
-    """Run MAPPO for `config` (everything follows from it and its seed).
+          threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
+    """Run MAPPO for `config`: the population of one (see `train_population`).
 
     run_dir: where config.json, metrics.parquet, episodes.parquet, checkpoint.pt and done.json go
     (None: nothing is written). resume: continue from run_dir's checkpoint (or return the stored
     result when done.json exists). max_iterations: stop after this many iterations in total,
     checkpointing, without done.json. threads: torch threads during the run (restored after).
+    progress: a progress bar (None: only when stderr is a terminal).
     """
-    run_dir = None if run_dir is None else Path(run_dir)
-    if run_dir is not None:
-        _check_run_dir(config, run_dir, resume)
-        if resume and (run_dir / "done.json").exists():
-            return dataclasses.replace(load_run(run_dir), config=config)
+    return train_population([config], None if run_dir is None else [run_dir], resume, max_iterations=max_iterations,
+                            threads=threads, verbose=verbose, progress=progress)[0]
+
+
+def train_population(configs: list, run_dirs: list | None = None, resume: bool = True, *,
+                     max_iterations: int | None = None, threads: int | None = 1, verbose: bool = False,
+                     progress: bool | None = None) -> list:
+    """Train R runs in one process as one population (the run is a tensor axis).
+
+    configs: TrainConfigs that differ only in MEMBER_FIELDS (seed, controller settings such as
+    ablation switches and noise gamma, force_controller). run_dirs: one folder per member (or
+    None). Every member's result is bit-identical to training its config alone: same files, same
+    metrics. Members with a finished folder are read back; members whose checkpoints stopped at
+    different iterations train as separate sub-populations. Returns one RunResult per config.
+    """
+    configs = list(configs)
+    check_population(configs)
+    if run_dirs is not None and len(run_dirs) != len(configs):
+        raise ValueError(f"run_dirs has {len(run_dirs)} entries for {len(configs)} configs")
+    dirs = [None if d is None else Path(d) for d in (run_dirs or [None] * len(configs))]
+    named = [d for d in dirs if d is not None]
+    if len(set(named)) != len(named):
+        raise ValueError("two members of a population share one run_dir")
+    results, pending = [None] * len(configs), {}
+    for r, (config, run_dir) in enumerate(zip(configs, dirs)):
+        ckpt = None
+        if run_dir is not None:
+            _check_run_dir(config, run_dir, resume)
+            if resume and (run_dir / "done.json").exists():
+                results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                continue
+            path = run_dir / "checkpoint.pt"
+            if resume and path.exists():
+                ckpt = torch.load(path, weights_only=True)
+        start = 0 if ckpt is None else int(ckpt["iteration"])
+        pending.setdefault(start, []).append((r, ckpt))
     with _Determinism(threads):
-        return _train(config, run_dir, resume, max_iterations, verbose)
+        for start in sorted(pending):
+            members = pending[start]
+            group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
+                                 [ck for _, ck in members], max_iterations, verbose, progress)
+            for (r, _), res in zip(members, group):
+                results[r] = res
+    return results
 
 
 def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
@@ -999,156 +1236,208 @@ def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> RunResult:
+def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
+    from tqdm.auto import tqdm
+
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    return tqdm(total=total, initial=initial, disable=not enabled, desc=label, unit="it", dynamic_ncols=True,
+                leave=True)
+
+
+def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress) -> list:
+    """The training loop for members that start at the same iteration (read top to bottom)."""
     wall_start = time.perf_counter()
-    # --- seeding and construction: everything from the config -------------------------------------
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)  # minibatch permutations
-    venv = UAVVectorEnv(config.num_envs, config.seed, cfg=config.env_config())
-    B, U = venv.num_envs, venv.n_agents
-    actor, critic, optimizer, controller = _build(config, venv.obs_dim, venv.state_dim)
-    value_norm = RunningNorm(config.value_norm)
-    tracker = EpisodeTracker(B)
-    clock = phase_schedule(config)
-    probe_obs, probe_state = collect_probe(config)
+    c0, R = configs[0], len(configs)
+    device = resolve_device(c0.device)
+    # --- construction: every member from its own config and seed ----------------------------------
+    env_cfg = c0.env_config()
+    B = c0.num_envs
+    venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=env_cfg)
+    U = venv.n_agents
+    singles = [_build(c, venv.obs_dim, venv.state_dim) for c in configs]
+    actor = PopulationActor([a for a, _ in singles]).to(device)
+    critic = PopulationCritic([c for _, c in singles]).to(device)
+    group_of, group_names = group_index(singles[0][0], actor.layout)
+    actor_opt = RunAdamW(actor.flat, group_of, len(group_names), c0.adam_betas, c0.adam_eps, c0.weight_decay)
+    critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
+                          c0.adam_eps, c0.weight_decay)
+    router_group = group_names.index("router") if "router" in group_names else None
+    method_cls = plasticity_method(sorted({plasticity_name(c) for c in configs})[-1])
+    plasticity = method_cls(configs, actor, critic, actor_opt, critic_opt)
+    norms = ValueNorms(configs)
+    tracker = EpisodeTracker(R * B, members=R)
+    clock = phase_schedule(c0)
+    probes = [collect_probe(c) for c in configs]
+    generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
+    rngs = [np.random.default_rng(int(c.seed)) for c in configs]  # minibatch permutations
     venv.set_phase(clock.phase_at(0))
     obs, state, _ = venv.reset()
-    start, global_step, metrics_rows, episode_rows, resumed_from, elapsed = 0, 0, [], [], None, 0.0
+    start, global_step, resumed_from = 0, 0, None
+    metrics_rows, episode_rows, elapsed = [[] for _ in range(R)], [[] for _ in range(R)], [0.0] * R
 
-    ckpt_path = None if run_dir is None else run_dir / "checkpoint.pt"
-    if resume and ckpt_path is not None and ckpt_path.exists():
-        ck = torch.load(ckpt_path, weights_only=True)
-        actor.load_state_dict(ck["actor"]), critic.load_state_dict(ck["critic"])
-        cstate = dict(ck["controller"])
-        if not config.controller_enabled:  # a baseline's (unused) controller settings may differ
-            cstate["cfg"] = asdict(controller.cfg)
-        optimizer.load_state_dict(ck["optimizer"]), controller.load_state_dict(cstate)
-        value_norm.load_state_dict(ck["value_norm"]), tracker.load_state_dict(ck["tracker"])
-        venv.load_state_dict(_decode(ck["env"]))
-        obs, state = ck["obs"].numpy().copy(), ck["state"].numpy().copy()
-        torch.set_rng_state(ck["torch_rng"])
-        rng.bit_generator.state = ck["numpy_rng"]
-        start = resumed_from = int(ck["iteration"])
-        global_step, elapsed = int(ck["global_step"]), float(ck["elapsed"])
-        metrics_rows, episode_rows = list(ck["metrics_rows"]), list(ck["episode_rows"])
+    if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
+        env_states = []
+        for r, ck in enumerate(ckpts):
+            with torch.no_grad():
+                a, c = singles[r]
+                a.load_state_dict(ck["actor"]), c.load_state_dict(ck["critic"])
+                actor.flat[r] = actor.layout.flatten([a])[0].to(device)
+                critic.flat[r] = critic.layout.flatten([c])[0].to(device)
+            actor_opt.load_member_state(r, ck["optimizer"]["actor"])
+            critic_opt.load_member_state(r, ck["optimizer"]["critic"])
+            plasticity.load_state_dict(r, ck["plasticity"])
+            norms.norms[r].load_state_dict(ck["value_norm"])
+            tracker.load_member_state(r, ck["tracker"])
+            env_states.append(_decode(ck["env"]))
+            obs[r * B:(r + 1) * B], state[r * B:(r + 1) * B] = ck["obs"].numpy(), ck["state"].numpy()
+            generators[r].set_state(ck["torch_rng"])
+            rngs[r].bit_generator.state = ck["numpy_rng"]
+            global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
+            metrics_rows[r], episode_rows[r] = list(ck["metrics_rows"]), list(ck["episode_rows"])
+            start = resumed_from = int(ck["iteration"])
+        venv.load_state_dict(merge_env_states(env_states))
 
-    def save():
-        if run_dir is None:
+    def save(r, iteration):
+        if run_dirs[r] is None:
             return
+        env_state = split_env_state(venv.state_dict(), range(r * B, (r + 1) * B))
         _torch_save_atomic({
-            "format": 1, "config": config.to_dict(), "iteration": it + 1, "global_step": global_step,
-            "elapsed": elapsed + time.perf_counter() - wall_start,
-            "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
-            "controller": controller.state_dict(), "value_norm": value_norm.state_dict(),
-            "tracker": tracker.state_dict(), "env": _encode(venv.state_dict()),
-            "obs": torch.from_numpy(obs.copy()), "state": torch.from_numpy(state.copy()),
-            "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
-            "metrics_rows": metrics_rows, "episode_rows": episode_rows,
-        }, ckpt_path)
-        _write_parquet_atomic(metrics_rows, run_dir / "metrics.parquet")
-        _write_parquet_atomic(episode_rows, run_dir / "episodes.parquet")
+            "format": 2, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
+            "elapsed": elapsed[r] + time.perf_counter() - wall_start,
+            "actor": actor.member(r).state_dict(), "critic": critic.member(r).state_dict(),
+            "optimizer": {"actor": actor_opt.member_state(r), "critic": critic_opt.member_state(r)},
+            "plasticity": plasticity.state_dict(r), "value_norm": norms.norms[r].state_dict(),
+            "tracker": tracker.member_state(r), "env": _encode(env_state),
+            "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
+            "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
+            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r],
+        }, run_dirs[r] / "checkpoint.pt")
+        _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet")
+        _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet")
 
-    stop = config.iterations if max_iterations is None else min(config.iterations, max_iterations)
-    it = start - 1
+    stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
+    label = c0.method if R == 1 else f"{c0.method} x{R}"
+    bar = _progress_bar(c0.iterations, start, progress, label)
     for it in range(start, stop):
-        # --- 1. phase clock and phase controller ------------------------------------------------
+        # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
         phase = int(clock.phase_at(it))
         switch = bool(clock.is_switch(it))
-        if switch:
-            controller.on_switch(it)
-        settings = controller.begin_iteration(it)
-        if config.anneal_lr:
-            frac = 1.0 - it / config.iterations
-            for group in optimizer.param_groups:
-                group["lr"] *= frac
         venv.set_phase(phase)
+        if switch:
+            obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
+            tracker.discard_running()
+            plasticity.on_switch(it)
+        sched = plasticity.begin_iteration(it)
+        if c0.anneal_lr:
+            frac = 1.0 - it / c0.iterations
+            sched = dataclasses.replace(sched, lr_actor=sched.lr_actor * frac, lr_critic=sched.lr_critic * frac)
+        frozen = None
+        if router_group is not None and bool(sched.router_frozen.any()):
+            frozen = torch.zeros(R, len(group_names), dtype=torch.bool, device=device)
+            frozen[:, router_group] = sched.router_frozen.to(device)
 
-        # --- 2. rollout ------------------------------------------------------------------------
+        # --- 2. rollout of every member's environments -------------------------------------------
         t0 = time.perf_counter()
         ro, obs, state, step_stats, new_episodes = collect_rollout(
-            venv, actor, critic, value_norm, obs, state, config.rollout_steps, settings, tracker, it)
-        global_step += config.batch_env_steps
+            venv, actor, critic, norms, obs, state, c0.rollout_steps, sched, tracker, it, generators, device)
+        global_step += c0.batch_env_steps
         rollout_time = time.perf_counter() - t0
 
-        # --- 3. advantages (GAE) and return normaliser -------------------------------------------
+        # --- 3. advantages (GAE) per member and return normalisers --------------------------------
         t0 = time.perf_counter()
-        adv, ret = compute_gae(ro.rewards, ro.values, ro.next_values, ro.dones, config.gamma, config.gae_lambda)
-        value_norm.update(ret)
-        N = config.batch_env_steps
+        adv, ret = compute_gae(ro.rewards.transpose(0, 1), ro.values.transpose(0, 1), ro.next_values.transpose(0, 1),
+                               ro.dones.transpose(0, 1), c0.gamma, c0.gae_lambda)
+        adv, ret = adv.transpose(0, 1).contiguous(), ret.transpose(0, 1).contiguous()  # (R, T, B)
+        norms.update(ret)
+        N = c0.batch_env_steps
         data = {
-            "obs": ro.obs.reshape(N, U, -1), "actions": ro.actions.reshape(N, U, -1),
-            "logprobs": ro.logprobs.reshape(N, U), "advantages": adv.reshape(N), "returns": ret.reshape(N),
-            "values": ro.values.reshape(N), "states": ro.states.reshape(N, -1),
-            "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(N, U),
-            "critic_routing": None if ro.critic_routing is None else ro.critic_routing.reshape(N),
+            "obs": ro.obs.reshape(R, N, U, -1), "actions": ro.actions.reshape(R, N, U, -1),
+            "logprobs": ro.logprobs.reshape(R, N, U), "advantages": adv.reshape(R, N), "returns": ret.reshape(R, N),
+            "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
+            "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(device),
         }
 
-        # --- 4. PPO update ---------------------------------------------------------------------
-        upd = ppo_update(actor, critic, optimizer, controller, settings, data, value_norm, config, rng)
+        # --- 4. PPO update of every member ------------------------------------------------------
+        upd = ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data, norms, c0, rngs, frozen)
         update_time = time.perf_counter() - t0
 
-        # --- 5. logging ------------------------------------------------------------------------
-        row = _iteration_row(config, it, phase, switch, global_step, settings, optimizer, actor, value_norm,
-                             step_stats, new_episodes, upd, ro, ret)
-        t0 = time.perf_counter()
+        # --- 5. logging, diagnostics and checkpoints, per member ---------------------------------
+        diag = it % c0.diag_every == 0 or switch or it == c0.iterations - 1
         last = it == stop - 1
-        # diagnostics depend on the iteration only (never on where a run stops), so resumes match
-        if it % config.diag_every == 0 or switch or it == config.iterations - 1:
-            row.update(plasticity_diagnostics(actor, critic, probe_obs, probe_state, settings.policy_temperature))
-        diag_time = time.perf_counter() - t0
-        row.update(sps=config.batch_env_steps / max(rollout_time + update_time, 1e-9),
-                   sps_total=global_step / max(elapsed + time.perf_counter() - wall_start, 1e-9),
-                   rollout_time=rollout_time, update_time=update_time, diag_time=diag_time,
-                   wall_time=elapsed + time.perf_counter() - wall_start)
-        metrics_rows.append(row)
-        episode_rows += new_episodes
+        for r in range(R):
+            row = _iteration_row(configs[r], r, it, phase, switch, global_step, sched, group_names, actor, norms,
+                                 step_stats, new_episodes[r], upd, ro, ret, U)
+            t1 = time.perf_counter()
+            if diag:
+                a_r, c_r = actor.member(r, singles[r][0]), critic.member(r, singles[r][1])
+                row.update(plasticity_diagnostics(a_r, c_r, probes[r][0], probes[r][1],
+                                                  sched.members[r].policy_temperature))
+            now = time.perf_counter()
+            row.update(sps=c0.batch_env_steps / max(rollout_time + update_time, 1e-9),
+                       sps_total=global_step / max(elapsed[r] + now - wall_start, 1e-9),
+                       rollout_time=rollout_time, update_time=update_time, diag_time=now - t1,
+                       wall_time=elapsed[r] + now - wall_start, population=R)
+            metrics_rows[r].append(row)
+            episode_rows[r] += new_episodes[r]
+            if (it + 1) % c0.checkpoint_every == 0 or last:
+                save(r, it + 1)
+        recent = [m[-1]["episode_return"] for m in metrics_rows if np.isfinite(m[-1]["episode_return"])]
+        recent = float(np.mean(recent)) if recent else float("nan")
         if verbose:
-            print(f"it {it:5d} phase {phase} return {row['episode_return']:9.2f} kl {row['approx_kl']:.4f} "
-                  f"sps {row['sps']:7.0f}", flush=True)
-        if (it + 1) % config.checkpoint_every == 0 or last:
-            save()
+            print(f"it {it:5d} phase {phase} return {recent:9.2f} sps/member {metrics_rows[0][-1]['sps']:7.0f}", flush=True)
+        bar.set_postfix(phase=phase, ret=f"{recent:.1f}", sps=f"{metrics_rows[0][-1]['sps']:.0f}", refresh=False)
+        bar.update(1)
+    bar.close()
 
-    finished = stop == config.iterations
-    if run_dir is not None and finished:
-        if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
-            save()
-        final = pd.DataFrame(metrics_rows)
-        atomic_write_json(run_dir / "done.json", {
-            "finished": True, "iterations": config.iterations, "env_steps": global_step,
-            "config_hash": config.config_hash(), "wall_time_s": elapsed + time.perf_counter() - wall_start,
-            "final_episode_return": float(final["episode_return"].tail(config.phase_length_iters).mean()),
-        })
-    return RunResult(config, pd.DataFrame(metrics_rows), pd.DataFrame(episode_rows), actor, critic, run_dir,
-                     finished=finished, resumed_from=resumed_from)
+    finished = stop == c0.iterations
+    results = []
+    for r, config in enumerate(configs):
+        run_dir = run_dirs[r]
+        if run_dir is not None and finished:
+            if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
+                save(r, stop)
+            final = pd.DataFrame(metrics_rows[r])
+            atomic_write_json(run_dir / "done.json", {
+                "finished": True, "iterations": config.iterations, "env_steps": global_step,
+                "config_hash": config.config_hash(),
+                "wall_time_s": elapsed[r] + time.perf_counter() - wall_start,
+                "final_episode_return": float(final["episode_return"].tail(config.phase_length_iters).mean()),
+            })
+        results.append(RunResult(config, pd.DataFrame(metrics_rows[r]), pd.DataFrame(episode_rows[r]),
+                                 actor.member(r, singles[r][0]), critic.member(r, singles[r][1]), run_dir,
+                                 finished=finished, resumed_from=resumed_from))
+    return results
 
 
-def _iteration_row(config, it, phase, switch, global_step, settings, optimizer, actor, value_norm, step_stats,
-                   episodes, upd, ro, ret) -> dict:
+def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names, actor, norms, step_stats,
+                   episodes, upd, ro, ret, U) -> dict:
     row = {"iteration": it, "phase": phase, "switch": switch, "env_steps": global_step,
-           "agent_steps": global_step * actor_rows_per_step(ro)}
+           "agent_steps": global_step * U}
     ep = pd.DataFrame(episodes)
     row["episodes"] = len(ep)
     for name, col in (("episode_return", "return"), ("episode_length", "length"), ("coverage", "coverage"),
                       ("served_users", "served_users"), ("uav_using_rate", "uav_using_rate"),
                       ("energy_rate_kj", "energy_rate_kj"), ("collisions_per_episode", "collisions")):
         row[name] = float(ep[col].mean()) if len(ep) else float("nan")
-    row.update(step_stats)
-    row.update({k: upd[k] for k in ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance",
-                                    "critic_load_balance", "approx_kl", "clip_frac", "grad_norm_actor",
-                                    "grad_norm_critic", "early_stop_epoch", "gradient_steps", "first_ratio_dev",
-                                    "noised_experts")})
-    row["explained_variance"] = explained_variance(ro.values.reshape(-1), ret.reshape(-1))
-    for group in optimizer.param_groups:
-        row[f"lr/{group['name']}"] = float(group["lr"])
-    row.update({"clip_coef": settings.clip_coef, "target_kl": float("nan") if settings.target_kl is None else settings.target_kl,
-                "ent_coef": settings.ent_coef, "kl_coef": settings.kl_coef,
-                "temperature/policy": settings.policy_temperature, "temperature/value": settings.value_temperature,
-                "router_frozen": settings.router_frozen, "conservative": settings.conservative,
-                "noise_epochs_left": settings.noise_epochs_left,
-                "log_std_mean": float(actor.log_std.detach().mean()),
-                "value_norm/mean": float(value_norm._mean()), "value_norm/std": float(value_norm.std)})
-    if ro.actor_routing is not None and ro.actor_routing.experts.shape[-1] < getattr(actor.gate, "n_experts", 0):
-        counts = torch.bincount(ro.actor_routing.experts.reshape(-1), minlength=actor.gate.n_experts).double()
+    row.update({k: float(v[r]) for k, v in step_stats.items()})
+    row.update({k: upd[k][r] for k in _UPDATE_STATS})
+    row.update({k: upd[k][r] for k in ("early_stop_epoch", "gradient_steps", "first_ratio_dev", "noised_experts")})
+    row["explained_variance"] = explained_variance(ro.values[r].reshape(-1), ret[r].reshape(-1))
+    s = sched.members[r]
+    lr_a, lr_c = float(sched.lr_actor[r]), float(sched.lr_critic[r])
+    for name in group_names:
+        row[f"lr/{name}"] = 0.0 if (name == "router" and s.router_frozen) else lr_a
+    row["lr/critic"] = lr_c
+    row.update({"clip_coef": s.clip_coef, "target_kl": float("nan") if s.target_kl is None else s.target_kl,
+                "ent_coef": s.ent_coef, "kl_coef": s.kl_coef,
+                "temperature/policy": s.policy_temperature, "temperature/value": s.value_temperature,
+                "router_frozen": s.router_frozen, "conservative": s.conservative,
+                "noise_epochs_left": s.noise_epochs_left,
+                "log_std_mean": float(actor.params()["log_std"][r].detach().double().mean()),
+                "value_norm/mean": float(norms.norms[r]._mean()), "value_norm/std": float(norms.norms[r].std)})
+    if ro.actor_routing is not None and actor.k < actor.n_experts:
+        counts = torch.bincount(ro.actor_routing.experts[r].reshape(-1).cpu(), minlength=actor.n_experts).double()
         for j, c in enumerate(counts / counts.sum()):
             row[f"rollout/expert_frac{j}"] = float(c)
     return row
@@ -1156,7 +1445,8 @@ def _iteration_row(config, it, phase, switch, global_step, settings, optimizer, 
 
 def actor_rows_per_step(ro: Rollout) -> int:
     """Agent rows per environment step (U)."""
-    return int(ro.obs.shape[2])
+    return int(ro.obs.shape[3])
+
 
 # %% [markdown]
 # ## Deterministic evaluation

@@ -721,11 +721,14 @@ def _info_dict(float_info, int_info, **more) -> dict:
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
-    def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: EnvConfig | None = None, **overrides):
+    def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: EnvConfig | None = None, *, seeds=None,
+                 **overrides):
         if cfg is not None and overrides:
             raise ValueError("pass either cfg or keyword overrides, not both")
         self.cfg = cfg or EnvConfig.from_overrides(**overrides)
-        seeds = vector_seeds(seed, num_envs)
+        if seeds is None:  # explicit per-environment seeds: a population's members side by side
+            seeds = vector_seeds(seed, num_envs)
+        num_envs = len(seeds)
         self.core = UAVBatchCore(self.cfg, num_envs, seeds)
         self.num_envs = int(num_envs)
         self.n_agents = self.cfg.n_uavs
@@ -765,7 +768,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04_environment.py, cell 28 (line 1495)
+# %% notebooks/04_environment.py, cell 28 (line 1498)
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
@@ -883,7 +886,7 @@ def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UA
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 
-# %% notebooks/04_environment.py, cell 30 (line 1620)
+# %% notebooks/04_environment.py, cell 30 (line 1623)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -920,7 +923,7 @@ def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarr
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04_environment.py, cell 32 (line 1668)
+# %% notebooks/04_environment.py, cell 32 (line 1671)
 def random_policy(core: UAVBatchCore, rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 
