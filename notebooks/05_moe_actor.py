@@ -894,9 +894,14 @@ class ParamLayout:
         return torch.stack(rows)
 
     def views(self, flat: torch.Tensor) -> dict:
-        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat)."""
+        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat).
+
+        One `split` rather than a slice per parameter: its backward is a single concatenation,
+        where slices would each allocate a full (R, P) gradient."""
         R = flat.shape[0]
-        return {n: flat[:, o:o + math.prod(s)].reshape(R, *s) for n, s, o in zip(self.names, self.shapes, self.offsets)}
+        sizes = [math.prod(s) for s in self.shapes]
+        parts = flat.split(sizes, dim=1)
+        return {n: part.reshape(R, *s) for n, s, part in zip(self.names, self.shapes, parts)}
 
     def load_member(self, row: torch.Tensor, module: nn.Module) -> nn.Module:
         """Copy one member's flat parameters (P,) into a single-run module; returns it."""

@@ -645,9 +645,14 @@ class ParamLayout:
         return torch.stack(rows)
 
     def views(self, flat: torch.Tensor) -> dict:
-        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat)."""
+        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat).
+
+        One `split` rather than a slice per parameter: its backward is a single concatenation,
+        where slices would each allocate a full (R, P) gradient."""
         R = flat.shape[0]
-        return {n: flat[:, o:o + math.prod(s)].reshape(R, *s) for n, s, o in zip(self.names, self.shapes, self.offsets)}
+        sizes = [math.prod(s) for s in self.shapes]
+        parts = flat.split(sizes, dim=1)
+        return {n: part.reshape(R, *s) for n, s, part in zip(self.names, self.shapes, parts)}
 
     def load_member(self, row: torch.Tensor, module: nn.Module) -> nn.Module:
         """Copy one member's flat parameters (P,) into a single-run module; returns it."""
@@ -870,7 +875,7 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
     return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 
-# %% notebooks/05_moe_actor.py, cell 20 (line 1136)
+# %% notebooks/05_moe_actor.py, cell 20 (line 1141)
 _ACTORS = {"mlp": MLPActor, "moe": MoEActor, "smoe": SMoEActor, "pemamoe": PEMAMoEActor}
 _CRITICS = {"mlp": MLPCritic, "moe": MoECritic, "smoe": SMoECritic, "pemamoe": PEMAMoECritic}
 
@@ -935,7 +940,7 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
     return sum(parts[name][1] * n for name, n in used.items())
 
 
-# %% notebooks/05_moe_actor.py, cell 22 (line 1210)
+# %% notebooks/05_moe_actor.py, cell 22 (line 1215)
 def _median_us(fn, repeats: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()

@@ -19,7 +19,7 @@ from pemamoe.mappo import (
     compute_gae,
     train,
 )
-from pemamoe.phase_controller import PhaseController, PhaseControllerConfig
+from pemamoe.phase_controller import PhaseControllerConfig, PhaseControllerMethod
 
 
 @pytest.fixture(autouse=True)
@@ -56,16 +56,22 @@ def test_gae_hand_computed_with_truncation_and_termination():
     assert torch.allclose(ret, expected + values.double(), atol=1e-12)
 
 
+def _population_of_one(cfg):
+    venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
+    a, c = mappo._build(cfg, venv.obs_dim, venv.state_dim)
+    actor, critic = mappo.PopulationActor([a]), mappo.PopulationCritic([c])
+    plasticity = mappo.plasticity_method(mappo.plasticity_name(cfg))([cfg], actor, critic, None, None)
+    return venv, actor, critic, plasticity
+
+
 def test_rollout_bootstraps_truncation_from_final_state():
     # episodes of 3 slots, rollout of 5: truncation at steps 2 of every env; an MLP critic is deterministic
     cfg = ci("mlp", env_overrides={"episode_steps": 3}, rollout_steps=5, num_minibatches=5)
-    torch.manual_seed(0)
-    venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
-    actor, critic, opt, ctrl = mappo._build(cfg, venv.obs_dim, venv.state_dim)
-    norm = RunningNorm(True)
-    norm.update(torch.tensor([0.0, 10.0, 20.0]))
+    venv, actor, critic, plasticity = _population_of_one(cfg)
+    norms = mappo.ValueNorms([cfg])
+    norms.update(torch.tensor([[0.0, 10.0, 20.0]]))
     obs, state, _ = venv.reset()
-    settings = ctrl.begin_iteration(0)
+    sched = plasticity.begin_iteration(0)
     finals = []
     real_step = venv.step
 
@@ -76,12 +82,14 @@ def test_rollout_bootstraps_truncation_from_final_state():
         return out
 
     venv.step = spy
-    ro, *_ = collect_rollout(venv, actor, critic, norm, obs, state, 5, settings, EpisodeTracker(cfg.num_envs), 0)
-    assert ro.dones[2].all() and not ro.dones[[0, 1, 3, 4]].any()
+    ro, *_ = collect_rollout(venv, actor, critic, norms, obs, state, 5, sched, EpisodeTracker(cfg.num_envs), 0,
+                             [torch.Generator().manual_seed(0)])
+    assert ro.dones[0, 2].all() and not ro.dones[0, [0, 1, 3, 4]].any()
     with torch.no_grad():
-        v_final = norm.denormalize(critic(torch.from_numpy(finals[0]))[0].double())
-    assert torch.allclose(ro.next_values[2], v_final)
-    assert torch.equal(ro.next_values[:2], ro.values[1:3])
+        v, _, _ = critic(torch.from_numpy(finals[0]).unsqueeze(0), sched.value_temperature)
+        v_final = norms.denormalize(v.double())
+    assert torch.allclose(ro.next_values[0, 2], v_final[0])
+    assert torch.equal(ro.next_values[0, :2], ro.values[0, 1:3])
 
 
 def test_running_norm_matches_batch_statistics():
@@ -127,35 +135,46 @@ def test_each_method_trains_and_logs(method, tmp_path):
 
 
 def test_first_ratio_is_exactly_one_directly():
+    # the update's forward pass on a minibatch (other rows, another batch size) replays the
+    # rollout's log-probabilities bit for bit, for every member of a population
     for method in ("mlp", "smoe", "pemamoe"):
-        cfg = ci(method)
-        torch.manual_seed(0)
-        venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
-        actor, critic, opt, ctrl = mappo._build(cfg, venv.obs_dim, venv.state_dim)
+        cfgs = [ci(method).replace(seed=s) for s in (0, 1)]
+        venv = mappo.UAVVectorEnv(seeds=[x for c in cfgs for x in mappo.vector_seeds(c.seed, c.num_envs)],
+                                  cfg=cfgs[0].env_config())
+        singles = [mappo._build(c, venv.obs_dim, venv.state_dim) for c in cfgs]
+        actor = mappo.PopulationActor([a for a, _ in singles])
+        critic = mappo.PopulationCritic([c for _, c in singles])
+        plasticity = mappo.plasticity_method(mappo.plasticity_name(cfgs[0]))(cfgs, actor, critic, None, None)
         obs, state, _ = venv.reset()
-        s = ctrl.begin_iteration(0)
-        ro, *_ = collect_rollout(venv, actor, critic, RunningNorm(), obs, state, cfg.rollout_steps, s,
-                                EpisodeTracker(cfg.num_envs), 0)
-        N, U = cfg.batch_env_steps, venv.n_agents
-        idx = torch.randperm(N)[: N // 2]
-        route = None if ro.actor_routing is None else ro.actor_routing.reshape(N, U).select(idx).reshape(-1)
-        logp, _, _ = actor.evaluate(ro.obs.reshape(N, U, -1)[idx].reshape(-1, venv.obs_dim),
-                                    ro.actions.reshape(N, U, -1)[idx].reshape(-1, 2), route,
-                                    None if route is None else route.temperature)
-        assert torch.equal(logp, ro.logprobs.reshape(N, U)[idx].reshape(-1)), method
+        sched = plasticity.begin_iteration(0)
+        ro, *_ = collect_rollout(venv, actor, critic, mappo.ValueNorms(cfgs), obs, state, cfgs[0].rollout_steps,
+                                 sched, EpisodeTracker(venv.num_envs, members=2), 0,
+                                 [torch.Generator().manual_seed(s) for s in (0, 1)])
+        R, N, U = 2, cfgs[0].batch_env_steps, venv.n_agents
+        idx = torch.stack([torch.randperm(N)[: N // 2] for _ in range(R)])
+        rows = torch.arange(R).unsqueeze(1)
+        route = None
+        if ro.actor_routing is not None:
+            r = ro.actor_routing.reshape(R, N, U)
+            route = mappo.RoutingSample(r.noise[rows, idx].reshape(R, -1, r.noise.shape[-1]),
+                                        r.experts[rows, idx].reshape(R, -1, r.experts.shape[-1]),
+                                        r.temperature[rows, idx].reshape(R, -1))
+        logp, *_ = actor.evaluate(ro.obs.reshape(R, N, U, -1)[rows, idx].reshape(R, -1, venv.obs_dim),
+                                  ro.actions.reshape(R, N, U, -1)[rows, idx].reshape(R, -1, 2), route)
+        assert torch.equal(logp, ro.logprobs.reshape(R, N, U)[rows, idx].reshape(R, -1)), method
 
 
 # --- phase clock -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("L,iters", [(2, 6), (3, 7)])
 def test_switch_calls_on_switch_exactly_at_multiples_of_L(L, iters, monkeypatch):
     calls = []
-    real = PhaseController.on_switch
+    real = PhaseControllerMethod.on_switch
 
     def spy(self, t):
         calls.append(t)
         return real(self, t)
 
-    monkeypatch.setattr(PhaseController, "on_switch", spy)
+    monkeypatch.setattr(PhaseControllerMethod, "on_switch", spy)
     res = train(ci(phase_length_iters=L, iterations=iters, diag_every=10))
     assert calls == [t for t in range(1, iters) if t % L == 0]
     m = res.metrics
@@ -209,7 +228,7 @@ def test_done_json_short_circuits(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("recomputed a finished run")
 
-    monkeypatch.setattr(mappo, "_train", boom)
+    monkeypatch.setattr(mappo, "_train_group", boom)
     again = train(cfg, tmp_path, resume=True)
     assert again.from_cache
     pd.testing.assert_frame_equal(again.metrics, first.metrics)
@@ -241,7 +260,8 @@ def test_config_hash_covers_the_resolved_environment(monkeypatch):
     [("method", "transformer"), ("num_envs", 0), ("rollout_steps", 2.5), ("iterations", -1), ("lr", 0.0),
      ("gamma", 1.5), ("gae_lambda", -0.1), ("clip_coef", 0), ("vf_coef", -1.0), ("target_kl", 0.0),
      ("max_grad_norm", float("nan")), ("num_minibatches", 3), ("adam_betas", (0.9, 1.0)), ("anneal_lr", 1),
-     ("phase_length_iters", 0), ("n_phases", 4), ("weight_decay", -1e-4), ("env_overrides", {"phase_clock": "env"})],
+     ("phase_length_iters", 0), ("n_phases", 4), ("weight_decay", -1e-4), ("env_overrides", {"phase_clock": "env"}),
+     ("device", "tpu")],
 )
 def test_invalid_config_raises_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"TrainConfig.{field}"):
@@ -268,8 +288,7 @@ def test_presets_and_overrides():
 
 def test_evaluate_policy_is_deterministic():
     cfg = ci("smoe")
-    torch.manual_seed(0)
-    actor, *_ = mappo._build(cfg, mappo.observation_dim(cfg.env_config()), mappo.state_dim(cfg.env_config()))
+    actor, _ = mappo._build(cfg, mappo.observation_dim(cfg.env_config()), mappo.state_dim(cfg.env_config()))
     a = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
     b = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
     assert len(a) == 3 and (a["phase"] == 2).all()
