@@ -1,82 +1,132 @@
-"""Benchmark of the MAPPO trainer (notebook 07, pemamoe/mappo.py).
+"""Benchmark of the population trainer (notebook 07, pemamoe/mappo.py): the run as a tensor axis.
 
-For each method at the `small` preset, runs a few training iterations (one torch thread, the way
-the sweep workers run) and prints environment steps per second, the split of an iteration into
-rollout / update / diagnostics, and the projected wall time of one full small-scale run and of
-the whole small sweep (about 40 runs on 2 worker processes). Then runs two PE-MAMoE trainings
-at once in two processes, to see what sharing the 2 cores costs. Run with
+For each method at the paper preset, trains populations of R = 1, 4 and 16 members for a few
+iterations (one torch thread, as the sweep workers run) and prints, measured in this invocation:
 
-    python benchmarks/bench_train.py
+* throughput: member environment steps per second, summed over the members
+  (R x 2048 / seconds per iteration), and its ratio to R = 1;
+* per-run speed: environment steps per second of one member (2048 / seconds per iteration);
+* the split of an iteration into rollout and update;
 
-It finishes in about a minute on a 2-core machine.
+then projects the 39-run sweeps (paper and small scale) from the measured rates and the sweep's own
+grouping of runs into populations, and measures the peak resident memory of a 16-member
+paper-preset population in a child process. Diagnostics are switched off while timing (they run
+every 50 iterations in a real run; their cost is printed separately at R = 1).
+
+Run with `python benchmarks/bench_train.py` (about 5 minutes on the 2-core machine).
 """
 
-import multiprocessing as mp
+import json
+import os
+import resource
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pemamoe.mappo import METHODS, TrainConfig, train  # noqa: E402
+import torch  # noqa: E402
 
-ITERS = 6  # timed iterations per method (the first one, with its warm-up, is dropped)
-SWEEP_RUNS = 40  # 4 methods x 3 seeds + 4 ablations x 3 seeds + noise sweep: about 40 runs
-WORKERS = 2
+from pemamoe.mappo import METHODS, TrainConfig, train_population  # noqa: E402
+
+SIZES = (1, 4, 16)
+TIMED = 2  # iterations timed after one warm-up iteration
+TARGET_THROUGHPUT = 10_000  # member env steps / s for PE-MAMoE at R = 16 (paper preset)
+TARGET_SMALL_SWEEP_MIN = 8.0
+TARGET_RSS_GIB = 4.0
 
 
-def measure(method: str, iters: int = ITERS) -> dict:
-    cfg = TrainConfig.for_scale("small", method=method, seed=0)
-    t0 = time.perf_counter()
-    res = train(cfg, None, max_iterations=iters, threads=1)
-    total = time.perf_counter() - t0
-    m = res.metrics.iloc[1:]  # drop the first iteration (allocations, caches)
+def measure(method: str, R: int, scale: str = "paper") -> dict:
+    cfgs = [TrainConfig.for_scale(scale, method=method, seed=s, diag_every=10**9) for s in range(R)]
+    res = train_population(cfgs, max_iterations=1 + TIMED, threads=1, progress=False)
+    m = res[0].metrics.iloc[1:]
     roll, upd = statistics.median(m["rollout_time"]), statistics.median(m["update_time"])
-    diag = m.loc[m["diag_time"] > 0.0005, "diag_time"]
-    diag_t = statistics.median(diag) if len(diag) else 0.0
-    n_diag = len([t for t in range(cfg.iterations)
-                  if t % cfg.diag_every == 0 or t % cfg.phase_length_iters == 0 or t == cfg.iterations - 1])
-    setup = total - res.metrics[["rollout_time", "update_time", "diag_time"]].to_numpy().sum()
-    run_s = cfg.iterations * (roll + upd) + n_diag * diag_t + setup
-    return {"method": method, "sps": cfg.batch_env_steps / (roll + upd), "rollout_s": roll, "update_s": upd,
-            "diag_s": diag_t, "setup_s": setup, "run_s": run_s, "cfg": cfg}
+    it_s = roll + upd
+    steps = cfgs[0].batch_env_steps
+    return {"method": method, "R": R, "rollout_s": roll, "update_s": upd, "iteration_s": it_s,
+            "throughput": R * steps / it_s, "per_run_sps": steps / it_s}
 
 
-def _worker(method, iters, queue):
-    out = measure(method, iters)
-    out.pop("cfg")
-    queue.put(out)
+def diagnostics_cost(method: str) -> float:
+    cfg = TrainConfig.for_scale("paper", method=method, seed=0, diag_every=1)
+    m = train_population([cfg], max_iterations=2, threads=1, progress=False)[0].metrics
+    return float(m["diag_time"].iloc[1])
+
+
+def rss_child(R: int) -> float:
+    """Peak RSS (GiB) of a process that trains an R-member paper-preset PE-MAMoE population."""
+    code = ("import resource; from pemamoe.mappo import TrainConfig, train_population; "
+            f"cfgs=[TrainConfig.for_scale('paper', method='pemamoe', seed=s) for s in range({R})]; "
+            "train_population(cfgs, max_iterations=2, threads=1, progress=False); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    return int(out.stdout.strip().splitlines()[-1]) / 2**20
+
+
+def sweep_groups(scale: str) -> list:
+    """[(method, members)] of the 39-run sweep as run_sweep groups it (population cap 16)."""
+    from pemamoe.sweep import experiment_specs, group_specs
+
+    specs = experiment_specs("all", scale)
+    return [(g[0].method, len(g)) for g in group_specs(specs, 16)]
 
 
 def main() -> int:
-    cfg = TrainConfig.for_scale("small")
-    print(f"small preset: {cfg.num_envs} envs x {cfg.rollout_steps} slots = {cfg.batch_env_steps} env steps/iteration, "
-          f"{cfg.iterations} iterations (L = {cfg.phase_length_iters}), {cfg.update_epochs} epochs x "
-          f"{cfg.num_minibatches} minibatches, 1 torch thread")
-    print(f"{'method':8s} {'SPS':>7s} {'rollout s':>10s} {'update s':>9s} {'diag s':>7s} {'setup s':>8s} {'run (min)':>10s}")
-    rows = []
+    torch.set_num_threads(1)
+    print("paper preset: 64 envs x 32 slots = 2048 env steps/iteration, 8 epochs x 32 minibatches, 1 torch thread")
+    print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
+    rates = {}
     for method in METHODS:
-        r = measure(method)
-        rows.append(r)
-        print(f"{method:8s} {r['sps']:7.0f} {r['rollout_s']:10.3f} {r['update_s']:9.3f} {r['diag_s']:7.3f} "
-              f"{r['setup_s']:8.2f} {r['run_s'] / 60:10.2f}", flush=True)
-    mean_run = statistics.mean(r["run_s"] for r in rows)
-    print(f"projected: one small run {mean_run / 60:.2f} min (mean over methods); {SWEEP_RUNS} runs on {WORKERS} "
-          f"workers {SWEEP_RUNS * mean_run / WORKERS / 60:.1f} min if two runs share the cores without slowdown")
+        base = None
+        for R in SIZES:
+            r = measure(method, R)
+            base = base or r["throughput"]
+            rates[(method, R)] = r
+            print(f"{method:8s} {R:3d} {r['rollout_s']:9.2f} {r['update_s']:9.2f} {r['throughput']:11.0f} "
+                  f"{r['throughput'] / base:6.2f} {r['per_run_sps']:11.0f}", flush=True)
+    print(f"diagnostics (every 50 iterations at the paper preset): {diagnostics_cost('pemamoe'):.2f} s per call (pemamoe, R = 1)")
 
-    ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
-    procs = [ctx.Process(target=_worker, args=("pemamoe", ITERS, queue)) for _ in range(WORKERS)]
-    for p in procs:
-        p.start()
-    outs = [queue.get() for _ in procs]
-    for p in procs:
-        p.join()
-    solo = next(r for r in rows if r["method"] == "pemamoe")
-    par = statistics.mean(o["sps"] for o in outs)
-    print(f"{WORKERS} concurrent pemamoe runs: {par:.0f} SPS each (alone: {solo['sps']:.0f}); "
-          f"projected sweep {SWEEP_RUNS * mean_run * solo['sps'] / par / WORKERS / 60:.1f} min")
+    # Projections: each population's iterations at the measured rate of the nearest measured size,
+    # two worker processes sharing the two cores.
+    def iteration_s(method, R):
+        near = min(SIZES, key=lambda s: (abs(s - R), s))
+        return rates[(method, near)]["iteration_s"] * (R / near if R > near else 1.0)
+
+    for scale, label in (("paper", "paper"), ("small", "small")):
+        try:
+            groups = sweep_groups(scale)
+        except Exception as err:  # the grouping lives in the sweep module
+            print(f"{label} sweep projection unavailable: {err}")
+            continue
+        iters = TrainConfig.for_scale(scale).iterations
+        if scale == "small":  # rates at the small preset, measured here for each group size used
+            small = {}
+            for method, R in groups:
+                if (method, R) not in small:
+                    small[(method, R)] = measure(method, R, "small")["iteration_s"]
+            total = sum(small[(m, R)] * iters for m, R in groups)
+        else:
+            total = sum(iteration_s(m, R) * iters for m, R in groups)
+        runs = sum(R for _, R in groups)
+        print(f"projected {label} sweep: {runs} runs in {len(groups)} populations "
+              f"({', '.join(f'{m}x{R}' for m, R in groups)}): {total / 2 / 60:.1f} min on 2 workers "
+              f"({total / 3600:.2f} core-hours)")
+        if scale == "small":
+            verdict = "met" if total / 2 / 60 <= TARGET_SMALL_SWEEP_MIN else "NOT met"
+            print(f"target: small sweep <= {TARGET_SMALL_SWEEP_MIN:.0f} min: {verdict}")
+
+    gib = rss_child(16)
+    thr = rates[("pemamoe", 16)]["throughput"]
+    print(f"peak RSS of a 16-member paper-preset PE-MAMoE population: {gib:.2f} GiB "
+          f"(target <= {TARGET_RSS_GIB:.0f} GiB: {'met' if gib <= TARGET_RSS_GIB else 'NOT met'})")
+    print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
+          f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'})")
+    out = Path(__file__).resolve().parents[1] / "build" / "bench_train.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps({f"{m}/R{R}": v for (m, R), v in rates.items()}, indent=1))
     return 0
 
 

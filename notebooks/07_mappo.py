@@ -46,6 +46,45 @@
 #
 # Everything in a run follows from one frozen `TrainConfig` and its seed: the same config gives
 # the same run, interrupted or not.
+#
+# ## The run as a tensor axis
+#
+# A paper-scale comparison is dozens of runs (methods x seeds x ablations), and each run's
+# networks are tiny: a PPO minibatch step on 192 agent rows spends most of its time in fixed
+# per-call costs, not in arithmetic. So the trainer trains a **population** of R runs in one
+# process, the way PureJaxRL vectorises seeds: `train_population(configs, run_dirs)` steps R x B
+# environments and updates R networks with one set of tensor operations whose leading axis is the
+# run. `train(config, run_dir)` is simply the population of one; there is no second loop.
+#
+# ```
+#                      shared by all members                       per member r (row r of every tensor)
+#   phase clock  ──►  set_phase / switch / iteration count     ─►  environments r*B .. r*B+B-1 (own seeds, own streams)
+#   method, network kind, sizes, rollout and update settings   ─►  parameters flat[r] (actor, critic), AdamW moments and steps
+#                                                               ─►  action / gate noise generator, minibatch permutations
+#   one batched matmul per layer over (R, rows, features)      ─►  learning rate, clip, target KL, entropy, temperature,
+#   one optimizer step over (R, P)                              ─►  phase-controller state (anchor, noise budget, freeze)
+#                                                               ─►  run folder: config, metrics, episodes, checkpoint, done
+# ```
+#
+# Members may differ in their seed, their phase-controller settings (ablation switches, noise
+# gamma) and `force_controller`; `check_population` refuses anything else, naming the field.
+#
+# **Why a member's result does not depend on its neighbours.** Every operation of the loop is
+# one of three kinds: elementwise (activations, the optimizer's update, clipping by a per-member
+# factor), a reduction within one member's slice (losses, advantage normalisation, gradient norms,
+# the KL early stop), or a batched matrix product whose batch entries are computed separately.
+# Each member draws its randomness from its own generators, in the order a run alone would, and a
+# member that stopped early at its target KL keeps its parameters, moments, step counts and
+# random streams untouched while the others continue. One operation did depend on the population:
+# torch computes a batched product with a single output column (the value head) through a
+# different matrix-vector path for one batch entry than for several, which changed the last bit
+# of the values; the value head is therefore a product and a row sum. The tests train the same
+# member alone, in populations of two and three, in different orders and next to members with
+# other ablations, and compare metrics, episodes and checkpoints bit for bit.
+#
+# **Devices.** `TrainConfig.device` ("cpu", "cuda" or "auto") places the networks, the buffers and
+# the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
+# the resolved device is part of the run's identity (its hash).
 
 # %%
 #| default_exp mappo
@@ -137,9 +176,9 @@ from pemamoe.phases import PhaseSchedule
 #   the ablations and the noise sweep) in under an hour on two cores with two worker processes.
 #   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts
 #   60 iterations (540 iterations, 276k environment steps in all) and the update runs 4 epochs of
-#   4 minibatches. `benchmarks/bench_train.py` measured 2,300-3,000 environment steps per second
-#   for the gated networks (3,000-4,200 for the MLP) on one thread of the shared 2-core machine,
-#   i.e. 1.5-2 minutes per run and 30-40 minutes for 40 runs on two workers.
+#   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
+#   which prints the throughput of populations of 1, 4 and 16 runs and the projected sweep times;
+#   the README quotes its latest figures with the commit that measured them.
 # * **ci**: a handful of iterations crossing two phase switches, seconds per run.
 #
 # **Time-compressed schedules.** The phase controller's windows are counted in iterations

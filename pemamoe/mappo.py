@@ -3,7 +3,7 @@
 
 __all__ = ['METHODS', 'DEVICES', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TIMING_COLUMNS', 'resolve_device', 'TrainConfig', 'scale_controller', 'phase_schedule', 'bootstrap_values', 'compute_gae', 'RunningNorm', 'EpisodeTracker', 'Rollout', 'collect_rollout', 'ValueNorms', 'ppo_update', 'explained_variance', 'collect_probe', 'RunResult', 'load_run', 'split_env_state', 'merge_env_states', 'MEMBER_FIELDS', 'check_population', 'plasticity_name', 'train', 'train_population', 'actor_rows_per_step', 'evaluate_policy']
 
-# %% notebooks/07_mappo.py, cell 4 (line 58)
+# %% notebooks/07_mappo.py, cell 4 (line 97)
 import dataclasses
 import hashlib
 import json
@@ -36,7 +36,7 @@ from pemamoe.phase_controller import (
 from pemamoe.phases import PhaseSchedule
 
 
-# %% notebooks/07_mappo.py, cell 7 (line 158)
+# %% notebooks/07_mappo.py, cell 7 (line 197)
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
@@ -309,13 +309,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 461)
+# %% notebooks/07_mappo.py, cell 12 (line 500)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 490)
+# %% notebooks/07_mappo.py, cell 14 (line 529)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -348,7 +348,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 546)
+# %% notebooks/07_mappo.py, cell 18 (line 585)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -391,7 +391,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 603)
+# %% notebooks/07_mappo.py, cell 20 (line 642)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -555,7 +555,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 809)
+# %% notebooks/07_mappo.py, cell 22 (line 848)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -714,7 +714,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 994)
+# %% notebooks/07_mappo.py, cell 24 (line 1033)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -767,7 +767,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1047)
+# %% notebooks/07_mappo.py, cell 25 (line 1086)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -880,7 +880,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1168)
+# %% notebooks/07_mappo.py, cell 27 (line 1207)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1162,7 +1162,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[3])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1458)
+# %% notebooks/07_mappo.py, cell 29 (line 1497)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
