@@ -56,6 +56,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal
 
+from pemamoe.methods import METHOD_REGISTRY
+
 # %% [markdown]
 # ## Reading the architecture off the paper's parameter counts
 #
@@ -99,6 +101,82 @@ from torch.distributions import Independent, Normal
 # diagnostics (feature rank, dormant units) look at.
 
 # %% [markdown]
+# ## The methods: a network kind plus a plasticity method
+#
+# A *method* in the experiments is a pair: the network kind that computes the policy (notebook 05)
+# and the plasticity method that acts at phase switches (notebook 06). The registry below is the one
+# place that names the methods; the trainer, the sweeps, the figures and the tests read names,
+# labels, colours and dispatch from it. PE-MAMoE is the SMoE network with the Phase Controller;
+# any other pairing (an MLP with the controller's switch-time mechanisms, say) is one more entry
+# with its own label.
+
+# %%
+#| export methods
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One comparable method: what it trains (network kind) and how it treats plasticity."""
+
+    name: str
+    network: str  # a kind of pemamoe.nets.make_actor / make_critic
+    plasticity: str = "none"  # a name in pemamoe.phase_controller.PLASTICITY_METHODS
+    label: str = ""  # display label in figures and tables
+    colour: str = "#333333"
+    proposed: bool = False  # the paper's method (the headline comparisons are against it)
+    paper_actor_params: int | None = None  # the paper's cost table, for comparison only
+    paper_active_params: int | None = None
+
+
+METHOD_REGISTRY: dict = {}
+
+
+def register_method(spec: MethodSpec) -> MethodSpec:
+    """Add a method (or replace one of the same name); returns it."""
+    if not isinstance(spec, MethodSpec):
+        raise ValueError(f"register_method needs a MethodSpec, got {type(spec).__name__}")
+    if not spec.name or not isinstance(spec.name, str):
+        raise ValueError(f"MethodSpec.name must be a non-empty string, got {spec.name!r}")
+    METHOD_REGISTRY[spec.name] = spec if spec.label else MethodSpec(**{**spec.__dict__, "label": spec.name})
+    return METHOD_REGISTRY[spec.name]
+
+
+def method_spec(name: str) -> MethodSpec:
+    if name not in METHOD_REGISTRY:
+        raise ValueError(f"method must be one of {', '.join(METHOD_REGISTRY)}, got {name!r}")
+    return METHOD_REGISTRY[name]
+
+
+def method_names(proposed_last: bool = True) -> tuple:
+    """Registered method names in registration order (the figures' order)."""
+    return tuple(METHOD_REGISTRY)
+
+
+def method_label(name: str) -> str:
+    return METHOD_REGISTRY[name].label if name in METHOD_REGISTRY else name
+
+
+def method_colour(name: str) -> str:
+    return METHOD_REGISTRY[name].colour if name in METHOD_REGISTRY else "#333333"
+
+
+def proposed_method() -> str:
+    return next(name for name, spec in METHOD_REGISTRY.items() if spec.proposed)
+
+
+# The paper's four methods, in the order the figures use.
+register_method(MethodSpec("mlp", network="mlp", label="MLP", colour="#7f7f7f",
+                           paper_actor_params=6820, paper_active_params=6820))
+register_method(MethodSpec("moe", network="moe", label="MoE", colour="#1f77b4",
+                           paper_actor_params=20858, paper_active_params=20858))
+register_method(MethodSpec("smoe", network="smoe", label="SMoE", colour="#ff7f0e",
+                           paper_actor_params=21392, paper_active_params=7820))
+register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controller", label="PE-MAMoE",
+                           colour="#d62728", proposed=True, paper_actor_params=21392, paper_active_params=7820))
+
+
+# %% [markdown]
 # ## Configuration
 #
 # One frozen dataclass holds every number of the networks:
@@ -123,7 +201,6 @@ from torch.distributions import Independent, Normal
 
 # %%
 #| export
-ACTOR_KINDS = ("mlp", "moe", "smoe", "pemamoe")
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
@@ -131,9 +208,10 @@ MAC_MODES = ("sampling", "eval")
 # What the paper's Table "Computational cost" reports at observation dimension 177 (hidden 32,
 # 3 experts, 2-D action): total actor parameters and parameters active at inference. Used only to
 # compare against the counts computed from the modules, never in a computation.
+# The numbers themselves live in the method registry (pemamoe.methods).
 PAPER_OBS_DIM = 177
-PAPER_ACTOR_PARAMS = {"mlp": 6820, "moe": 20858, "smoe": 21392, "pemamoe": 21392}
-PAPER_ACTIVE_PARAMS = {"mlp": 6820, "moe": 20858, "smoe": 7820, "pemamoe": 7820}
+PAPER_ACTOR_PARAMS = {name: spec.paper_actor_params for name, spec in METHOD_REGISTRY.items()}
+PAPER_ACTIVE_PARAMS = {name: spec.paper_active_params for name, spec in METHOD_REGISTRY.items()}
 
 
 @dataclass(frozen=True)
@@ -744,12 +822,6 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-class PEMAMoEActor(SMoEActor):
-    """PE-MAMoE actor: the SMoE network; the phase controller (notebook 06) adds no parameters."""
-
-    kind = "pemamoe"
-
-
 # %% [markdown]
 # ## The critics
 #
@@ -829,10 +901,6 @@ class MoECritic(nn.Module):
 class SMoECritic(MoECritic):
     kind = "smoe"
     sparse = True
-
-
-class PEMAMoECritic(SMoECritic):
-    kind = "pemamoe"
 
 
 # %% [markdown]
@@ -1140,13 +1208,31 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
 
 # %%
 #| export
-_ACTORS = {"mlp": MLPActor, "moe": MoEActor, "smoe": SMoEActor, "pemamoe": PEMAMoEActor}
-_CRITICS = {"mlp": MLPCritic, "moe": MoECritic, "smoe": SMoECritic, "pemamoe": PEMAMoECritic}
+NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
-def _check_kind(kind):
-    if kind not in ACTOR_KINDS:
-        raise ValueError(f"network kind must be one of {', '.join(ACTOR_KINDS)}, got {kind!r}")
+def register_network(kind: str, actor_cls, critic_cls) -> None:
+    """Make a network kind available to make_actor / make_critic (and so to the method registry).
+    The actor subclasses GaussianActor (features, run_features, trunk_parameters, probe,
+    param_groups, cost_parts); the critic provides forward, run_features and param_groups."""
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"network kind must be a non-empty string, got {kind!r}")
+    NETWORKS[kind] = (actor_cls, critic_cls)
+
+
+register_network("mlp", MLPActor, MLPCritic)
+register_network("moe", MoEActor, MoECritic)
+register_network("smoe", SMoEActor, SMoECritic)
+
+
+def network_kind(name: str) -> str:
+    """A network kind, or a method name resolved through the method registry."""
+    if name in NETWORKS:
+        return name
+    if name in METHOD_REGISTRY:
+        return METHOD_REGISTRY[name].network
+    raise ValueError(f"network kind must be one of {', '.join(NETWORKS)} (or a method: {', '.join(METHOD_REGISTRY)}), "
+                     f"got {name!r}")
 
 
 def _check_dim(name, value):
@@ -1155,18 +1241,18 @@ def _check_dim(name, value):
 
 
 def make_actor(kind: str, obs_dim: int, act_dim: int = 2, cfg: NetConfig | None = None) -> GaussianActor:
-    """Actor of `kind` in ACTOR_KINDS for observations (..., obs_dim) and actions (..., act_dim)."""
-    _check_kind(kind)
+    """Actor of network `kind` (or of a method's network) for observations (..., obs_dim) and actions (..., act_dim)."""
+    kind = network_kind(kind)
     _check_dim("obs_dim", obs_dim)
     _check_dim("act_dim", act_dim)
-    return _ACTORS[kind](obs_dim, act_dim, cfg or NetConfig())
+    return NETWORKS[kind][0](obs_dim, act_dim, cfg or NetConfig())
 
 
 def make_critic(kind: str, state_dim: int, cfg: NetConfig | None = None) -> nn.Module:
-    """Centralised critic of `kind` in ACTOR_KINDS for global states (..., state_dim)."""
-    _check_kind(kind)
+    """Centralised critic of network `kind` (or of a method's network) for global states (..., state_dim)."""
+    kind = network_kind(kind)
     _check_dim("state_dim", state_dim)
-    return _CRITICS[kind](state_dim, cfg or NetConfig())
+    return NETWORKS[kind][1](state_dim, cfg or NetConfig())
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -1275,14 +1361,14 @@ def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
     rows = []
     for label, obs_dim in obs_dims.items():
         torch.manual_seed(seed)
-        actors = {kind: make_actor(kind, obs_dim, act_dim, cfg) for kind in ACTOR_KINDS}
+        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()}
         mlp_params = count_parameters(actors["mlp"])
         mlp_macs = macs_per_step(actors["mlp"])
         for kind, actor in actors.items():
             row = {
                 "obs": label,
                 "obs_dim": obs_dim,
-                "actor": kind,
+                "actor": kind,  # the method's name
                 "params": count_parameters(actor),
                 "params_vs_mlp": round(count_parameters(actor) / mlp_params, 2),
                 "active_params": active_parameters(actor, "paper"),
@@ -1328,7 +1414,7 @@ print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 
 # %%
 cfg = NetConfig()
-paper_actors = {kind: make_actor(kind, PAPER_OBS_DIM, 2, cfg) for kind in ACTOR_KINDS}
+paper_actors = {name: make_actor(spec.network, PAPER_OBS_DIM, 2, cfg) for name, spec in METHOD_REGISTRY.items()}
 
 
 def _box(ax, x, y, w, h, text, color, fontsize=7.5, style="round,pad=0.02"):
@@ -1345,11 +1431,12 @@ def _arrow(ax, x0, y0, x1, y1, dashed=False, color="0.2"):
     )
 
 
-def draw_actor(ax, actor):
+def draw_actor(ax, actor, method):
+    spec = METHOD_REGISTRY[method]
     parts = actor.cost_parts()
     d, h = actor.obs_dim, actor.cfg.hidden
     ax.set_xlim(0, 11.2), ax.set_ylim(0.2, 10), ax.axis("off")
-    title = {"mlp": "MLP", "moe": "MoE (dense)", "smoe": "SMoE (noisy top-1)", "pemamoe": "PE-MAMoE"}[actor.kind]
+    title = f"{spec.label} ({actor.kind} network)"
     ax.set_title(f"{title}\n{count_parameters(actor):,} params, {active_parameters(actor):,} active (paper conv.)", fontsize=9)
     _box(ax, 5, 9.4, 3.6, 0.7, f"observation $o$ ({d})", "#eeeeee")
     head_y, out_y = 2.4, 0.9
@@ -1379,7 +1466,7 @@ def draw_actor(ax, actor):
         _arrow(ax, 10.6, 3.7, 6.8, 3.7, color="#b45f06")
         ax.text(10.5, 4.9, "gate\nweights", ha="right", va="center", fontsize=6, color="#b45f06")
         _arrow(ax, 5, 3.35, 5, head_y + 0.4)
-        if actor.kind == "pemamoe":
+        if spec.plasticity != "none":
             _box(ax, 9.3, 1.5, 3.1, 1.3, "phase controller\n(0 params): τ, log σ,\nexpert noise, LR, KL", "#ead1dc", fontsize=6)
             ax.plot([9.3, 9.3], [2.15, 7.35], color="#741b47", lw=0.8, ls="--")
             _arrow(ax, 7.75, 1.7, 6.85, head_y, dashed=True, color="#741b47")
@@ -1388,9 +1475,9 @@ def draw_actor(ax, actor):
     _box(ax, 5, out_y, 3.4, 0.7, "a ~ N(μ, diag σ²)", "#eeeeee")
 
 
-fig, axes = plt.subplots(1, 4, figsize=(18, 5.6))
-for ax, actor in zip(axes, paper_actors.values()):
-    draw_actor(ax, actor)
+fig, axes = plt.subplots(1, len(paper_actors), figsize=(4.5 * len(paper_actors), 5.6))
+for ax, (method, actor) in zip(axes, paper_actors.items()):
+    draw_actor(ax, actor, method)
 fig.suptitle(f"Actor architectures at obs_dim {PAPER_OBS_DIM}, hidden {cfg.hidden}, {cfg.n_experts} experts "
              "(solid: executed for a sample routed to expert 2)", fontsize=10)
 fig.tight_layout()

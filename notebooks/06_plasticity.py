@@ -1110,82 +1110,6 @@ class PhaseControllerMethod(NoPlasticity):
 
 
 # %% [markdown]
-# ## Methods: a network kind plus a plasticity method
-#
-# A *method* in the experiments is a pair: the network kind that computes the policy (notebook 05)
-# and the plasticity method that acts at phase switches (above). The registry below is the one
-# place that names the methods; the trainer, the sweeps, the figures and the tests read names,
-# labels, colours and dispatch from it. PE-MAMoE is the SMoE network with the Phase Controller;
-# any other pairing (an MLP with the controller's switch-time mechanisms, say) is one more entry
-# with its own label.
-
-# %%
-#| export methods
-from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class MethodSpec:
-    """One comparable method: what it trains (network kind) and how it treats plasticity."""
-
-    name: str
-    network: str  # a kind of pemamoe.nets.make_actor / make_critic
-    plasticity: str = "none"  # a name in pemamoe.phase_controller.PLASTICITY_METHODS
-    label: str = ""  # display label in figures and tables
-    colour: str = "#333333"
-    proposed: bool = False  # the paper's method (the headline comparisons are against it)
-    paper_actor_params: int | None = None  # the paper's cost table, for comparison only
-    paper_active_params: int | None = None
-
-
-METHOD_REGISTRY: dict = {}
-
-
-def register_method(spec: MethodSpec) -> MethodSpec:
-    """Add a method (or replace one of the same name); returns it."""
-    if not isinstance(spec, MethodSpec):
-        raise ValueError(f"register_method needs a MethodSpec, got {type(spec).__name__}")
-    if not spec.name or not isinstance(spec.name, str):
-        raise ValueError(f"MethodSpec.name must be a non-empty string, got {spec.name!r}")
-    METHOD_REGISTRY[spec.name] = spec if spec.label else MethodSpec(**{**spec.__dict__, "label": spec.name})
-    return METHOD_REGISTRY[spec.name]
-
-
-def method_spec(name: str) -> MethodSpec:
-    if name not in METHOD_REGISTRY:
-        raise ValueError(f"method must be one of {', '.join(METHOD_REGISTRY)}, got {name!r}")
-    return METHOD_REGISTRY[name]
-
-
-def method_names(proposed_last: bool = True) -> tuple:
-    """Registered method names in registration order (the figures' order)."""
-    return tuple(METHOD_REGISTRY)
-
-
-def method_label(name: str) -> str:
-    return METHOD_REGISTRY[name].label if name in METHOD_REGISTRY else name
-
-
-def method_colour(name: str) -> str:
-    return METHOD_REGISTRY[name].colour if name in METHOD_REGISTRY else "#333333"
-
-
-def proposed_method() -> str:
-    return next(name for name, spec in METHOD_REGISTRY.items() if spec.proposed)
-
-
-# The paper's four methods, in the order the figures use.
-register_method(MethodSpec("mlp", network="mlp", label="MLP", colour="#7f7f7f",
-                           paper_actor_params=6820, paper_active_params=6820))
-register_method(MethodSpec("moe", network="moe", label="MoE", colour="#1f77b4",
-                           paper_actor_params=20858, paper_active_params=20858))
-register_method(MethodSpec("smoe", network="smoe", label="SMoE", colour="#ff7f0e",
-                           paper_actor_params=21392, paper_active_params=7820))
-register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controller", label="PE-MAMoE",
-                           colour="#d62728", proposed=True, paper_actor_params=21392, paper_active_params=7820))
-
-
-# %% [markdown]
 # ## The schedules over three phases
 #
 # A short run with the paper's values (1,200-iteration phases would flatten the plots, so the
@@ -1210,7 +1134,7 @@ obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale
 
 def fresh_controller(enabled=True, config=cfg):
     """A new actor, critic, AdamW over named groups, and a controller on them."""
-    a, c = make_actor("pemamoe", obs_dim), make_critic("pemamoe", state_dim)
+    a, c = make_actor("smoe", obs_dim), make_critic("smoe", state_dim)
     o = torch.optim.AdamW(build_param_groups(a, c, demo_base.lr), lr=demo_base.lr, weight_decay=1e-4)
     return PhaseController(config, a, o, demo_base, enabled=enabled, seed=seed)
 
@@ -1487,8 +1411,8 @@ probe_obs = torch.randn(n_probe, obs_dim, generator=g)
 probe_state = torch.randn(n_probe, state_dim, generator=g)
 
 torch.manual_seed(seed)
-actor = make_actor("pemamoe", obs_dim)
-critic = make_critic("pemamoe", state_dim)
+actor = make_actor("smoe", obs_dim)
+critic = make_critic("smoe", state_dim)
 opt = torch.optim.AdamW(build_param_groups(actor, critic, demo_base.lr), lr=demo_base.lr, weight_decay=1e-4)
 ctl = PhaseController(cfg, actor, opt, demo_base, seed=seed)
 
@@ -1557,11 +1481,13 @@ print(table.to_string(float_format=lambda v: f"{v:.4g}"))
 # the switches); that is measured by the trainer, which logs `plasticity_diagnostics` every
 # iteration, in notebooks 07 and 09.
 #
-# A last check across the four actor kinds: the diagnostics return the same kind of keys for all
+# A last check across the network kinds: the diagnostics return the same kind of keys for all
 # (the MLP as a single expert).
 
 # %%
-for kind in ("mlp", "moe", "smoe", "pemamoe"):
+from pemamoe.nets import NETWORKS
+
+for kind in NETWORKS:
     a, c = make_actor(kind, obs_dim), make_critic(kind, state_dim)
     d = dg.plasticity_diagnostics(a, c, probe_obs, probe_state)
     print(f"{kind:8s} {len(d):3d} metrics  stable rank {d['rank/stable/mean']:.2f}  effective {d['rank/effective/mean']:.2f}"

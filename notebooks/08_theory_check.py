@@ -59,7 +59,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pemamoe.nets import NetConfig, make_actor, ACTOR_KINDS
+from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import (
     BaseSchedule,
     PhaseController,
@@ -320,7 +320,10 @@ class TrackerConfig:
 
     def __post_init__(self):
         own = "TrackerConfig"
-        _need(own, self, "kind", self.kind in ACTOR_KINDS, f"one of {', '.join(ACTOR_KINDS)}")
+        try:
+            network_kind(self.kind)
+        except ValueError as err:
+            raise ValueError(f"{own}.kind: {err}") from None
         _need(own, self, "iterations", _int_ok(self.iterations, 1), "an int >= 1")
         _need(own, self, "n_switches", _int_ok(self.n_switches, 0), "an int >= 0")
         for name in ("batch", "epochs", "hidden", "n_experts"):

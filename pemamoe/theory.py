@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pemamoe.nets import NetConfig, make_actor, ACTOR_KINDS
+from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import (
     BaseSchedule,
     PhaseController,
@@ -183,7 +183,10 @@ class TrackerConfig:
 
     def __post_init__(self):
         own = "TrackerConfig"
-        _need(own, self, "kind", self.kind in ACTOR_KINDS, f"one of {', '.join(ACTOR_KINDS)}")
+        try:
+            network_kind(self.kind)
+        except ValueError as err:
+            raise ValueError(f"{own}.kind: {err}") from None
         _need(own, self, "iterations", _int_ok(self.iterations, 1), "an int >= 1")
         _need(own, self, "n_switches", _int_ok(self.n_switches, 0), "an int >= 0")
         for name in ("batch", "epochs", "hidden", "n_experts"):
@@ -354,7 +357,7 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
     }
 
 
-# %% notebooks/08_theory_check.py, cell 14 (line 502)
+# %% notebooks/08_theory_check.py, cell 14 (line 505)
 def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
     """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
 
@@ -402,7 +405,7 @@ def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: flo
     return out
 
 
-# %% notebooks/08_theory_check.py, cell 22 (line 733)
+# %% notebooks/08_theory_check.py, cell 22 (line 736)
 def gaussian_l1(mu1, mu2, std) -> np.ndarray:
     """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
     Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
@@ -451,7 +454,7 @@ def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
     return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
 
 
-# %% notebooks/08_theory_check.py, cell 25 (line 806)
+# %% notebooks/08_theory_check.py, cell 25 (line 809)
 def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
     """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
     dy (n,) or (n, p); dx (n,) or (n, r)."""
@@ -483,7 +486,7 @@ def lipschitz_envelope(y, U) -> np.ndarray:
     return res.x / scale
 
 
-# %% notebooks/08_theory_check.py, cell 27 (line 849)
+# %% notebooks/08_theory_check.py, cell 27 (line 852)
 DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
 
 

@@ -137,7 +137,7 @@ def test_each_method_trains_and_logs(method, tmp_path):
 def test_first_ratio_is_exactly_one_directly():
     # the update's forward pass on a minibatch (other rows, another batch size) replays the
     # rollout's log-probabilities bit for bit, for every member of a population
-    for method in ("mlp", "smoe", "pemamoe"):
+    for method in METHODS:
         cfgs = [ci(method).replace(seed=s) for s in (0, 1)]
         venv = mappo.UAVVectorEnv(seeds=[x for c in cfgs for x in mappo.vector_seeds(c.seed, c.num_envs)],
                                   cfg=cfgs[0].env_config())

@@ -8,7 +8,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemamoe.nets import (
-    ACTOR_KINDS,
     PAPER_ACTIVE_PARAMS,
     PAPER_ACTOR_PARAMS,
     PAPER_OBS_DIM,
@@ -24,7 +23,10 @@ from pemamoe.nets import (
     make_critic,
 )
 
-MOE_KINDS = ("moe", "smoe", "pemamoe")
+from pemamoe.methods import METHOD_REGISTRY
+
+ACTOR_KINDS = tuple(METHOD_REGISTRY)  # every registered method (make_actor resolves its network)
+MOE_KINDS = tuple(name for name, spec in METHOD_REGISTRY.items() if spec.network != "mlp")
 IMPLS = ("stacked", "masked", "loop", "auto")
 
 
@@ -105,7 +107,7 @@ def test_replayed_routing_gives_ratio_exactly_one(kind, impl):
     assert (routing is None) == (kind == "mlp")
 
 
-@pytest.mark.parametrize("kind", ("smoe", "pemamoe"))
+@pytest.mark.parametrize("kind", tuple(n for n, sp in METHOD_REGISTRY.items() if sp.network == "smoe"))
 def test_noise_matters_without_replay(kind):
     actor = make_actor(kind, 30)
     with torch.no_grad():  # make the gate noisy enough that a re-draw changes some routes
@@ -160,7 +162,7 @@ def test_load_balance_is_one_whenever_dispatch_is_balanced(per_expert, e, seed):
     assert load_balance_loss(probs, experts, e).item() == pytest.approx(1.0, abs=1e-5)
 
 
-@pytest.mark.parametrize("kind", ("smoe", "pemamoe"))
+@pytest.mark.parametrize("kind", tuple(n for n, sp in METHOD_REGISTRY.items() if sp.network == "smoe"))
 def test_top1_router_gets_gradient_from_policy_loss(kind):
     actor = make_actor(kind, 20)
     obs = torch.randn(64, 20)
@@ -315,7 +317,7 @@ def test_param_groups_cover_every_parameter_once(kind):
     assert len(ids) == len(set(ids))
     assert set(ids) == {id(p) for p in actor.parameters()}
     assert groups["log_std"] == [actor.log_std]
-    if kind in ("smoe", "pemamoe"):
+    if METHOD_REGISTRY[kind].network == "smoe":
         assert len(groups["router"]) == 4  # router and noise gate, weight and bias each
     critic = make_critic(kind, 30)
     cgroups = critic.param_groups()
