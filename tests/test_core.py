@@ -31,12 +31,12 @@ def test_atomic_write_leaves_old_file_when_writer_fails(tmp_path):
 def test_save_figure_and_table(tmp_path):
     fig, ax = plt.subplots()
     ax.plot([0, 1], [1, 0])
-    paths = core.save_figure(fig, "demo", tmp_path)
+    assert core.save_figure(fig, "demo", tmp_path) is None  # a cell ending with it prints nothing
     plt.close(fig)
-    assert [p.name for p in paths] == ["demo.png", "demo.pdf"]
-    assert paths[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert paths[1].read_bytes()[:4] == b"%PDF"
-    md, csv = core.write_table(pd.DataFrame({"method": ["mlp"], "params": [6820]}), "t", tmp_path)
+    assert (tmp_path / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "demo.pdf").read_bytes()[:4] == b"%PDF"
+    assert core.write_table(pd.DataFrame({"method": ["mlp"], "params": [6820]}), "t", tmp_path) is None
+    md, csv = tmp_path / "t.md", tmp_path / "t.csv"
     assert md.read_text().splitlines() == ["| method | params |", "|---|---|", "| mlp | 6820 |"]
     assert pd.read_csv(csv).to_dict("list") == {"method": ["mlp"], "params": [6820]}
 
