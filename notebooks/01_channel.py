@@ -49,6 +49,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pemamoe.core import require_field
+
 # %% [markdown]
 # ## The configuration
 #
@@ -111,49 +113,37 @@ class ChannelConfig:
     nlos_distance_exponent: float = 0.25
 
     def __post_init__(self):
-        gt0 = lambda v: v > 0  # noqa: E731
-        ge0 = lambda v: v >= 0  # noqa: E731
-        rules = {
-            "carrier_ghz": (gt0, "> 0"),
-            "bandwidth_hz": (gt0, "> 0"),
-            "adjacent_leakage": (lambda v: 0 <= v < 1, "in [0, 1)"),
-            "max_tx_power_w": (gt0, "> 0"),
-            "noise_dbm_per_hz": (math.isfinite, "finite"),
-            "tx_gain_dbi": (math.isfinite, "finite"),
-            "rx_gain_dbi": (math.isfinite, "finite"),
-            "implementation_loss": (lambda v: 0 < v <= 1, "in (0, 1]"),
-            "rician_k_db": (
-                ge0,
-                ">= 0 dB (a LoS ray weaker than its scatter is what the NLoS branch models)",
-            ),
-            "nakagami_m": (lambda v: v >= 0.5, ">= 0.5"),
-            "shadowing_los_db": (ge0, ">= 0"),
-            "shadowing_nlos_db": (ge0, ">= 0"),
-            "los_breakpoint_m": (gt0, "> 0"),
-            "los_decay_m": (gt0, "> 0"),
-            "min_gain": (gt0, "> 0"),
-            "min_distance_m": (gt0, "> 0"),
-            "los_height_offset_m": (math.isfinite, "finite"),
-            "los_height_scale_m": (gt0, "> 0"),
-            "los_height_exponent": (gt0, "> 0"),
-            "pl_intercept_db": (math.isfinite, "finite"),
-            "pl_distance_slope_db": (gt0, "> 0"),
-            "pl_frequency_slope_db": (math.isfinite, "finite"),
-            "nlos_offset_db": (ge0, ">= 0"),
-            "nlos_distance_coeff_db": (ge0, ">= 0"),
-            "nlos_distance_exponent": (ge0, ">= 0"),
-        }
-        for name, (ok, allowed) in rules.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                raise ValueError(f"ChannelConfig.{name} must be a real number {allowed}, got {value!r}")
-            # `not ok(...)` also rejects NaN, for which every comparison is False; inf is refused
-            # everywhere (no constant of this model is meaningfully infinite).
-            if not math.isfinite(value) or not ok(value):
-                raise ValueError(f"ChannelConfig.{name} must be {allowed}, got {value!r}")
-        F = self.reuse_factor
-        if isinstance(F, bool) or not isinstance(F, (int, np.integer)) or F < 1:
-            raise ValueError(f"ChannelConfig.reuse_factor must be an integer >= 1, got {F!r}")
+        # Every field is a finite real number (no constant of this model is meaningfully
+        # infinite), except reuse_factor, an integer; see pemamoe.core.require.
+        for name, bounds in {
+            "carrier_ghz": dict(gt=0),
+            "bandwidth_hz": dict(gt=0),
+            "adjacent_leakage": dict(ge=0, lt=1),
+            "max_tx_power_w": dict(gt=0),
+            "noise_dbm_per_hz": {},
+            "tx_gain_dbi": {},
+            "rx_gain_dbi": {},
+            "implementation_loss": dict(gt=0, le=1),
+            "rician_k_db": dict(ge=0, note="in dB: a LoS ray weaker than its scatter is what the NLoS branch models"),
+            "nakagami_m": dict(ge=0.5),
+            "shadowing_los_db": dict(ge=0),
+            "shadowing_nlos_db": dict(ge=0),
+            "los_breakpoint_m": dict(gt=0),
+            "los_decay_m": dict(gt=0),
+            "min_gain": dict(gt=0),
+            "min_distance_m": dict(gt=0),
+            "los_height_offset_m": {},
+            "los_height_scale_m": dict(gt=0),
+            "los_height_exponent": dict(gt=0),
+            "pl_intercept_db": {},
+            "pl_distance_slope_db": dict(gt=0),
+            "pl_frequency_slope_db": {},
+            "nlos_offset_db": dict(ge=0),
+            "nlos_distance_coeff_db": dict(ge=0),
+            "nlos_distance_exponent": dict(ge=0),
+        }.items():
+            require_field(self, name, "real", **bounds)
+        require_field(self, "reuse_factor", "int", ge=1)
 
     @property
     def noise_w_per_hz(self) -> float:

@@ -43,6 +43,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from pemamoe.core import require_field
+
 # %% [markdown]
 # ## Parameters
 #
@@ -70,18 +72,6 @@ from scipy.optimize import minimize_scalar
 # dataclass that checks itself on construction.
 
 # %%
-#| exporti
-def _require(cls_name, name, value, ok, allowed):
-    """Raise the project's standard validation error unless ``ok``."""
-    if not ok:
-        raise ValueError(f"{cls_name}.{name} must be {allowed}, got {value!r}")
-
-
-def _is_real(value):
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-# %%
 #| export
 @dataclass(frozen=True)
 class EnergyConfig:
@@ -105,12 +95,7 @@ class EnergyConfig:
 
     def __post_init__(self):
         for f in fields(self):
-            value = getattr(self, f.name)
-            _require(
-                "EnergyConfig", f.name, value,
-                _is_real(value) and np.isfinite(value) and value > 0,
-                "a finite number > 0",
-            )
+            require_field(self, f.name, "real", gt=0)
 
     @property
     def hover_power_w(self) -> float:

@@ -63,6 +63,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pemamoe.core import config_error, require, require_field
+
 CLASS_NAMES = ("L", "M", "H")
 DEMAND_MODES = ("cycle", "mix")
 
@@ -86,38 +88,23 @@ class PhaseConfig:
     held_out_demand_probs: tuple = (0.2, 0.3, 0.5)
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"PhaseConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        n = len(self.user_speed_mps)
-        if n < 1:
-            fail("user_speed_mps", "a non-empty tuple (one value per phase)")
-        for name in ("user_speed_mps", "direction_jitter", "service_radius_m", "overlap_weight"):
-            values = getattr(self, name)
-            if len(values) != n:
-                fail(name, f"a tuple of {n} values (one per phase, like user_speed_mps)")
-        for name in ("user_speed_mps", "direction_jitter", "overlap_weight"):
-            if any(not math.isfinite(v) or v < 0 for v in getattr(self, name)):
-                fail(name, "finite and >= 0 for every phase")
-        if any(not math.isfinite(v) or v <= 0 for v in self.service_radius_m):
-            fail("service_radius_m", "> 0 for every phase")
-        if len(self.rate_threshold_bps) != 3 or any(v <= 0 for v in self.rate_threshold_bps):
-            fail("rate_threshold_bps", "three positive rates (L, M, H)")
-        if len(self.class_reward) != 3 or any(v < 0 for v in self.class_reward):
-            fail("class_reward", "three non-negative rewards (L, M, H)")
-        if self.demand_mode not in DEMAND_MODES:
-            fail("demand_mode", f"one of {', '.join(DEMAND_MODES)}")
+        # Per-phase tuples are stored as tuples of floats (hashable, JSON-ready); see core.require.
+        n = len(require_field(self, "user_speed_mps", "reals", ge=0))
+        per_phase = "one per phase, like user_speed_mps"
+        for name in ("direction_jitter", "overlap_weight"):
+            require_field(self, name, "reals", ge=0, length=n, note=per_phase)
+        require_field(self, "service_radius_m", "reals", gt=0, length=n, note=per_phase)
+        require_field(self, "rate_threshold_bps", "reals", gt=0, length=3, note="classes L, M, H")
+        require_field(self, "class_reward", "reals", ge=0, length=3, note="classes L, M, H")
+        require_field(self, "demand_mode", "choice", DEMAND_MODES)
         if self.demand_mode == "cycle" and n > 3:
-            fail("demand_mode", "'mix' when there are more than 3 phases (cycle gives phase p class p)")
-        if len(self.mix_probs) != n or any(not _is_distribution(p) for p in self.mix_probs):
-            fail("mix_probs", f"{n} probability triples (L, M, H), each summing to 1")
-        if not _is_distribution(self.held_out_demand_probs):
-            fail("held_out_demand_probs", "a probability triple (L, M, H) summing to 1")
+            raise config_error("PhaseConfig", "demand_mode", self.demand_mode,
+                               "'mix' when there are more than 3 phases (cycle gives phase p class p)")
+        _require_distributions(self, "mix_probs", n)
+        _require_distributions(self, "held_out_demand_probs", None)
         for name in ("held_out_speed_mps", "held_out_jitter", "held_out_overlap_weight"):
-            if getattr(self, name) < 0:
-                fail(name, ">= 0")
-        if self.held_out_radius_m <= 0:
-            fail("held_out_radius_m", "> 0")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "held_out_radius_m", "real", gt=0)
 
     @property
     def n_phases(self) -> int:
@@ -140,8 +127,22 @@ class PhaseConfig:
         return np.array([*self.mix_probs, self.held_out_demand_probs], dtype=float)
 
 
-def _is_distribution(p) -> bool:
-    return len(p) == 3 and all(v >= 0 for v in p) and abs(sum(p) - 1.0) < 1e-9
+def _require_distributions(cfg, name: str, count: int | None) -> None:
+    """Check cfg.<name>: a probability triple (L, M, H) summing to 1 (count None), or a tuple of
+    `count` such triples; store it as (tuples of) floats."""
+    value = getattr(cfg, name)
+    allowed = ("a probability triple (L, M, H) summing to 1" if count is None
+               else f"{count} probability triples (L, M, H), one per phase, each summing to 1")
+    rows = [value] if count is None else value
+    try:
+        if isinstance(rows, (str, bytes)) or len(rows) != (1 if count is None else count):
+            raise ValueError
+        rows = tuple(require("PhaseConfig", name, p, "reals", ge=0, le=1, length=3) for p in rows)
+    except (TypeError, ValueError):
+        raise config_error("PhaseConfig", name, value, allowed) from None
+    if any(abs(sum(p) - 1.0) >= 1e-9 for p in rows):
+        raise config_error("PhaseConfig", name, value, allowed)
+    object.__setattr__(cfg, name, rows[0] if count is None else rows)
 
 
 def phase_values(cfg: PhaseConfig, phase):
@@ -202,23 +203,20 @@ class PhaseSchedule:
     _segments: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"PhaseSchedule.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        if not isinstance(self.period, (int, np.integer)) or self.period < 1:
-            fail("period", "an integer >= 1")
-        if not isinstance(self.n_phases, (int, np.integer)) or self.n_phases < 1:
-            fail("n_phases", "an integer >= 1")
-        if self.order not in ("cyclic", "random"):
-            fail("order", "'cyclic' or 'random'")
+        require_field(self, "period", "int", ge=1)
+        require_field(self, "n_phases", "int", ge=1)
+        require_field(self, "order", "choice", ("cyclic", "random"))
         if self.order == "random" and self.n_phases < 2:
-            fail("n_phases", ">= 2 for a random order that never repeats a phase")
+            raise config_error("PhaseSchedule", "n_phases", self.n_phases,
+                               "an integer >= 2 for a random order that never repeats a phase")
         if (self.min_period is None) != (self.max_period is None):
-            fail("min_period", "set together with max_period (or both None)")
-        if self.min_period is not None and not (1 <= self.min_period <= self.max_period):
-            fail("min_period", f"an integer in [1, max_period={self.max_period}]")
-        if not isinstance(self.held_out_every, (int, np.integer)) or self.held_out_every < 0:
-            fail("held_out_every", "an integer >= 0")
+            raise config_error("PhaseSchedule", "min_period", self.min_period,
+                               f"set together with max_period (here {self.max_period!r}), or both None")
+        if self.min_period is not None:
+            require_field(self, "min_period", "int", ge=1)
+            require_field(self, "max_period", "int", ge=self.min_period, note="max_period >= min_period")
+        require_field(self, "held_out_every", "int", ge=0)
+        require_field(self, "seed", "int", ge=0)
         self._segments.update(starts=[0], phases=[], regular=0, previous=-1,
                               rng=np.random.default_rng(self.seed))
 
@@ -308,6 +306,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pemamoe.core import require_field
+
 
 @dataclass(frozen=True)
 class MobilityConfig:
@@ -326,30 +326,17 @@ class MobilityConfig:
     centre_margin: float = 0.15  # centres start at least this fraction of the side from a border
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"MobilityConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        if not self.area_m > 0:
-            fail("area_m", "> 0")
-        if not isinstance(self.n_hotspots, int) or self.n_hotspots < 1:
-            fail("n_hotspots", "an integer >= 1")
-        if not isinstance(self.n_users, int) or self.n_users < self.n_hotspots:
-            fail("n_users", f"an integer >= n_hotspots ({self.n_hotspots}): every hotspot needs a user")
-        if not self.slot_s > 0:
-            fail("slot_s", "> 0")
-        if self.user_height_m < 0:
-            fail("user_height_m", ">= 0")
-        if not 0 <= self.gm_memory < 1:
-            fail("gm_memory", "in [0, 1)")
-        if not 0 <= self.follow_gain <= 1:
-            fail("follow_gain", "in [0, 1]")
+        require_field(self, "area_m", "real", gt=0)
+        require_field(self, "n_hotspots", "int", ge=1)
+        require_field(self, "n_users", "int", ge=self.n_hotspots, note="every hotspot needs a user")
+        require_field(self, "slot_s", "real", gt=0)
+        require_field(self, "user_height_m", "real", ge=0)
+        require_field(self, "gm_memory", "real", ge=0, lt=1)
+        require_field(self, "follow_gain", "real", ge=0, le=1)
         for name in ("gm_noise_mps", "follow_noise_mps", "centre_speed_factor", "spawn_spread_m"):
-            if getattr(self, name) < 0:
-                fail(name, ">= 0")
-        if not isinstance(self.retarget_every, int) or self.retarget_every < 1:
-            fail("retarget_every", "an integer >= 1")
-        if not 0 <= self.centre_margin < 0.5:
-            fail("centre_margin", "in [0, 0.5)")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "retarget_every", "int", ge=1)
+        require_field(self, "centre_margin", "real", ge=0, lt=0.5)
 
 
 class MobilityState(NamedTuple):

@@ -71,6 +71,7 @@ from pemamoe.channel import (
     sample_channel,
     sinr,
 )
+from pemamoe.core import config_error, require, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
@@ -118,30 +119,32 @@ class EnvConfig:
     phases: PhaseConfig = field(default_factory=PhaseConfig)
 
     def __post_init__(self):
-        def need(name, ok, allowed):
-            if not ok:
-                raise ValueError(f"EnvConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        need("n_uavs", isinstance(self.n_uavs, int) and self.n_uavs >= 1, "an integer >= 1")
-        need("uav_altitude_m", self.uav_altitude_m > 0, "> 0")
-        need("max_step_m", self.max_step_m > 0, "> 0")
-        need("max_users_per_uav", isinstance(self.max_users_per_uav, int) and self.max_users_per_uav >= 1,
-             "an integer >= 1")
-        need("episode_steps", isinstance(self.episode_steps, int) and self.episode_steps >= 1, "an integer >= 1")
+        require_field(self, "n_uavs", "int", ge=1)
+        require_field(self, "uav_altitude_m", "real", gt=0)
+        require_field(self, "max_step_m", "real", gt=0)
+        require_field(self, "max_users_per_uav", "int", ge=1)
+        require_field(self, "episode_steps", "int", ge=1)
         for name in ("energy_weight_per_kj", "collision_penalty", "min_separation_m"):
-            need(name, getattr(self, name) >= 0, ">= 0")
-        need("overlap_sigma_m", self.overlap_sigma_m > 0, "> 0")
-        need("overlap_cutoff_radii", self.overlap_cutoff_radii > 0, "> 0")
-        need("phase_clock", self.phase_clock in ("env", "external"), "'env' or 'external'")
-        need("phase_period_steps", isinstance(self.phase_period_steps, int) and self.phase_period_steps >= 1,
-             "an integer >= 1")
-        need("rng_chunk", isinstance(self.rng_chunk, int) and self.rng_chunk >= 64, "an integer >= 64")
-        need("step_engine", self.step_engine in STEP_ENGINES, f"one of {', '.join(map(repr, STEP_ENGINES))}")
-        if self.step_engine == "compiled":
-            per_slot = max(slot_draws(self))
-            need("rng_chunk", self.rng_chunk >= per_slot,
-                 f">= {per_slot}, the random numbers one slot of the compiled engine draws per stream "
-                 f"at {self.n_users} users and {self.n_uavs} UAVs (raise rng_chunk, or use step_engine='numpy')")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "overlap_sigma_m", "real", gt=0)
+        require_field(self, "overlap_cutoff_radii", "real", gt=0)
+        require_field(self, "phase_clock", "choice", ("env", "external"))
+        require_field(self, "phase_period_steps", "int", ge=1)
+        require_field(self, "rng_chunk", "int", ge=64)
+        require_field(self, "step_engine", "choice", STEP_ENGINES)
+        for name, section in _SECTIONS.items():
+            if not isinstance(getattr(self, name), section):
+                raise config_error("EnvConfig", name, getattr(self, name), f"a {section.__name__}")
+        # Every random draw must fit in one buffered chunk: the compiled engine draws a whole slot
+        # at once, the numpy reference one array at a time (the largest: N x U channel numbers,
+        # 2N user noises or the 2U UAV start coordinates).
+        N, U = self.n_users, self.n_uavs
+        chunk = max(slot_draws(self)) if self.step_engine == "compiled" else max(N * U, 2 * N, 2 * U)
+        what = ("one slot of the compiled engine draws" if self.step_engine == "compiled"
+                else "the numpy engine's largest single draw holds")
+        require_field(self, "rng_chunk", "int", ge=chunk,
+                      note=f"the random numbers {what} per stream at {N} users and {U} UAVs; "
+                           f"raise rng_chunk to at least {chunk}")
         if self.energy.slot_s != self.mobility.slot_s:
             raise ValueError(
                 f"EnvConfig: energy.slot_s ({self.energy.slot_s}) and mobility.slot_s "
@@ -1610,7 +1613,11 @@ def compile_step_kernels() -> None:
 
 
 def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UAVVectorEnv:
-    """B environments in one process; member i behaves as make_env(...) reset with seed + i."""
+    """B environments in one process; member i behaves as make_env(...) reset with seed + i.
+
+    seed: a non-negative integer, or None for fresh entropy."""
+    num_envs = require("make_vector_env", "num_envs", num_envs, "int", ge=1)
+    seed = require("make_vector_env", "seed", seed, "int", ge=0, optional=True)
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 

@@ -2,6 +2,7 @@
 
 import argparse
 import sys
+from pathlib import Path
 
 
 def main(argv=None) -> int:
@@ -35,7 +36,10 @@ def main(argv=None) -> int:
             check_scale(args.scale)
         except ValueError as err:
             parser.error(str(err))
-        readme = make_figures(args.scale, args.figures_dir, args.notebook, backend=args.backend,
+        # A relative --figures-dir is relative to where the command runs (make_figures alone would
+        # read it under the repository root, as the notebooks do).
+        figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
+        readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
                               workers=args.workers, ray_address=args.ray_address)
         print(f"[figures] provenance written to {readme}")
         return 0

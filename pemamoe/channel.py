@@ -10,8 +10,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pemamoe.core import require_field
 
-# %% notebooks/01_channel.py, cell 6 (line 79)
+
+# %% notebooks/01_channel.py, cell 6 (line 81)
 @dataclass(frozen=True)
 class ChannelConfig:
     """Every constant of the air-to-ground channel (units in the field names)."""
@@ -45,49 +47,37 @@ class ChannelConfig:
     nlos_distance_exponent: float = 0.25
 
     def __post_init__(self):
-        gt0 = lambda v: v > 0  # noqa: E731
-        ge0 = lambda v: v >= 0  # noqa: E731
-        rules = {
-            "carrier_ghz": (gt0, "> 0"),
-            "bandwidth_hz": (gt0, "> 0"),
-            "adjacent_leakage": (lambda v: 0 <= v < 1, "in [0, 1)"),
-            "max_tx_power_w": (gt0, "> 0"),
-            "noise_dbm_per_hz": (math.isfinite, "finite"),
-            "tx_gain_dbi": (math.isfinite, "finite"),
-            "rx_gain_dbi": (math.isfinite, "finite"),
-            "implementation_loss": (lambda v: 0 < v <= 1, "in (0, 1]"),
-            "rician_k_db": (
-                ge0,
-                ">= 0 dB (a LoS ray weaker than its scatter is what the NLoS branch models)",
-            ),
-            "nakagami_m": (lambda v: v >= 0.5, ">= 0.5"),
-            "shadowing_los_db": (ge0, ">= 0"),
-            "shadowing_nlos_db": (ge0, ">= 0"),
-            "los_breakpoint_m": (gt0, "> 0"),
-            "los_decay_m": (gt0, "> 0"),
-            "min_gain": (gt0, "> 0"),
-            "min_distance_m": (gt0, "> 0"),
-            "los_height_offset_m": (math.isfinite, "finite"),
-            "los_height_scale_m": (gt0, "> 0"),
-            "los_height_exponent": (gt0, "> 0"),
-            "pl_intercept_db": (math.isfinite, "finite"),
-            "pl_distance_slope_db": (gt0, "> 0"),
-            "pl_frequency_slope_db": (math.isfinite, "finite"),
-            "nlos_offset_db": (ge0, ">= 0"),
-            "nlos_distance_coeff_db": (ge0, ">= 0"),
-            "nlos_distance_exponent": (ge0, ">= 0"),
-        }
-        for name, (ok, allowed) in rules.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                raise ValueError(f"ChannelConfig.{name} must be a real number {allowed}, got {value!r}")
-            # `not ok(...)` also rejects NaN, for which every comparison is False; inf is refused
-            # everywhere (no constant of this model is meaningfully infinite).
-            if not math.isfinite(value) or not ok(value):
-                raise ValueError(f"ChannelConfig.{name} must be {allowed}, got {value!r}")
-        F = self.reuse_factor
-        if isinstance(F, bool) or not isinstance(F, (int, np.integer)) or F < 1:
-            raise ValueError(f"ChannelConfig.reuse_factor must be an integer >= 1, got {F!r}")
+        # Every field is a finite real number (no constant of this model is meaningfully
+        # infinite), except reuse_factor, an integer; see pemamoe.core.require.
+        for name, bounds in {
+            "carrier_ghz": dict(gt=0),
+            "bandwidth_hz": dict(gt=0),
+            "adjacent_leakage": dict(ge=0, lt=1),
+            "max_tx_power_w": dict(gt=0),
+            "noise_dbm_per_hz": {},
+            "tx_gain_dbi": {},
+            "rx_gain_dbi": {},
+            "implementation_loss": dict(gt=0, le=1),
+            "rician_k_db": dict(ge=0, note="in dB: a LoS ray weaker than its scatter is what the NLoS branch models"),
+            "nakagami_m": dict(ge=0.5),
+            "shadowing_los_db": dict(ge=0),
+            "shadowing_nlos_db": dict(ge=0),
+            "los_breakpoint_m": dict(gt=0),
+            "los_decay_m": dict(gt=0),
+            "min_gain": dict(gt=0),
+            "min_distance_m": dict(gt=0),
+            "los_height_offset_m": {},
+            "los_height_scale_m": dict(gt=0),
+            "los_height_exponent": dict(gt=0),
+            "pl_intercept_db": {},
+            "pl_distance_slope_db": dict(gt=0),
+            "pl_frequency_slope_db": {},
+            "nlos_offset_db": dict(ge=0),
+            "nlos_distance_coeff_db": dict(ge=0),
+            "nlos_distance_exponent": dict(ge=0),
+        }.items():
+            require_field(self, name, "real", **bounds)
+        require_field(self, "reuse_factor", "int", ge=1)
 
     @property
     def noise_w_per_hz(self) -> float:
@@ -114,7 +104,7 @@ class ChannelConfig:
         return 10.0 * math.log10(self.max_tx_power_w) + 30.0
 
 
-# %% notebooks/01_channel.py, cell 8 (line 195)
+# %% notebooks/01_channel.py, cell 8 (line 185)
 def link_geometry(uav_xyz, user_xyz, cfg: ChannelConfig):
     """Per-link geometry.
 
@@ -136,7 +126,7 @@ def link_geometry(uav_xyz, user_xyz, cfg: ChannelConfig):
     return horizontal, rel_height, distance
 
 
-# %% notebooks/01_channel.py, cell 10 (line 236)
+# %% notebooks/01_channel.py, cell 10 (line 226)
 def height_correction(rel_height_m, cfg: ChannelConfig):
     """C0(h) = (max(h - 13, 0) / 10) ** 1.5 with the config's coefficients; same shape as h."""
     excess = np.maximum(np.asarray(rel_height_m, dtype=float) - cfg.los_height_offset_m, 0.0)
@@ -152,7 +142,7 @@ def los_probability(distance_m, rel_height_m, cfg: ChannelConfig):
     return np.clip(np.where(r <= cfg.los_breakpoint_m, 1.0, p), 0.0, 1.0)
 
 
-# %% notebooks/01_channel.py, cell 12 (line 261)
+# %% notebooks/01_channel.py, cell 12 (line 251)
 def path_loss_los_db(distance_m, cfg: ChannelConfig):
     """LoS path loss [dB] at 3-D distance r [m] (floored at cfg.min_distance_m)."""
     r = np.maximum(np.asarray(distance_m, dtype=float), cfg.min_distance_m)
@@ -169,7 +159,7 @@ def path_loss_nlos_db(distance_m, cfg: ChannelConfig):
     return path_loss_los_db(r, cfg) + cfg.nlos_offset_db + cfg.nlos_distance_coeff_db * r ** cfg.nlos_distance_exponent
 
 
-# %% notebooks/01_channel.py, cell 14 (line 294)
+# %% notebooks/01_channel.py, cell 14 (line 284)
 def large_scale_gain(distance_m, rel_height_m, cfg: ChannelConfig):
     """Expected linear gain (antenna gains included, no fading or shadowing), shape of r and h."""
     p_los = los_probability(distance_m, rel_height_m, cfg)
@@ -182,7 +172,7 @@ def _expected_gain(p_los, pl_los_db, pl_nlos_db, cfg: ChannelConfig):
     return cfg.antenna_gain * (p_los * g_los + (1.0 - p_los) * g_nlos)
 
 
-# %% notebooks/01_channel.py, cell 16 (line 324)
+# %% notebooks/01_channel.py, cell 16 (line 314)
 def rician_power(los_shape, k_db, rng: np.random.Generator):
     """Rician fading power |h|^2 with unit mean; k_db is a scalar or broadcasts to los_shape."""
     k = 10.0 ** (np.asarray(k_db, dtype=float) / 10.0)
@@ -208,7 +198,7 @@ def shadowing_db(los_mask, cfg: ChannelConfig, rng: np.random.Generator):
     return sigma * rng.standard_normal(los_mask.shape)
 
 
-# %% notebooks/01_channel.py, cell 18 (line 364)
+# %% notebooks/01_channel.py, cell 18 (line 354)
 class ChannelSample(NamedTuple):
     """One draw of every link's channel; every field is (..., N, U)."""
 
@@ -253,7 +243,7 @@ def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generat
     )
 
 
-# %% notebooks/01_channel.py, cell 20 (line 431)
+# %% notebooks/01_channel.py, cell 20 (line 421)
 def reuse_colours(n_uavs: int, reuse_factor: int):
     """Colour c(u) = u mod F of each UAV; shape (U,), dtype int."""
     if int(n_uavs) != n_uavs or n_uavs < 0:
@@ -286,7 +276,7 @@ def interference_w(gain, uav_power_w, weights):
     return received @ np.asarray(weights, dtype=float).T
 
 
-# %% notebooks/01_channel.py, cell 22 (line 475)
+# %% notebooks/01_channel.py, cell 22 (line 465)
 def noise_power_w(bandwidth_hz, cfg: ChannelConfig):
     """Thermal noise N0 * B [W]; -174 dBm/Hz over 1 MHz is -114 dBm."""
     return cfg.noise_w_per_hz * np.asarray(bandwidth_hz, dtype=float)
@@ -316,7 +306,7 @@ def achievable_rate_bps(bandwidth_hz, sinr, cfg: ChannelConfig):
     return np.where(bandwidth > 0, rate, 0.0)
 
 
-# %% notebooks/01_channel.py, cell 24 (line 526)
+# %% notebooks/01_channel.py, cell 24 (line 516)
 def required_sinr(target_rate_bps, bandwidth_hz, cfg: ChannelConfig):
     """gamma* = 2^(R / (alpha B)) - 1; 0 where R == 0, inf where R > 0 and B == 0."""
     rate, bandwidth = _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz)
@@ -341,7 +331,7 @@ def required_power_w(target_rate_bps, bandwidth_hz, gain, interference_w, cfg: C
     return np.where(rate == 0, 0.0, np.where(bandwidth == 0, np.inf, power))
 
 
-# %% notebooks/01_channel.py, cell 25 (line 552)
+# %% notebooks/01_channel.py, cell 25 (line 542)
 def _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz):
     rate = np.asarray(target_rate_bps, dtype=float)
     bandwidth = np.asarray(bandwidth_hz, dtype=float)

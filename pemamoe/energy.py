@@ -10,19 +10,10 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-
-# %% notebooks/02_energy.py, cell 6 (line 72)
-def _require(cls_name, name, value, ok, allowed):
-    """Raise the project's standard validation error unless ``ok``."""
-    if not ok:
-        raise ValueError(f"{cls_name}.{name} must be {allowed}, got {value!r}")
+from pemamoe.core import require_field
 
 
-def _is_real(value):
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-# %% notebooks/02_energy.py, cell 7 (line 84)
+# %% notebooks/02_energy.py, cell 6 (line 74)
 @dataclass(frozen=True)
 class EnergyConfig:
     """Rotary-wing propulsion parameters (Zeng, Xu, Zhang 2019) and the slot/battery settings.
@@ -45,12 +36,7 @@ class EnergyConfig:
 
     def __post_init__(self):
         for f in fields(self):
-            value = getattr(self, f.name)
-            _require(
-                "EnergyConfig", f.name, value,
-                _is_real(value) and np.isfinite(value) and value > 0,
-                "a finite number > 0",
-            )
+            require_field(self, f.name, "real", gt=0)
 
     @property
     def hover_power_w(self) -> float:
@@ -63,7 +49,7 @@ class EnergyConfig:
         return 0.5 * self.fuselage_drag_ratio * self.air_density * self.rotor_solidity * self.rotor_disc_area_m2
 
 
-# %% notebooks/02_energy.py, cell 9 (line 151)
+# %% notebooks/02_energy.py, cell 8 (line 136)
 def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     """Propulsion power P(V_h, V_z) [W] of the paper's 3-D rotary-wing model.
 
@@ -84,7 +70,7 @@ def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     return power[()] if power.ndim == 0 else power
 
 
-# %% notebooks/02_energy.py, cell 11 (line 185)
+# %% notebooks/02_energy.py, cell 10 (line 170)
 def min_power_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> float:
     """Horizontal speed [m/s] in [0, v_max] that minimises P(V, 0) (maximum endurance)."""
     res = minimize_scalar(
@@ -103,7 +89,7 @@ def max_range_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> 
     return float(res.x)
 
 
-# %% notebooks/02_energy.py, cell 13 (line 229)
+# %% notebooks/02_energy.py, cell 12 (line 214)
 class SlotEnergy(NamedTuple):
     """Per-UAV result of ``slot_energy``; every field has the broadcast input shape (..., U)."""
 
@@ -150,7 +136,7 @@ def slot_energy(horizontal_m, vertical_m=0.0, cfg: EnergyConfig = EnergyConfig()
     )
 
 
-# %% notebooks/02_energy.py, cell 15 (line 284)
+# %% notebooks/02_energy.py, cell 14 (line 269)
 def battery_update(battery_j, energy_j, cfg: EnergyConfig = EnergyConfig()):
     """Subtract a slot's energy: returns ``(new_battery_j, depleted)``, broadcast shape.
 

@@ -24,12 +24,13 @@ from pemamoe.channel import (
     sample_channel,
     sinr,
 )
+from pemamoe.core import config_error, require, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
 
 
-# %% notebooks/04_environment.py, cell 6 (line 92)
+# %% notebooks/04_environment.py, cell 6 (line 93)
 STEP_ENGINES = ("compiled", "numpy")
 
 
@@ -57,30 +58,32 @@ class EnvConfig:
     phases: PhaseConfig = field(default_factory=PhaseConfig)
 
     def __post_init__(self):
-        def need(name, ok, allowed):
-            if not ok:
-                raise ValueError(f"EnvConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        need("n_uavs", isinstance(self.n_uavs, int) and self.n_uavs >= 1, "an integer >= 1")
-        need("uav_altitude_m", self.uav_altitude_m > 0, "> 0")
-        need("max_step_m", self.max_step_m > 0, "> 0")
-        need("max_users_per_uav", isinstance(self.max_users_per_uav, int) and self.max_users_per_uav >= 1,
-             "an integer >= 1")
-        need("episode_steps", isinstance(self.episode_steps, int) and self.episode_steps >= 1, "an integer >= 1")
+        require_field(self, "n_uavs", "int", ge=1)
+        require_field(self, "uav_altitude_m", "real", gt=0)
+        require_field(self, "max_step_m", "real", gt=0)
+        require_field(self, "max_users_per_uav", "int", ge=1)
+        require_field(self, "episode_steps", "int", ge=1)
         for name in ("energy_weight_per_kj", "collision_penalty", "min_separation_m"):
-            need(name, getattr(self, name) >= 0, ">= 0")
-        need("overlap_sigma_m", self.overlap_sigma_m > 0, "> 0")
-        need("overlap_cutoff_radii", self.overlap_cutoff_radii > 0, "> 0")
-        need("phase_clock", self.phase_clock in ("env", "external"), "'env' or 'external'")
-        need("phase_period_steps", isinstance(self.phase_period_steps, int) and self.phase_period_steps >= 1,
-             "an integer >= 1")
-        need("rng_chunk", isinstance(self.rng_chunk, int) and self.rng_chunk >= 64, "an integer >= 64")
-        need("step_engine", self.step_engine in STEP_ENGINES, f"one of {', '.join(map(repr, STEP_ENGINES))}")
-        if self.step_engine == "compiled":
-            per_slot = max(slot_draws(self))
-            need("rng_chunk", self.rng_chunk >= per_slot,
-                 f">= {per_slot}, the random numbers one slot of the compiled engine draws per stream "
-                 f"at {self.n_users} users and {self.n_uavs} UAVs (raise rng_chunk, or use step_engine='numpy')")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "overlap_sigma_m", "real", gt=0)
+        require_field(self, "overlap_cutoff_radii", "real", gt=0)
+        require_field(self, "phase_clock", "choice", ("env", "external"))
+        require_field(self, "phase_period_steps", "int", ge=1)
+        require_field(self, "rng_chunk", "int", ge=64)
+        require_field(self, "step_engine", "choice", STEP_ENGINES)
+        for name, section in _SECTIONS.items():
+            if not isinstance(getattr(self, name), section):
+                raise config_error("EnvConfig", name, getattr(self, name), f"a {section.__name__}")
+        # Every random draw must fit in one buffered chunk: the compiled engine draws a whole slot
+        # at once, the numpy reference one array at a time (the largest: N x U channel numbers,
+        # 2N user noises or the 2U UAV start coordinates).
+        N, U = self.n_users, self.n_uavs
+        chunk = max(slot_draws(self)) if self.step_engine == "compiled" else max(N * U, 2 * N, 2 * U)
+        what = ("one slot of the compiled engine draws" if self.step_engine == "compiled"
+                else "the numpy engine's largest single draw holds")
+        require_field(self, "rng_chunk", "int", ge=chunk,
+                      note=f"the random numbers {what} per stream at {N} users and {U} UAVs; "
+                           f"raise rng_chunk to at least {chunk}")
         if self.energy.slot_s != self.mobility.slot_s:
             raise ValueError(
                 f"EnvConfig: energy.slot_s ({self.energy.slot_s}) and mobility.slot_s "
@@ -155,7 +158,7 @@ def _field_names(config) -> set:
     return {f.name for f in dataclasses.fields(config)}
 
 
-# %% notebooks/04_environment.py, cell 8 (line 231)
+# %% notebooks/04_environment.py, cell 8 (line 234)
 class BatchRandom:
     """Duck-typed numpy Generator whose (B, ...) draws take row b from environment b's stream."""
 
@@ -297,7 +300,7 @@ class BatchRandom:
         return np.asarray(scale) * special.gammaincinv(shape, u)
 
 
-# %% notebooks/04_environment.py, cell 10 (line 384)
+# %% notebooks/04_environment.py, cell 10 (line 387)
 def colour_weights(n_uavs: int, cfg: EnvConfig):
     """The (U, U) interference weights of cfg's reuse factor and adjacent leakage."""
     return interference_weights(reuse_colours(n_uavs, cfg.channel.reuse_factor), cfg.channel.adjacent_leakage)
@@ -370,7 +373,7 @@ def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
     return rate.sum(axis=-1), link_sinr
 
 
-# %% notebooks/04_environment.py, cell 12 (line 474)
+# %% notebooks/04_environment.py, cell 12 (line 477)
 def pair_distances(uav_xy):
     """(B, U, U) horizontal distances and the (U, U) mask of pairs u < u'."""
     diff = uav_xy[:, :, None, :] - uav_xy[:, None, :, :]
@@ -395,7 +398,7 @@ def reward_terms(served, reward_weight, energy_j, uav_xy, overlap_weight, radius
     return terms
 
 
-# %% notebooks/04_environment.py, cell 14 (line 518)
+# %% notebooks/04_environment.py, cell 14 (line 521)
 def observation_layout(cfg: EnvConfig) -> list:
     """[(name, start, stop)] blocks of one agent's observation vector."""
     U, N = cfg.n_uavs, cfg.n_users
@@ -445,7 +448,7 @@ def build_observations(uav_xy, battery_frac, user_xy, rate_frac, serving, demand
     return obs, state
 
 
-# %% notebooks/04_environment.py, cell 16 (line 580)
+# %% notebooks/04_environment.py, cell 16 (line 583)
 class UAVBatchCore:
     """State and dynamics of B environments, advanced together (numpy, no per-user loops)."""
 
@@ -717,7 +720,7 @@ def _info_dict(float_info, int_info, **more) -> dict:
     return {key: values[key] for key in _INFO_ORDER if key in values}
 
 
-# %% notebooks/04_environment.py, cell 26 (line 1438)
+# %% notebooks/04_environment.py, cell 26 (line 1441)
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
@@ -768,7 +771,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04_environment.py, cell 28 (line 1498)
+# %% notebooks/04_environment.py, cell 28 (line 1501)
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
@@ -882,11 +885,15 @@ def compile_step_kernels() -> None:
 
 
 def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UAVVectorEnv:
-    """B environments in one process; member i behaves as make_env(...) reset with seed + i."""
+    """B environments in one process; member i behaves as make_env(...) reset with seed + i.
+
+    seed: a non-negative integer, or None for fresh entropy."""
+    num_envs = require("make_vector_env", "num_envs", num_envs, "int", ge=1)
+    seed = require("make_vector_env", "seed", seed, "int", ge=0, optional=True)
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 
-# %% notebooks/04_environment.py, cell 30 (line 1623)
+# %% notebooks/04_environment.py, cell 30 (line 1630)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -923,7 +930,7 @@ def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarr
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04_environment.py, cell 32 (line 1671)
+# %% notebooks/04_environment.py, cell 32 (line 1678)
 def random_policy(core: UAVBatchCore, rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

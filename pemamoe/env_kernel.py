@@ -3,7 +3,7 @@
 
 __all__ = ['FLOAT_INFO', 'INT_INFO', 'UAV_INFO', 'KernelParams', 'kernel_params', 'step_kernel', 'score_kernel']
 
-# %% notebooks/04_environment.py, cell 18 (line 908)
+# %% notebooks/04_environment.py, cell 18 (line 911)
 import math
 from typing import NamedTuple
 
@@ -152,7 +152,7 @@ def kernel_params(cfg) -> KernelParams:
     )
 
 
-# %% notebooks/04_environment.py, cell 20 (line 1062)
+# %% notebooks/04_environment.py, cell 20 (line 1065)
 @numba.njit(cache=True)
 def _reflect(x, area):
     """Mirror x into [0, area]; returns (position, flipped). See mobility.reflect_into_area."""
@@ -238,7 +238,7 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
             user_vel[b, n, d] = -v_new if flipped else v_new
 
 
-# %% notebooks/04_environment.py, cell 22 (line 1154)
+# %% notebooks/04_environment.py, cell 22 (line 1157)
 @numba.njit(cache=True)
 def _required_power(p, rate, band, gain, interference):
     """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
@@ -411,7 +411,7 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
     int_info[2, i] = admitted_n
 
 
-# %% notebooks/04_environment.py, cell 24 (line 1332)
+# %% notebooks/04_environment.py, cell 24 (line 1335)
 @numba.njit(cache=True)
 def _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state):
     """Write environment b's observations and global state into row i (see build_observations)."""

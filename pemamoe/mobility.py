@@ -3,12 +3,14 @@
 
 __all__ = ['MobilityConfig', 'MobilityState', 'hotspot_membership', 'reflect_into_area', 'init_mobility', 'step_mobility']
 
-# %% notebooks/03_mobility_phases.py, cell 9 (line 303)
+# %% notebooks/03_mobility_phases.py, cell 9 (line 301)
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+
+from pemamoe.core import require_field
 
 
 @dataclass(frozen=True)
@@ -28,30 +30,17 @@ class MobilityConfig:
     centre_margin: float = 0.15  # centres start at least this fraction of the side from a border
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"MobilityConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        if not self.area_m > 0:
-            fail("area_m", "> 0")
-        if not isinstance(self.n_hotspots, int) or self.n_hotspots < 1:
-            fail("n_hotspots", "an integer >= 1")
-        if not isinstance(self.n_users, int) or self.n_users < self.n_hotspots:
-            fail("n_users", f"an integer >= n_hotspots ({self.n_hotspots}): every hotspot needs a user")
-        if not self.slot_s > 0:
-            fail("slot_s", "> 0")
-        if self.user_height_m < 0:
-            fail("user_height_m", ">= 0")
-        if not 0 <= self.gm_memory < 1:
-            fail("gm_memory", "in [0, 1)")
-        if not 0 <= self.follow_gain <= 1:
-            fail("follow_gain", "in [0, 1]")
+        require_field(self, "area_m", "real", gt=0)
+        require_field(self, "n_hotspots", "int", ge=1)
+        require_field(self, "n_users", "int", ge=self.n_hotspots, note="every hotspot needs a user")
+        require_field(self, "slot_s", "real", gt=0)
+        require_field(self, "user_height_m", "real", ge=0)
+        require_field(self, "gm_memory", "real", ge=0, lt=1)
+        require_field(self, "follow_gain", "real", ge=0, le=1)
         for name in ("gm_noise_mps", "follow_noise_mps", "centre_speed_factor", "spawn_spread_m"):
-            if getattr(self, name) < 0:
-                fail(name, ">= 0")
-        if not isinstance(self.retarget_every, int) or self.retarget_every < 1:
-            fail("retarget_every", "an integer >= 1")
-        if not 0 <= self.centre_margin < 0.5:
-            fail("centre_margin", "in [0, 0.5)")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "retarget_every", "int", ge=1)
+        require_field(self, "centre_margin", "real", ge=0, lt=0.5)
 
 
 class MobilityState(NamedTuple):

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pemamoe.core import config_error, require, require_field
+
 CLASS_NAMES = ("L", "M", "H")
 DEMAND_MODES = ("cycle", "mix")
 
@@ -34,38 +36,23 @@ class PhaseConfig:
     held_out_demand_probs: tuple = (0.2, 0.3, 0.5)
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"PhaseConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        n = len(self.user_speed_mps)
-        if n < 1:
-            fail("user_speed_mps", "a non-empty tuple (one value per phase)")
-        for name in ("user_speed_mps", "direction_jitter", "service_radius_m", "overlap_weight"):
-            values = getattr(self, name)
-            if len(values) != n:
-                fail(name, f"a tuple of {n} values (one per phase, like user_speed_mps)")
-        for name in ("user_speed_mps", "direction_jitter", "overlap_weight"):
-            if any(not math.isfinite(v) or v < 0 for v in getattr(self, name)):
-                fail(name, "finite and >= 0 for every phase")
-        if any(not math.isfinite(v) or v <= 0 for v in self.service_radius_m):
-            fail("service_radius_m", "> 0 for every phase")
-        if len(self.rate_threshold_bps) != 3 or any(v <= 0 for v in self.rate_threshold_bps):
-            fail("rate_threshold_bps", "three positive rates (L, M, H)")
-        if len(self.class_reward) != 3 or any(v < 0 for v in self.class_reward):
-            fail("class_reward", "three non-negative rewards (L, M, H)")
-        if self.demand_mode not in DEMAND_MODES:
-            fail("demand_mode", f"one of {', '.join(DEMAND_MODES)}")
+        # Per-phase tuples are stored as tuples of floats (hashable, JSON-ready); see core.require.
+        n = len(require_field(self, "user_speed_mps", "reals", ge=0))
+        per_phase = "one per phase, like user_speed_mps"
+        for name in ("direction_jitter", "overlap_weight"):
+            require_field(self, name, "reals", ge=0, length=n, note=per_phase)
+        require_field(self, "service_radius_m", "reals", gt=0, length=n, note=per_phase)
+        require_field(self, "rate_threshold_bps", "reals", gt=0, length=3, note="classes L, M, H")
+        require_field(self, "class_reward", "reals", ge=0, length=3, note="classes L, M, H")
+        require_field(self, "demand_mode", "choice", DEMAND_MODES)
         if self.demand_mode == "cycle" and n > 3:
-            fail("demand_mode", "'mix' when there are more than 3 phases (cycle gives phase p class p)")
-        if len(self.mix_probs) != n or any(not _is_distribution(p) for p in self.mix_probs):
-            fail("mix_probs", f"{n} probability triples (L, M, H), each summing to 1")
-        if not _is_distribution(self.held_out_demand_probs):
-            fail("held_out_demand_probs", "a probability triple (L, M, H) summing to 1")
+            raise config_error("PhaseConfig", "demand_mode", self.demand_mode,
+                               "'mix' when there are more than 3 phases (cycle gives phase p class p)")
+        _require_distributions(self, "mix_probs", n)
+        _require_distributions(self, "held_out_demand_probs", None)
         for name in ("held_out_speed_mps", "held_out_jitter", "held_out_overlap_weight"):
-            if getattr(self, name) < 0:
-                fail(name, ">= 0")
-        if self.held_out_radius_m <= 0:
-            fail("held_out_radius_m", "> 0")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "held_out_radius_m", "real", gt=0)
 
     @property
     def n_phases(self) -> int:
@@ -88,8 +75,22 @@ class PhaseConfig:
         return np.array([*self.mix_probs, self.held_out_demand_probs], dtype=float)
 
 
-def _is_distribution(p) -> bool:
-    return len(p) == 3 and all(v >= 0 for v in p) and abs(sum(p) - 1.0) < 1e-9
+def _require_distributions(cfg, name: str, count: int | None) -> None:
+    """Check cfg.<name>: a probability triple (L, M, H) summing to 1 (count None), or a tuple of
+    `count` such triples; store it as (tuples of) floats."""
+    value = getattr(cfg, name)
+    allowed = ("a probability triple (L, M, H) summing to 1" if count is None
+               else f"{count} probability triples (L, M, H), one per phase, each summing to 1")
+    rows = [value] if count is None else value
+    try:
+        if isinstance(rows, (str, bytes)) or len(rows) != (1 if count is None else count):
+            raise ValueError
+        rows = tuple(require("PhaseConfig", name, p, "reals", ge=0, le=1, length=3) for p in rows)
+    except (TypeError, ValueError):
+        raise config_error("PhaseConfig", name, value, allowed) from None
+    if any(abs(sum(p) - 1.0) >= 1e-9 for p in rows):
+        raise config_error("PhaseConfig", name, value, allowed)
+    object.__setattr__(cfg, name, rows[0] if count is None else rows)
 
 
 def phase_values(cfg: PhaseConfig, phase):
@@ -118,7 +119,7 @@ def sample_demand_classes(cfg: PhaseConfig, phase, n_users: int, rng) -> np.ndar
     return drawn
 
 
-# %% notebooks/03_mobility_phases.py, cell 7 (line 188)
+# %% notebooks/03_mobility_phases.py, cell 7 (line 189)
 @dataclass(frozen=True)
 class PhaseSchedule:
     """Which phase is active at each tick (iteration or env step); see the notebook for options."""
@@ -134,23 +135,20 @@ class PhaseSchedule:
     _segments: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
-        def fail(name, allowed):
-            raise ValueError(f"PhaseSchedule.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        if not isinstance(self.period, (int, np.integer)) or self.period < 1:
-            fail("period", "an integer >= 1")
-        if not isinstance(self.n_phases, (int, np.integer)) or self.n_phases < 1:
-            fail("n_phases", "an integer >= 1")
-        if self.order not in ("cyclic", "random"):
-            fail("order", "'cyclic' or 'random'")
+        require_field(self, "period", "int", ge=1)
+        require_field(self, "n_phases", "int", ge=1)
+        require_field(self, "order", "choice", ("cyclic", "random"))
         if self.order == "random" and self.n_phases < 2:
-            fail("n_phases", ">= 2 for a random order that never repeats a phase")
+            raise config_error("PhaseSchedule", "n_phases", self.n_phases,
+                               "an integer >= 2 for a random order that never repeats a phase")
         if (self.min_period is None) != (self.max_period is None):
-            fail("min_period", "set together with max_period (or both None)")
-        if self.min_period is not None and not (1 <= self.min_period <= self.max_period):
-            fail("min_period", f"an integer in [1, max_period={self.max_period}]")
-        if not isinstance(self.held_out_every, (int, np.integer)) or self.held_out_every < 0:
-            fail("held_out_every", "an integer >= 0")
+            raise config_error("PhaseSchedule", "min_period", self.min_period,
+                               f"set together with max_period (here {self.max_period!r}), or both None")
+        if self.min_period is not None:
+            require_field(self, "min_period", "int", ge=1)
+            require_field(self, "max_period", "int", ge=self.min_period, note="max_period >= min_period")
+        require_field(self, "held_out_every", "int", ge=0)
+        require_field(self, "seed", "int", ge=0)
         self._segments.update(starts=[0], phases=[], regular=0, previous=-1,
                               rng=np.random.default_rng(self.seed))
 

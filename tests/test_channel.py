@@ -307,16 +307,16 @@ def test_reuse_factor_two_colours():
 @pytest.mark.parametrize(
     "field, value, pattern",
     [
-        ("bandwidth_hz", -1.0, r"ChannelConfig\.bandwidth_hz must be > 0, got -1\.0"),
-        ("rician_k_db", -3.0, r"ChannelConfig\.rician_k_db must be >= 0 dB.*got -3\.0"),
-        ("nakagami_m", 0.3, r"ChannelConfig\.nakagami_m must be >= 0\.5, got 0\.3"),
-        ("adjacent_leakage", 1.0, r"ChannelConfig\.adjacent_leakage must be in \[0, 1\), got 1\.0"),
-        ("implementation_loss", 0.0, r"ChannelConfig\.implementation_loss must be in \(0, 1\]"),
+        ("bandwidth_hz", -1.0, r"ChannelConfig\.bandwidth_hz must be a finite float > 0, got -1\.0"),
+        ("rician_k_db", -3.0, r"ChannelConfig\.rician_k_db must be a finite float >= 0 \(in dB.*got -3\.0"),
+        ("nakagami_m", 0.3, r"ChannelConfig\.nakagami_m must be a finite float >= 0\.5, got 0\.3"),
+        ("adjacent_leakage", 1.0, r"ChannelConfig\.adjacent_leakage must be a finite float in \[0, 1\), got 1\.0"),
+        ("implementation_loss", 0.0, r"ChannelConfig\.implementation_loss must be a finite float in \(0, 1\]"),
         ("max_tx_power_w", float("nan"), r"ChannelConfig\.max_tx_power_w"),
         ("reuse_factor", 0, r"ChannelConfig\.reuse_factor must be an integer >= 1, got 0"),
         ("reuse_factor", 1.5, r"ChannelConfig\.reuse_factor"),
-        ("shadowing_nlos_db", -1.0, r"ChannelConfig\.shadowing_nlos_db must be >= 0"),
-        ("min_gain", 0.0, r"ChannelConfig\.min_gain must be > 0"),
+        ("shadowing_nlos_db", -1.0, r"ChannelConfig\.shadowing_nlos_db must be a finite float >= 0"),
+        ("min_gain", 0.0, r"ChannelConfig\.min_gain must be a finite float > 0"),
     ],
 )
 def test_config_rejects_bad_values(field, value, pattern):

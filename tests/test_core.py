@@ -1,5 +1,10 @@
 """Shared utilities: scales, atomic writes, figure and table output, provenance README."""
 
+import os
+import re
+import stat
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -31,12 +36,12 @@ def test_atomic_write_leaves_old_file_when_writer_fails(tmp_path):
 def test_save_figure_and_table(tmp_path):
     fig, ax = plt.subplots()
     ax.plot([0, 1], [1, 0])
-    paths = core.save_figure(fig, "demo", tmp_path)
+    assert core.save_figure(fig, "demo", tmp_path) is None  # a cell ending with it prints nothing
     plt.close(fig)
-    assert [p.name for p in paths] == ["demo.png", "demo.pdf"]
-    assert paths[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert paths[1].read_bytes()[:4] == b"%PDF"
-    md, csv = core.write_table(pd.DataFrame({"method": ["mlp"], "params": [6820]}), "t", tmp_path)
+    assert (tmp_path / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "demo.pdf").read_bytes()[:4] == b"%PDF"
+    assert core.write_table(pd.DataFrame({"method": ["mlp"], "params": [6820]}), "t", tmp_path) is None
+    md, csv = tmp_path / "t.md", tmp_path / "t.csv"
     assert md.read_text().splitlines() == ["| method | params |", "|---|---|", "| mlp | 6820 |"]
     assert pd.read_csv(csv).to_dict("list") == {"method": ["mlp"], "params": [6820]}
 
@@ -55,3 +60,97 @@ def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
 def test_run_notebook_rejects_unknown_scale(tmp_path):
     with pytest.raises(ValueError, match="got 'tiny'"):
         core.run_notebook(core.figure_notebooks()[0], {"scale": "tiny"}, output_dir=tmp_path)
+
+
+# ---------------------------------------------------------------- files follow the umask
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027, 0o077])
+def test_atomic_writes_get_the_mode_the_umask_gives_new_files(tmp_path, umask):
+    old = os.umask(umask)
+    try:
+        assert core.current_umask() == umask
+        core.atomic_write_json(tmp_path / "r.json", {"a": 1})
+        fig, ax = plt.subplots()
+        core.save_figure(fig, "f", tmp_path)
+        plt.close(fig)
+        core.write_table(pd.DataFrame({"a": [1]}), "t", tmp_path)
+        with open(tmp_path / "plain.txt", "w") as fh:  # what an ordinary open() gives
+            fh.write("x")
+    finally:
+        os.umask(old)
+    expected = stat.S_IMODE((tmp_path / "plain.txt").stat().st_mode)
+    assert expected == 0o666 & ~umask
+    for name in ("r.json", "f.png", "f.pdf", "t.md", "t.csv"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == expected, name
+
+
+# ---------------------------------------------------------------- outputs under the repository root
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_repo_root_is_found_from_the_package_the_notebooks_folder_and_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.delenv("PEMAMOE_ROOT", raising=False)
+    assert core.find_repo_root(Path(core.__file__).parent) == ROOT  # editable install or checkout
+    assert core.find_repo_root(ROOT / "notebooks") == ROOT  # a JupyterLab kernel's cwd
+    monkeypatch.chdir(ROOT / "notebooks")
+    assert core.find_repo_root(tmp_path, Path.cwd()) == ROOT  # a package outside any checkout
+    monkeypatch.chdir(tmp_path)
+    assert core.find_repo_root(tmp_path) == tmp_path  # no checkout anywhere: the working directory
+    monkeypatch.setenv("PEMAMOE_ROOT", str(ROOT))
+    assert core.find_repo_root(tmp_path) == ROOT
+
+
+def test_relative_figure_dirs_are_under_the_repo_root_whatever_the_cwd(tmp_path, monkeypatch):
+    root = tmp_path / "checkout"
+    (root / "notebooks").mkdir(parents=True)
+    monkeypatch.setattr(core, "REPO_ROOT", root)
+    monkeypatch.chdir(root / "notebooks")  # as in JupyterLab
+    fig, ax = plt.subplots()
+    core.save_figure(fig, "x", "paper_figures")
+    core.save_figure(fig, "y", tmp_path / "injected")  # absolute: as given (tests, make_figures)
+    plt.close(fig)
+    core.write_table(pd.DataFrame({"a": [1]}), "t", "paper_figures")
+    assert sorted(p.name for p in (root / "paper_figures").iterdir()) == ["t.csv", "t.md", "x.pdf", "x.png"]
+    assert not (root / "notebooks" / "paper_figures").exists()
+    assert sorted(p.name for p in (tmp_path / "injected").iterdir()) == ["y.pdf", "y.png"]
+
+
+# ---------------------------------------------------------------- the headless runner
+
+TINY = '''# %%
+import sys
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+
+# %%
+print("progress-from-inside", scale)
+print("stderr-from-inside", file=sys.stderr)
+'''
+
+
+def test_appendix_notebook_is_run_by_make_figures_and_the_notebook_tests():
+    names = [p.name for p in core.figure_notebooks()]
+    assert names[:3] == ["00_index.py", "00b_core.py", "01_channel.py"]
+    assert names == sorted(names)
+
+
+@pytest.mark.notebook
+def test_runner_streams_progress_without_kernel_warnings_and_is_silent_by_default(tmp_path, capfd):
+    nb = tmp_path / "99_tiny.py"
+    nb.write_text(TINY)
+    core.run_notebook(nb, {"scale": "ci"}, output_dir=tmp_path / "exec")
+    quiet = capfd.readouterr()
+    assert quiet.out == "" and quiet.err == ""  # no "Kernel is running over TCP without encryption"
+    readme = core.make_figures("ci", tmp_path / "figs", [nb], stream=True)
+    loud = capfd.readouterr()
+    assert "without encryption" not in loud.out + loud.err
+    lines = loud.out.splitlines()
+    assert lines[0].startswith("[figures] 1/1 99_tiny.py (scale=ci) started, 0:00:0")
+    assert "progress-from-inside ci" in lines[1]
+    assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-1])
+    assert "stderr-from-inside" in loud.err
+    assert readme == tmp_path / "figs" / "README.md"

@@ -156,5 +156,5 @@ def test_battery_update_values():
      ("battery_capacity_j", "500"), ("climb_speed_mps", True)],
 )
 def test_validation_names_class_and_field(field, value):
-    with pytest.raises(ValueError, match=rf"EnergyConfig\.{field} must be a finite number > 0, got"):
+    with pytest.raises(ValueError, match=rf"EnergyConfig\.{field} must be a finite float > 0, got"):
         EnergyConfig(**{field: value})

@@ -1,0 +1,650 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 00b · Appendix: the shared machinery (`pemamoe/core.py`)
+#
+# Nothing in this notebook is part of the paper. It holds the few utilities every other notebook
+# shares, so that the reader of notebooks 01–10 meets physics and learning rather than plumbing:
+#
+# * **scales**: one `scale` parameter sizes every notebook (`ci`, `small`, `paper`);
+# * **validation**: `require`, the one checker behind every configuration class;
+# * **files**: atomic writes that follow the umask, and figure/table output into the repository's
+#   `paper_figures/`, wherever the notebook runs from;
+# * **the headless runner**: `run_notebook` and `make_figures`, behind `make figures`, with the
+#   provenance table `paper_figures/README.md`.
+#
+# The module keeps its historical name, `pemamoe.core`, so imports did not change when it moved
+# here from notebook 00.
+
+# %%
+#| default_exp core
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+
+# %% [markdown]
+# ## Scales
+#
+# Every notebook takes a `scale` parameter. `ci` must finish in seconds to a few minutes (the test
+# suite runs every notebook at this scale), `small` regenerates every figure with real training on
+# a 2-core machine within an hour, and `paper` follows the paper's training table. A notebook picks
+# its sizes with `by_scale`, so the three sizes sit next to each other in the code.
+
+# %%
+#| export
+import json
+import math
+import numbers
+import os
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+SCALES = ("ci", "small", "paper")
+
+
+def check_scale(scale: str) -> str:
+    """Return `scale` if it is one of SCALES, else raise a ValueError naming the allowed values."""
+    if scale not in SCALES:
+        raise ValueError(f"scale must be one of {', '.join(SCALES)}; got {scale!r}")
+    return scale
+
+
+def by_scale(scale: str, *, ci, small, paper):
+    """The value for `scale`: keeps a notebook's three problem sizes side by side."""
+    return {"ci": ci, "small": small, "paper": paper}[check_scale(scale)]
+
+
+# %% [markdown]
+# ## One validator for every configuration
+#
+# Every number of the project lives in a frozen dataclass that checks itself on construction, so
+# a bad value fails at once, naming the class, the field, the value and what is allowed, instead
+# of deep inside a training run. All of them call one function, `require`, so the rules are the
+# same everywhere:
+#
+# * a field has a **kind**: `"int"`, `"real"`, `"bool"`, `"choice"` (one of `allowed`), `"str"`,
+#   or `"reals"` (a tuple of reals, one per phase say);
+# * **NumPy scalars** count as the Python numbers they stand for, and are stored as plain `int` /
+#   `float`, so a config built from array values still hashes and serialises to JSON;
+# * a **bool is never a number** (`episode_steps=True` is not a one-step episode) and a **string
+#   is never a number** (`"100"` is not 100 m);
+# * **NaN is never allowed**, and **±inf** only where a field says so (`allow_inf=True`);
+# * **bounds** are keywords: `gt`, `ge` (lower, open or closed), `lt`, `le` (upper).
+#
+# It returns the normalised value; `require_field` does the same for a field of a (frozen)
+# dataclass and stores the normalised value back. `config_error` builds the same message for a rule
+# that involves several fields.
+#
+# ```python
+# require_field(self, "n_uavs", "int", ge=1)                         # an integer >= 1
+# require_field(self, "bandwidth_hz", "real", gt=0)                  # a finite float > 0
+# require_field(self, "adjacent_leakage", "real", ge=0, lt=1)       # a finite float in [0, 1)
+# require_field(self, "use_gae", "bool")                             # True or False
+# require_field(self, "phase_clock", "choice", ("env", "external"))  # one of 'env', 'external'
+# require_field(self, "min_period", "int", ge=1, optional=True)     # an integer >= 1, or None
+# require_field(self, "user_speed_mps", "reals", ge=0, length=3)    # a tuple of 3 finite floats >= 0
+# seed = require("make_vector_env", "seed", seed, "int", ge=0, optional=True)
+# ```
+
+# %%
+#| export
+KINDS = ("int", "real", "bool", "choice", "str", "reals")
+
+
+def config_error(owner: str, field: str, value, allowed: str) -> ValueError:
+    """The project's validation error: `<owner>.<field> must be <allowed>, got <value>`."""
+    return ValueError(f"{owner}.{field} must be {allowed}, got {_show(value)}")
+
+
+def require(owner: str, field: str, value, kind: str, allowed=None, *, gt=None, ge=None, lt=None, le=None,
+            allow_inf: bool = False, optional: bool = False, length: int | None = None, note: str = ""):
+    """Check one setting and return it normalised (Python int / float / bool / str / tuple of floats).
+
+    owner, field: named in the error (`ChannelConfig`, `bandwidth_hz`; or a function and argument).
+    kind:         "int" | "real" | "bool" | "choice" | "str" | "reals" (a tuple of reals).
+    allowed:      the permitted values, for kind "choice".
+    gt, ge, lt, le: bounds for "int", "real" and every element of "reals" (strict: gt, lt).
+    allow_inf:    accept +-inf for "real"/"reals" (NaN is never accepted).
+    optional:     accept None (returned as None).
+    length:       the required number of elements, for "reals".
+    note:         a reason appended to the description of what is allowed.
+    Raises ValueError (see `config_error`) naming owner, field, value and what is allowed.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"require: kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    if kind == "choice" and not allowed:
+        raise ValueError("require: kind 'choice' needs the allowed values")
+    bounds = {"gt": gt, "ge": ge, "lt": lt, "le": le}
+    what = _describe(kind, allowed, bounds, allow_inf, length) + (" or None" if optional else "") + \
+        (f" ({note})" if note else "")
+    if optional and value is None:
+        return None
+    ok, normal = _normalise(kind, value, allowed, bounds, allow_inf, length)
+    if not ok:
+        raise config_error(owner, field, value, what)
+    return normal
+
+
+def require_field(obj, field: str, kind: str, allowed=None, **rules):
+    """`require` for a dataclass field: check getattr(obj, field), store the normalised value back
+    (frozen dataclasses included) and return it. The error names type(obj).__name__ and `field`."""
+    value = require(type(obj).__name__, field, getattr(obj, field), kind, allowed, **rules)
+    object.__setattr__(obj, field, value)
+    return value
+
+
+# %%
+#| exporti
+def _show(value) -> str:
+    # NumPy 2 reprs numpy scalars as np.float64(...): show the number and, if not plain, its type.
+    if isinstance(value, (bool, int, float, str)) or value is None:
+        return repr(value)
+    if _is_np_scalar(value):
+        return f"{value.item()!r} ({type(value).__name__})"
+    return repr(value)
+
+
+def _is_np_scalar(value) -> bool:
+    return type(value).__module__ == "numpy" and hasattr(value, "item") and getattr(value, "ndim", None) == 0
+
+
+def _fmt(bound) -> str:
+    return repr(bound) if isinstance(bound, float) else str(bound)
+
+
+def _interval(bounds) -> str:
+    lo = ("gt", bounds["gt"]) if bounds["gt"] is not None else ("ge", bounds["ge"])
+    hi = ("lt", bounds["lt"]) if bounds["lt"] is not None else ("le", bounds["le"])
+    if lo[1] is not None and hi[1] is not None:
+        return f"in {'(' if lo[0] == 'gt' else '['}{_fmt(lo[1])}, {_fmt(hi[1])}{')' if hi[0] == 'lt' else ']'}"
+    symbol = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
+    for name, bound in (lo, hi):
+        if bound is not None:
+            return f"{symbol[name]} {_fmt(bound)}"
+    return ""
+
+
+def _describe(kind, allowed, bounds, allow_inf, length) -> str:
+    interval = _interval(bounds)
+    tail = f" {interval}" if interval else ""
+    if kind == "int":
+        return "an integer" + tail
+    if kind == "real":
+        return ("a float (inf allowed)" if allow_inf else "a finite float") + tail
+    if kind == "bool":
+        return "a bool (True or False)"
+    if kind == "str":
+        return "a string"
+    if kind == "choice":
+        return "one of " + ", ".join(repr(a) for a in allowed)
+    count = f"{length} " if length is not None else "a non-empty tuple of "
+    floats = "floats (inf allowed)" if allow_inf else "finite floats"
+    return (f"a tuple of {count}" if length is not None else count) + floats + tail
+
+
+def _within(x, bounds) -> bool:
+    return ((bounds["gt"] is None or x > bounds["gt"]) and (bounds["ge"] is None or x >= bounds["ge"])
+            and (bounds["lt"] is None or x < bounds["lt"]) and (bounds["le"] is None or x <= bounds["le"]))
+
+
+def _as_real(value, bounds, allow_inf):
+    # numbers.Real covers int, float, numpy integers and floats; bool is excluded explicitly.
+    if isinstance(value, bool) or _is_np_bool(value) or not isinstance(value, numbers.Real):
+        return False, None
+    x = float(value)
+    if math.isnan(x) or (math.isinf(x) and not allow_inf) or not _within(x, bounds):
+        return False, None
+    return True, x
+
+
+def _is_np_bool(value) -> bool:
+    return type(value).__name__ in ("bool_", "bool") and type(value).__module__ == "numpy"
+
+
+def _normalise(kind, value, allowed, bounds, allow_inf, length):
+    if kind == "int":
+        if isinstance(value, bool) or _is_np_bool(value) or not isinstance(value, numbers.Integral):
+            return False, None
+        value = int(value)
+        return _within(value, bounds), value
+    if kind == "real":
+        return _as_real(value, bounds, allow_inf)
+    if kind == "bool":
+        if isinstance(value, bool) or _is_np_bool(value):
+            return True, bool(value)
+        return False, None
+    if kind == "str":
+        return isinstance(value, str), (str(value) if isinstance(value, str) else None)
+    if kind == "choice":
+        if _is_np_scalar(value):
+            value = value.item()
+        # 1 == True and 0 == False in Python: a bool only matches a bool choice, and the reverse.
+        matches = [a for a in allowed if a == value and isinstance(a, bool) == isinstance(value, bool)]
+        return bool(matches), (matches[0] if matches else None)
+    # "reals": a tuple (or list, or 1-D array) of reals, stored as a tuple of floats.
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or getattr(value, "ndim", 1) != 1:
+        return False, None
+    if (length is not None and len(value) != length) or len(value) == 0:
+        return False, None
+    out = []
+    for item in value:
+        ok, x = _as_real(item, bounds, allow_inf)
+        if not ok:
+            return False, None
+        out.append(x)
+    return True, tuple(out)
+
+
+# %% [markdown]
+# ## Where the repository is, and where outputs go
+#
+# Outputs belong in the repository's `paper_figures/` (and `results/`), whether a notebook runs
+# under papermill (kernel started in the repository root), in JupyterLab (kernel started in
+# `notebooks/`), or as a script from anywhere. A relative `figures_dir` such as the notebooks'
+# default `"paper_figures"` is therefore read relative to the repository root, never to the
+# working directory; an absolute one (tests inject temporary folders) is used as given.
+#
+# The root is the first folder, going up from this module's file (an editable install or a plain
+# checkout both keep `pemamoe/` inside the checkout), then from the working directory, that holds
+# `notebooks/` and the `pyproject.toml` of `pemamoe`. The environment variable `PEMAMOE_ROOT`
+# overrides the search (for a copy of the package installed outside the checkout).
+
+# %%
+#| export
+def _is_checkout(folder: Path) -> bool:
+    pyproject = folder / "pyproject.toml"
+    if not (pyproject.is_file() and (folder / "notebooks").is_dir()):
+        return False
+    try:
+        return 'name = "pemamoe"' in pyproject.read_text(encoding="utf-8")
+    except OSError:
+        return False
+
+
+def find_repo_root(*starts) -> Path:
+    """The pemamoe checkout above the first of `starts` that lies in one (default: this module's
+    folder, then the working directory); $PEMAMOE_ROOT wins; the working directory if none."""
+    if os.environ.get("PEMAMOE_ROOT"):
+        return Path(os.environ["PEMAMOE_ROOT"]).expanduser().resolve()
+    if not starts:
+        here = [Path(__file__).resolve().parent] if "__file__" in globals() else []
+        starts = (*here, Path.cwd())
+    for start in starts:
+        start = Path(start).resolve()
+        for folder in (start, *start.parents):
+            if _is_checkout(folder):
+                return folder
+    return Path.cwd().resolve()
+
+
+REPO_ROOT = find_repo_root()
+
+
+def repo_path(path) -> Path:
+    """`path` itself if absolute, else the same path under the repository root."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else REPO_ROOT / path
+
+
+# %% [markdown]
+# ## Writing files atomically
+#
+# Long runs get killed. A file that is half written when that happens must never be mistaken for
+# a result, so every writer in the project writes to a temporary file in the same folder and
+# renames it into place: a rename within one file system is atomic, and the reader sees either the
+# old file or the new one.
+#
+# `tempfile.mkstemp` creates its file readable by its owner only (0600), whatever the umask says;
+# renamed into place, that would make every figure and result private. Before the rename the file
+# therefore gets the mode an ordinary `open(path, "w")` would have given it: `0o666 & ~umask`.
+
+# %%
+#| export
+def current_umask() -> int:
+    """The process umask (read from /proc where possible: setting it to read it is not
+    thread-safe)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextmanager
+def atomic_path(path):
+    """Yield a temporary path beside `path`; on success rename it onto `path` (with the mode the
+    umask gives new files), else delete it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~current_umask())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def atomic_write_text(path, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def atomic_write_json(path, obj) -> Path:
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
+
+
+# %% [markdown]
+# ## Saving figures and tables
+#
+# Figures go out as PNG (for the README and the notebooks) and PDF (for papers). Creation dates
+# are left out of the files so that regenerating an unchanged figure gives identical PDF bytes
+# and a clean `git diff`. Tables go out as Markdown (readable on GitHub) and CSV (for reuse).
+# Both functions return None, so a notebook cell that ends with them prints nothing.
+
+# %%
+#| export
+def save_figure(fig, name: str, figures_dir, dpi: int = 150) -> None:
+    """Write `fig` as `<figures_dir>/<name>.png` and `.pdf`, atomically (a relative figures_dir is
+    under the repository root)."""
+    for ext, meta in (("png", {"Software": None}), ("pdf", {"CreationDate": None, "Producer": None})):
+        with atomic_path(repo_path(figures_dir) / f"{name}.{ext}") as tmp:
+            fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches="tight", metadata=meta)
+
+
+def write_table(df, name: str, figures_dir, floatfmt: str = ".4g") -> None:
+    """Write a pandas DataFrame as `<name>.md` (Markdown) and `<name>.csv`, atomically (a relative
+    figures_dir is under the repository root)."""
+    folder = repo_path(figures_dir)
+    atomic_write_text(folder / f"{name}.md", _markdown_table(df, floatfmt) + "\n")
+    atomic_write_text(folder / f"{name}.csv", df.to_csv(index=False))
+
+
+# %%
+#| exporti
+def _markdown_table(df, floatfmt: str) -> str:
+    # A tiny renderer, so tables do not depend on the optional `tabulate` package.
+    def fmt(v):
+        if isinstance(v, float):
+            return format(v, floatfmt)
+        return str(v)
+
+    header = "| " + " | ".join(str(c) for c in df.columns) + " |"
+    rule = "|" + "|".join("---" for _ in df.columns) + "|"
+    rows = ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([header, rule, *rows])
+
+
+# %% [markdown]
+# ## Running a notebook headlessly
+#
+# `run_notebook` is the one function that executes a notebook without a browser. Papermill only
+# reads JSON notebooks, so the percent-format `.py` file is converted in memory with Jupytext.
+# Papermill then injects the given parameters after the cell tagged `parameters`, runs every cell
+# with a per-cell timeout, and saves the executed copy under `build/executed/` (ignored by git),
+# where a failing run can be opened to see the traceback in context. The test suite calls it with
+# `scale="ci"`; `make figures` calls it with the chosen scale and `figures_dir="paper_figures"`.
+#
+# **Transport encryption.** ipykernel ≥ 7 prints "Kernel is running over TCP without encryption"
+# to the terminal at every kernel start unless the kernel manager provisions CurveZMQ keys. We fix
+# the cause rather than filter the message: the kernel manager runs with
+# `transport_encryption="auto"`, so it hands the kernel a key pair whenever pyzmq has CurveZMQ and
+# the kernelspec declares `supported_encryption: curve` (ipykernel's own kernelspec does); the
+# kernel then encrypts its sockets and has nothing to warn about. Where either is missing, the
+# policy stays "disabled", as before.
+#
+# **Streaming.** With `stream=True` the notebook's own stdout and stderr (progress lines of a
+# sweep, say) are copied to this process's terminal as they arrive (papermill's `stdout_file` /
+# `stderr_file`). The test suite leaves it off, so tests print nothing.
+
+# %%
+#| export
+def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1800, cwd=None,
+                 stream: bool = False):
+    """Execute `notebook` (a notebooks/*.py file) with papermill; return the executed notebook.
+
+    parameters: dict injected after the cell tagged "parameters" (e.g. scale, figures_dir).
+    output_dir: where the executed .ipynb goes (default build/executed under the repository).
+    timeout:    seconds allowed per cell.
+    cwd:        working directory of the kernel (default: the repository root).
+    stream:     copy the notebook's stdout/stderr to this process's as the cells run.
+    """
+    import jupytext
+    import papermill as pm
+
+    notebook = Path(notebook)
+    if not notebook.is_file():
+        raise FileNotFoundError(f"notebook not found: {notebook}")
+    parameters = dict(parameters or {})
+    if "scale" in parameters:
+        check_scale(parameters["scale"])
+    output_dir = Path(output_dir) if output_dir else REPO_ROOT / "build" / "executed"
+    output_dir.mkdir(parents=True, exist_ok=True)
+    nb = jupytext.read(notebook)
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    # The kernel must be this interpreter (the project's virtual environment), whatever PATH says.
+    os.environ["PATH"] = str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", "")
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    return pm.execute_notebook(
+        nb,
+        str(output_dir / f"{notebook.stem}.ipynb"),
+        parameters=parameters,
+        kernel_name="python3",
+        language="python",
+        execution_timeout=timeout,
+        cwd=str(cwd or REPO_ROOT),
+        progress_bar=False,
+        stdout_file=sys.stdout if stream else None,
+        stderr_file=sys.stderr if stream else None,
+        config=_kernel_manager_config(),
+    )
+
+
+# %%
+#| exporti
+def _kernel_manager_config():
+    # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
+    from traitlets.config import Config
+
+    config = Config()
+    try:
+        import zmq
+
+        if zmq.has("curve"):
+            config.KernelManager.transport_encryption = "auto"
+    except ImportError:  # pragma: no cover - pyzmq is a dependency of the kernel machinery
+        pass
+    return config
+
+
+# %% [markdown]
+# ## Regenerating every figure
+#
+# `make_figures` runs the notebooks in paper order with the same runner, pointing their
+# `figures_dir` at `paper_figures/`. It then writes `paper_figures/README.md`, which records for
+# every file the notebook that wrote it, its counterpart in the paper, the scale, the command and
+# the commit, so each figure can be traced to what produced it. Plotting notebooks read logged
+# results; they never retrain what a sweep already cached.
+#
+# A full run takes from minutes (`ci`) to hours (`paper`), so it reports as it goes: one line when
+# notebook *i* of *N* starts and one when it ends, with the time spent on it and in total, and in
+# between the notebook's own output, streamed. These are plain lines rather than a progress bar,
+# because the streamed output would tear a bar apart, and plain lines read the same in a log file.
+
+# %%
+#| export
+# Paper counterpart of each output, by file stem. Stems not listed are illustrations of a model
+# that the paper describes in equations only.
+PAPER_COUNTERPARTS = {
+    "cost_table": "Table 'Computational cost comparison (actor network)'",
+    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
+    "table_parameters": "Table 'Simulation and training parameters'",
+    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
+    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
+    "results_mean_return": "Fig. 'Mean return over training'",
+    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
+    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
+    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
+    "results_router_value": "Fig. 'Value-side expert routing probability'",
+    "results_collisions": "Fig. 'Collisions per episode over training'",
+    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
+    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
+    "results_mean_action": "Fig. 'Mean action response to phase switches'",
+    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
+    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
+    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
+    "headline_claims": "(ours) the paper's headline numbers beside ours",
+    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
+    "mappo_training_curves": "(ours) one training run per method, notebook 07",
+    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
+    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
+       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
+}
+
+
+def notebook_parameters(notebook) -> set:
+    """Names assigned in a notebook's cell tagged "parameters" (so callers pass only those)."""
+    import ast
+
+    text = Path(notebook).read_text(encoding="utf-8")
+    marker = '# %% tags=["parameters"]'
+    if marker not in text:
+        return set()
+    body = text.split(marker, 1)[1].split("\n# %%", 1)[0]
+    return {t.id for node in ast.parse(body).body if isinstance(node, ast.Assign)
+            for t in node.targets if isinstance(t, ast.Name)}
+
+
+def figure_notebooks(root=None) -> list:
+    """Every notebook, in paper order: the numbered ones (NN_name.py) and their appendices
+    (NNx_name.py, e.g. 00b_core.py right after 00_index.py)."""
+    folder = Path(root or REPO_ROOT) / "notebooks"
+    return sorted({*folder.glob("[0-9][0-9]_*.py"), *folder.glob("[0-9][0-9][a-z]_*.py")},
+                  key=lambda p: p.name)
+
+
+def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
+                 stream: bool = True, **extra) -> Path:
+    """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
+
+    figures_dir: default paper_figures/ (a relative path is under the repository root).
+    stream:      print progress lines and the notebooks' own output (False: silent).
+    extra:       further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
+    """
+    import subprocess
+
+    check_scale(scale)
+    figures_dir = repo_path(figures_dir or "paper_figures")
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
+    say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
+    records, t0 = {}, time.perf_counter()
+    for i, nb in enumerate(notebooks, start=1):
+        before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
+        start = time.perf_counter()
+        say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
+        declared = notebook_parameters(nb)
+        params = {"scale": scale, "figures_dir": str(figures_dir), **{k: v for k, v in extra.items() if k in declared}}
+        run_notebook(nb, params, timeout=timeout, stream=stream)
+        now = time.perf_counter()
+        say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
+        for p in figures_dir.iterdir():
+            if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
+                records[p.name] = nb.name
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
+        ).stdout.strip() or "unknown"
+        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except OSError:
+        commit = "unknown"
+    return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
+
+
+def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str) -> Path:
+    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
+    readme = repo_path(figures_dir) / "README.md"
+    rows = _read_provenance(readme)
+    command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
+    for name, nb in records.items():
+        stem = name.rsplit(".", 1)[0]
+        counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
+        rows[name] = [name, counterpart, f"notebooks/{nb}", scale, f"`{command}`", commit]
+    lines = [
+        "# paper_figures",
+        "",
+        "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
+        "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
+        "ran at, the command, and the commit the code was at.",
+        "",
+        "| file | paper counterpart | notebook | scale | command | commit |",
+        "|---|---|---|---|---|---|",
+        *("| " + " | ".join(rows[k]) + " |" for k in sorted(rows)),
+    ]
+    return atomic_write_text(readme, "\n".join(lines) + "\n")
+
+
+# %%
+#| exporti
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def _read_provenance(readme: Path) -> dict:
+    # Keep rows of files that this run did not touch (a partial rerun must not forget them).
+    rows = {}
+    if readme.is_file():
+        for line in readme.read_text(encoding="utf-8").splitlines():
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if line.startswith("| ") and len(cells) == 6 and cells[0] not in ("file",):
+                if (readme.parent / cells[0]).is_file():
+                    rows[cells[0]] = cells
+    return rows
+
+
+# %% [markdown]
+# ## A quick look
+#
+# What the validator says about a few bad values, where this kernel thinks the repository is, and
+# the notebooks `make figures` runs, in order.
+
+# %%
+for bad in (dict(value=True, kind="int", ge=1), dict(value="100", kind="real", gt=0),
+            dict(value=float("inf"), kind="real", gt=0), dict(value="jax", kind="choice",
+                                                                allowed=("compiled", "numpy"))):
+    try:
+        require("Demo", "field", **bad)
+    except ValueError as err:
+        print(err)
+print(f"repository root: {REPO_ROOT}")
+print(f"scale={check_scale(scale)!r}; figures go to {repo_path(figures_dir)}")
+print("notebooks:", ", ".join(p.name for p in figure_notebooks()))
