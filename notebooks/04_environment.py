@@ -96,7 +96,7 @@ STEP_ENGINES = ("compiled", "numpy")
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """Every constant of the UAV emergency-network environment (defaults: paper + SPEC)."""
+    """Every constant of the UAV emergency-network environment (defaults: the paper's Table II, else ours)."""
 
     n_uavs: int = 3
     uav_altitude_m: float = 100.0
@@ -312,9 +312,10 @@ def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
 # * **overlap**: the phase's weight (20, 40, 80) times a Gaussian of each pair's distance
 #   (σ = 150 m), cut off beyond twice the service radius.
 #
-# Every agent receives the team reward; each term also goes to `info`. The metrics follow SPEC
-# section 2: coverage, served users, UAV using rate (admitted users over capacity), energy rate (kJ
-# per UAV per slot) and collisions.
+# Every agent receives the team reward; each term also goes to `info`, with the metrics the paper's
+# section VI plots: coverage (the share of users inside some UAV's service radius), served users
+# (those whose realised rate meets their class threshold), UAV using rate (admitted users over
+# capacity), energy rate (kJ per UAV per slot) and collisions.
 
 # %%
 #| export

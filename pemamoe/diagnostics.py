@@ -3,7 +3,7 @@
 
 __all__ = ['DORMANT_PAPER_DELTA', 'DORMANT_TAU', 'SRANK_DELTA', 'singular_values', 'stable_rank', 'effective_rank', 'srank', 'dormant_fraction_paper', 'dormant_fraction_tau', 'plasticity_diagnostics']
 
-# %% notebooks/06_plasticity.py, cell 22 (line 856)
+# %% notebooks/06_plasticity.py, cell 22 (line 859)
 import math
 
 import numpy as np

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 
-# %% notebooks/02_energy.py, cell 6 (line 72)
+# %% notebooks/02_energy.py, cell 6 (line 74)
 def _require(cls_name, name, value, ok, allowed):
     """Raise the project's standard validation error unless ``ok``."""
     if not ok:
@@ -22,7 +22,7 @@ def _is_real(value):
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
-# %% notebooks/02_energy.py, cell 7 (line 84)
+# %% notebooks/02_energy.py, cell 7 (line 86)
 @dataclass(frozen=True)
 class EnergyConfig:
     """Rotary-wing propulsion parameters (Zeng, Xu, Zhang 2019) and the slot/battery settings.
@@ -63,7 +63,7 @@ class EnergyConfig:
         return 0.5 * self.fuselage_drag_ratio * self.air_density * self.rotor_solidity * self.rotor_disc_area_m2
 
 
-# %% notebooks/02_energy.py, cell 9 (line 151)
+# %% notebooks/02_energy.py, cell 9 (line 153)
 def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     """Propulsion power P(V_h, V_z) [W] of the paper's 3-D rotary-wing model.
 
@@ -84,7 +84,7 @@ def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     return power[()] if power.ndim == 0 else power
 
 
-# %% notebooks/02_energy.py, cell 11 (line 185)
+# %% notebooks/02_energy.py, cell 11 (line 187)
 def min_power_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> float:
     """Horizontal speed [m/s] in [0, v_max] that minimises P(V, 0) (maximum endurance)."""
     res = minimize_scalar(
@@ -103,7 +103,7 @@ def max_range_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> 
     return float(res.x)
 
 
-# %% notebooks/02_energy.py, cell 13 (line 229)
+# %% notebooks/02_energy.py, cell 13 (line 231)
 class SlotEnergy(NamedTuple):
     """Per-UAV result of ``slot_energy``; every field has the broadcast input shape (..., U)."""
 
@@ -150,7 +150,7 @@ def slot_energy(horizontal_m, vertical_m=0.0, cfg: EnergyConfig = EnergyConfig()
     )
 
 
-# %% notebooks/02_energy.py, cell 15 (line 284)
+# %% notebooks/02_energy.py, cell 15 (line 286)
 def battery_update(battery_j, energy_j, cfg: EnergyConfig = EnergyConfig()):
     """Subtract a slot's energy: returns ``(new_battery_j, depleted)``, broadcast shape.
 

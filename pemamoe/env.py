@@ -34,7 +34,7 @@ STEP_ENGINES = ("compiled", "numpy")
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """Every constant of the UAV emergency-network environment (defaults: paper + SPEC)."""
+    """Every constant of the UAV emergency-network environment (defaults: the paper's Table II, else ours)."""
 
     n_uavs: int = 3
     uav_altitude_m: float = 100.0
@@ -227,7 +227,7 @@ def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
     return rate.sum(axis=-1), link_sinr
 
 
-# %% notebooks/04_environment.py, cell 10 (line 319)
+# %% notebooks/04_environment.py, cell 10 (line 320)
 def pair_distances(uav_xy):
     """(B, U, U) horizontal distances and the (U, U) mask of pairs u < u'."""
     diff = uav_xy[:, :, None, :] - uav_xy[:, None, :, :]
@@ -252,7 +252,7 @@ def reward_terms(served, reward_weight, energy_j, uav_xy, overlap_weight, radius
     return terms
 
 
-# %% notebooks/04_environment.py, cell 12 (line 363)
+# %% notebooks/04_environment.py, cell 12 (line 364)
 def observation_layout(cfg: EnvConfig) -> list:
     """[(name, start, stop)] blocks of one agent's observation vector."""
     U, N = cfg.n_uavs, cfg.n_users
@@ -302,7 +302,7 @@ def build_observations(uav_xy, battery_frac, user_xy, rate_frac, serving, demand
     return obs, state
 
 
-# %% notebooks/04_environment.py, cell 14 (line 431)
+# %% notebooks/04_environment.py, cell 14 (line 432)
 class UAVBatchCore:
     """State and dynamics of B environments, advanced together (numpy, no per-user loops)."""
 
@@ -498,7 +498,7 @@ class UAVBatchCore:
         return obs, state, info
 
 
-# %% notebooks/04_environment.py, cell 16 (line 638)
+# %% notebooks/04_environment.py, cell 16 (line 639)
 class UAVVectorEnv:
     """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
 
@@ -546,7 +546,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04_environment.py, cell 18 (line 695)
+# %% notebooks/04_environment.py, cell 18 (line 696)
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
@@ -664,7 +664,7 @@ def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UA
     return UAVVectorEnv(num_envs, seed, **overrides)
 
 
-# %% notebooks/04_environment.py, cell 20 (line 820)
+# %% notebooks/04_environment.py, cell 20 (line 821)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -701,7 +701,7 @@ def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarr
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04_environment.py, cell 22 (line 868)
+# %% notebooks/04_environment.py, cell 22 (line 869)
 def random_policy(core: UAVBatchCore, rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

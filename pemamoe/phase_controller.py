@@ -14,7 +14,7 @@ import torch
 from torch.distributions import kl_divergence
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 153)
+# %% notebooks/06_plasticity.py, cell 8 (line 154)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
 
@@ -174,7 +174,7 @@ class BaseSchedule:
         _need(own, self, "temperature", _is_real(self.temperature) and self.temperature > 0, "a float > 0")
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 336)
+# %% notebooks/06_plasticity.py, cell 10 (line 337)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -222,7 +222,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 399)
+# %% notebooks/06_plasticity.py, cell 12 (line 400)
 def expert_parameters(actor, expert: int) -> list:
     """Views of the trunk parameters of one expert (weights and biases of both hidden layers)."""
     gate = getattr(actor, "gate", None)
@@ -274,7 +274,7 @@ def reset_adam_state(optimizer) -> None:
     optimizer.state.clear()
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 509)
+# %% notebooks/06_plasticity.py, cell 15 (line 512)
 @dataclass(frozen=True)
 class IterationSettings:
     """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
