@@ -133,3 +133,61 @@ def test_paired_notebooks_are_not_tracked():
         pytest.skip("not a git checkout")
     ignored = subprocess.run(["git", "check-ignore", "-q", "build/notebooks/01_channel.ipynb"], cwd=ROOT)
     assert ignored.returncode == 0, "build/ must be in .gitignore"
+
+
+def test_a_real_lab_server_saves_every_notebook_back_unchanged(lab_root, tmp_path):
+    """End to end: `jupyter lab` (headless, with the Jupytext server extension as installed) serves
+    a copy of the notebooks; every notebook is fetched and PUT back through the REST API, twice
+    (the second time through the paired .ipynb), as Lab's autosave does."""
+    pytest.importorskip("jupyterlab")
+    import os
+    import socket
+    import sys
+    import time
+    import urllib.request
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()
+    env = dict(os.environ, JUPYTER_CONFIG_DIR=str(tmp_path / "config"), JUPYTER_RUNTIME_DIR=str(tmp_path / "runtime"))
+    cmd = [sys.executable, "-m", "jupyterlab", "--no-browser", "--ServerApp.token=x", "--ServerApp.ip=127.0.0.1",
+           f"--ServerApp.port={port}", f"--ServerApp.root_dir={lab_root}"]
+    if hasattr(os, "geteuid") and os.geteuid() == 0:
+        cmd.append("--allow-root")
+    log = open(tmp_path / "lab.log", "w")
+    server = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+
+    def call(method, path, body=None):
+        request = urllib.request.Request(
+            f"http://127.0.0.1:{port}/api/contents/{path}", method=method,
+            data=None if body is None else json.dumps(body).encode(),
+            headers={"Authorization": "token x", "Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return json.loads(response.read())
+
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                call("GET", "notebooks")
+                break
+            except OSError:
+                if server.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"jupyter lab did not start:\n{(tmp_path / 'lab.log').read_text()}")
+                time.sleep(0.5)
+        notebooks = sorted((lab_root / "notebooks").glob("*.py"))
+        before = {nb: nb.read_bytes() for nb in notebooks}
+        for _ in range(2):
+            for nb in notebooks:
+                rel = nb.relative_to(lab_root).as_posix()
+                model = call("GET", f"{rel}?type=notebook&content=1")
+                assert model["type"] == "notebook", rel
+                call("PUT", rel, {"type": "notebook", "format": "json", "content": model["content"]})
+        changed = [nb.name for nb in notebooks if nb.read_bytes() != before[nb]]
+        assert changed == [], f"saved through jupyter lab, these notebooks changed: {changed}"
+        assert len(list((lab_root / "build" / "notebooks").glob("*.ipynb"))) == len(notebooks)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+        log.close()
