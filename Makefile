@@ -51,11 +51,14 @@ check-export: $(STAMP)
 	$(PY) -m pemamoe.literate check
 
 # Project-local JupyterLab settings: .py files open in the Jupytext notebook view by default.
+# jupytext.toml (repo root) keeps the committed headers as they are, so opening and autosaving an
+# unchanged notebook changes nothing, and pairs each notebook with build/notebooks/NN_*.ipynb
+# (gitignored), where its outputs survive between sessions. The .py stays the source.
 lab: $(STAMP)
 	@mkdir -p $(VENV)/share/jupyter/lab/settings
 	@echo '{"@jupyterlab/docmanager-extension:plugin": {"defaultViewers": {"python": "Jupytext Notebook"}}}' \
 		> $(VENV)/share/jupyter/lab/settings/overrides.json
-	$(VENV)/bin/jupyter lab --notebook-dir=. $(if $(filter 0,$(shell id -u)),--allow-root,) $(LAB_ARGS)
+	$(VENV)/bin/jupyter lab --ServerApp.root_dir=. $(if $(filter 0,$(shell id -u)),--allow-root,) $(LAB_ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py

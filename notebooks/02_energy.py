@@ -5,7 +5,7 @@
 #       extension: .py
 #       format_name: percent
 #   kernelspec:
-#     display_name: Python 3
+#     display_name: Python 3 (ipykernel)
 #     language: python
 #     name: python3
 # ---
@@ -66,10 +66,12 @@ from pemamoe.core import require_field
 # $v_0 = \sqrt{W/(2\rho A)}$ and $P_i = (1+k)\,W^{3/2}/\sqrt{2\rho A}$; we use them again in the
 # comparison at the end.)
 #
-# The motion side is ours (SPEC section 2): horizontal moves are flown at a commanded
-# $V_h = 10$ m/s, close to the minimum-power speed found below, vertical moves at $V_z = 5$ m/s, the
-# slot lasts 60 s (paper) and each UAV starts with a 500 kJ battery. Every number sits in one frozen
-# dataclass that checks itself on construction.
+# The motion side is ours, because the paper gives the power model and the slot length but no
+# speeds or battery size: horizontal moves are flown at a commanded $V_h = 10$ m/s, close to the
+# minimum-power speed found below, vertical moves at $V_z = 5$ m/s, the slot lasts 60 s (the
+# paper's Table II) and each UAV starts with a 500 kJ battery, about 50 minutes of hover, so a
+# 32-slot (32-minute) episode cannot drain it. Every number sits in one frozen dataclass that checks
+# itself on construction.
 
 # %%
 #| export
@@ -205,8 +207,8 @@ def max_range_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> 
 # rule: such a move is *shrunk*, horizontal and vertical legs by the same factor
 # $f=\Delta t/(t_h+t_v)<1$, so that it exactly fills the slot (no hover) and keeps its direction in
 # 3-D, and it is flagged `infeasible=True` so the environment can count it. At our defaults the
-# largest horizontal action (100 m, SPEC) needs 10 s, so this only triggers on misconfiguration or
-# on vertical moves longer than about 300 m.
+# largest horizontal action ($d_{\max} = 100$ m per slot, notebook 04) needs 10 s, so this only
+# triggers on misconfiguration or on vertical moves longer than about 300 m.
 #
 # The function works element-wise on arrays of any shape, e.g. `(B, U)` for `U` UAVs in `B`
 # environments, and returns a `SlotEnergy` named tuple of arrays of that shape.
@@ -389,6 +391,7 @@ print(compare.round(2).to_string(index=False))
 # The descent figure of the explicit model should itself be read with care: slow descent puts a
 # rotor into the vortex-ring state, where simple momentum theory does not hold.
 #
-# For this project the difference is harmless: the policy moves in 2-D at a fixed altitude (SPEC),
-# so the vertical leg is always zero in the environment. Anyone who enables altitude control should
+# For this project the difference is harmless: the paper's policy outputs a 2-D displacement per
+# slot (its paragraph on environment-side heuristics), so the UAVs keep a fixed altitude and the
+# vertical leg is always zero in the environment. Anyone who enables altitude control should
 # replace $P(0, V_z)$ with an explicit climb model first.

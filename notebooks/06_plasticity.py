@@ -5,7 +5,7 @@
 #       extension: .py
 #       format_name: percent
 #   kernelspec:
-#     display_name: Python 3
+#     display_name: Python 3 (ipykernel)
 #     language: python
 #     name: python3
 # ---
@@ -61,7 +61,8 @@ from pemamoe.nets import gaussian_kl
 # %% [markdown]
 # ## What the paper fixes, and what it leaves open
 #
-# The numbers come from the paper's training table ("Switch-time schedules") and from SPEC §4:
+# The numbers come from the "Switch-time schedules" block of the paper's Table II and from
+# Algorithm 1; where the paper leaves a choice open, the last column says what we picked:
 #
 # | mechanism | paper | our value / reading |
 # |---|---|---|
@@ -87,8 +88,8 @@ from pemamoe.nets import gaussian_kl
 #
 # **Two windows called "warm".** Algorithm 1 uses one $K_\text{warm}$ for both the LR warm-up
 # and the conservative PPO window, while the table gives 80 iterations for the "warm window" and
-# 200 for the LR warm-up. We follow the table (and SPEC): 80 for the conservative window, 200 for
-# the LR ramp.
+# 200 for the LR warm-up. We follow the table, which names both windows: 80 for the conservative
+# window, 200 for the LR ramp.
 #
 # **What "LR annealing" means in the ablation.** The ablation text describes resetting the LR
 # to its initial value at a switch and annealing it down within the phase; Algorithm 1 and the
@@ -112,7 +113,7 @@ from pemamoe.nets import gaussian_kl
 # group and keeps learning; the value function has to track the new rewards immediately.
 
 # %% [markdown]
-# ## Two contradictions in the paper (SPEC §4)
+# ## Two contradictions in the paper
 #
 # **Temperature direction.** The text says the router temperature is raised right after a switch
 # and lowered as the phase settles. The formula printed next to it,
@@ -474,15 +475,17 @@ def reset_adam_state(optimizer) -> None:
 # %% [markdown]
 # ## The controller
 #
-# How the trainer uses it, per iteration $t$:
+# How the trainer of notebook 07 uses it, per iteration $t$:
 #
 # ```python
 # groups = build_param_groups(actor, critic, base.lr)          # named groups
 # opt = torch.optim.AdamW(groups, lr=base.lr, betas=(0.9, 0.999), weight_decay=1e-4)
 # ctl = PhaseController(cfg, actor, opt, base, enabled=(kind == "pemamoe"))
+# clock = PhaseSchedule(period=base.phase_length, n_phases=3)  # the trainer owns the phase
 # for t in range(base.total_iterations):
-#     if t > 0 and t % base.phase_length == 0:
-#         env.next_phase(); ctl.on_switch(t)
+#     venv.set_phase(clock.phase_at(t))   # first, so the whole rollout runs in this phase
+#     if clock.is_switch(t):              # t > 0 and t % L == 0
+#         ctl.on_switch(t)
 #     s = ctl.begin_iteration(t)          # sets LRs and the router freeze
 #     rollout with actor.act(obs, temperature=s.policy_temperature),
 #                  critic(state, temperature=s.value_temperature)
