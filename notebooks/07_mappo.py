@@ -969,13 +969,14 @@ def load_run(run_dir) -> RunResult:
 # %%
 #| export
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
-          threads: int | None = 1, verbose: bool = False) -> RunResult:
+          threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config` (everything follows from it and its seed).
 
     run_dir: where config.json, metrics.parquet, episodes.parquet, checkpoint.pt and done.json go
     (None: nothing is written). resume: continue from run_dir's checkpoint (or return the stored
     result when done.json exists). max_iterations: stop after this many iterations in total,
     checkpointing, without done.json. threads: torch threads during the run (restored after).
+    progress: a tqdm bar on stderr (None: only when stderr is a terminal).
     """
     run_dir = None if run_dir is None else Path(run_dir)
     if run_dir is not None:
@@ -983,7 +984,7 @@ def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterati
         if resume and (run_dir / "done.json").exists():
             return dataclasses.replace(load_run(run_dir), config=config)
     with _Determinism(threads):
-        return _train(config, run_dir, resume, max_iterations, verbose)
+        return _train(config, run_dir, resume, max_iterations, verbose, progress)
 
 
 def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
@@ -999,7 +1000,7 @@ def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> RunResult:
+def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose, progress=None) -> RunResult:
     wall_start = time.perf_counter()
     # --- seeding and construction: everything from the config -------------------------------------
     torch.manual_seed(config.seed)
@@ -1050,6 +1051,12 @@ def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> Run
 
     stop = config.iterations if max_iterations is None else min(config.iterations, max_iterations)
     it = start - 1
+    import sys
+
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=stop, initial=start, desc=config.method, unit="it", dynamic_ncols=True,
+               disable=not (sys.stderr.isatty() if progress is None else progress))
     for it in range(start, stop):
         # --- 1. phase clock and phase controller ------------------------------------------------
         phase = int(clock.phase_at(it))
@@ -1107,6 +1114,11 @@ def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> Run
                   f"sps {row['sps']:7.0f}", flush=True)
         if (it + 1) % config.checkpoint_every == 0 or last:
             save()
+        if not bar.disable:  # phase, mean return of the last 10 iterations, steps per second
+            recent = pd.Series([r["episode_return"] for r in metrics_rows[-10:]]).mean()
+            bar.set_postfix(phase=phase, ret=f"{recent:.1f}", sps=f"{row['sps']:.0f}", refresh=False)
+        bar.update(1)
+    bar.close()
 
     finished = stop == config.iterations
     if run_dir is not None and finished:
