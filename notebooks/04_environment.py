@@ -694,21 +694,34 @@ def vector_seeds(seed, num_envs: int) -> list:
 # %% [markdown]
 # ## The PettingZoo environment
 #
-# `make_env(**overrides)` returns a PettingZoo `ParallelEnv` over the same core with B = 1: agents
-# `uav_0 … uav_{U-1}`, Gymnasium `Box` spaces, `state()` for the centralised critic and an RGB
-# `render()`. Actions outside [-1, 1] are clipped and flagged in `info["action_clipped"]`; a NaN
-# or infinite action raises an error naming the agent.
+# `make_env(**overrides)` (also `pemamoe.parallel_env`) returns a PettingZoo `ParallelEnv` over the
+# same core with B = 1: agents `uav_0 … uav_{U-1}`, Gymnasium `Box` spaces, `state()` for the
+# centralised critic and, with `render_mode="rgb_array"`, an RGB `render()` (the default,
+# `render_mode=None`, draws nothing). `aec_env(**overrides)` (alias `raw_env`) is the same
+# environment as an AEC env, through PettingZoo's own `parallel_to_aec` conversion.
+#
+# It follows the conventions outside code relies on. The infos of `reset()` carry the same keys,
+# with the same types, as those of `step()` (the per-step flags are all `False` at a reset), so a
+# library that builds its info spec from `reset()` can read every `step()`. `step()`, `state()` and
+# `render()` before the first `reset()` raise an error that says to call `reset()` first. Actions
+# outside [-1, 1] are clipped and flagged in `info["action_clipped"]`; a NaN or infinite action, and
+# an action for an agent that does not exist, raise an error naming the agent.
 
 # %%
 #| export
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
+
+# Info keys that only a step produces, and their value at a reset: (per agent?, value).
+_STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, False),
+                   "battery_depleted": (True, False), "phase_switch": (False, False)}
 
 
 class UAVParallelEnv(ParallelEnv):
     metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
-    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = "rgb_array"):
+    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.cfg = cfg or EnvConfig()
@@ -721,6 +734,7 @@ class UAVParallelEnv(ParallelEnv):
         self._state_space = spaces.Box(-1.0, 1.0, (state_dim(self.cfg),), np.float32)
         self.core = UAVBatchCore(self.cfg, 1, [None])
         self._seeded = False
+        self._state = None  # set by reset(); None means "never reset"
 
     def observation_space(self, agent):
         return self._obs_space
@@ -732,6 +746,10 @@ class UAVParallelEnv(ParallelEnv):
     def state_space(self):
         return self._state_space
 
+    def _need_reset(self, method: str) -> None:
+        if self._state is None:
+            raise RuntimeError(f"{method}() called before reset(): call reset() first")
+
     def reset(self, seed=None, options=None):
         if seed is not None or not self._seeded:
             self.core.rng.reseed(0, seed)
@@ -739,12 +757,20 @@ class UAVParallelEnv(ParallelEnv):
         obs, state, info = self.core.reset()
         self._state = state[0]
         self.agents = list(self.possible_agents)
+        U = len(self.agents)
+        for key, (per_agent, value) in _STEP_ONLY_INFO.items():  # step()'s keys, with their types
+            info.setdefault(key, np.full((1, U) if per_agent else (1,), value))
         infos = _agent_infos(info, 0, self.agents)
         return {a: obs[0, i] for i, a in enumerate(self.agents)}, infos
 
     def step(self, actions):
+        self._need_reset("step")
         if not self.agents:
             raise RuntimeError("step() called on a finished episode: call reset() first")
+        unknown = set(actions) - set(self.possible_agents)
+        if unknown:
+            raise ValueError(f"actions for unknown agent(s) {sorted(unknown, key=str)}; "
+                             f"the agents are {self.possible_agents}")
         missing = set(self.agents) - set(actions)
         if missing:
             raise ValueError(f"actions missing for agents {sorted(missing)}")
@@ -773,11 +799,13 @@ class UAVParallelEnv(ParallelEnv):
         return out
 
     def state(self):
+        self._need_reset("state")
         return self._state
 
     def render(self):
         if self.render_mode is None:
             return None
+        self._need_reset("render")
         return render_frame(self.core, 0)
 
     def close(self):
@@ -799,9 +827,22 @@ def _agent_infos(info: dict, b: int, agents: list) -> dict:
             for u, a in enumerate(agents)}
 
 
-def make_env(render_mode: str | None = "rgb_array", **overrides) -> UAVParallelEnv:
+def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
     """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
     return UAVParallelEnv(EnvConfig.from_overrides(**overrides), render_mode=render_mode)
+
+
+def parallel_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
+    """PettingZoo's name for the parallel constructor: the same as make_env."""
+    return make_env(render_mode, **overrides)
+
+
+def aec_env(render_mode: str | None = None, **overrides):
+    """The environment as a PettingZoo AEC env (agents act in turn), via PettingZoo's parallel_to_aec."""
+    return parallel_to_aec(make_env(render_mode, **overrides))
+
+
+raw_env = aec_env  # PettingZoo's usual name for the AEC constructor
 
 
 def compile_step_kernels() -> None:
@@ -932,7 +973,7 @@ import pandas as pd
 
 from pemamoe.core import by_scale, save_figure, write_table
 
-env = make_env()
+env = make_env(render_mode="rgb_array")
 obs, infos = env.reset(seed=seed)
 print("agents:", env.agents, "| observation dim:", observation_dim(env.cfg), "| state dim:", state_dim(env.cfg))
 print("observation layout:", observation_layout(env.cfg))

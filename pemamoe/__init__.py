@@ -13,6 +13,8 @@ __version__ = "0.1.0"
 # Public names re-exported at the top level, and the module each lives in.
 _LAZY = {
     "make_env": "env",
+    "parallel_env": "env",
+    "aec_env": "env",
 }
 
 __all__ = ["__version__", *_LAZY]

@@ -1,13 +1,18 @@
 """Command line: `python -m pemamoe <command>` (hand-written dispatcher; the work is in modules)."""
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
+TRAIN_HELP = "train one MAPPO run; logs and checkpoint go to --out"
+
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pemamoe")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="python -m pemamoe", description="The PE-MAMoE companion's commands (`python -m pemamoe COMMAND --help` for a command's options).",
+        formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
+    sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
     fig.add_argument("--scale", default="small", help="ci | small | paper (default: small)")
     fig.add_argument("--figures-dir", default=None, help="output folder (default: paper_figures/)")
@@ -15,10 +20,14 @@ def main(argv=None) -> int:
     fig.add_argument("--backend", default="local", help="sweep backend: local | ray")
     fig.add_argument("--workers", type=int, default=2, help="parallel training runs")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
-    sweep = sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
-    for name in ("export", "check-export"):
-        sub.add_parser(name, help=f"literate {name.replace('-export', '')}")
+    sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["train"]:  # its choices come from the trainer's modules (torch): import them only here
+        _add_train_parser(sub)
+    else:
+        sub.add_parser("train", help=TRAIN_HELP, add_help=False)
+    sub.add_parser("export", help="write pemamoe/ from the notebooks' exported cells")
+    sub.add_parser("check-export", help="fail if pemamoe/ differs from what the notebooks export")
     if argv[:1] == ["sweep"]:  # the sweep command owns its own options
         from pemamoe.sweep import sweep_cli
 
@@ -43,7 +52,112 @@ def main(argv=None) -> int:
                               workers=args.workers, ray_address=args.ray_address)
         print(f"[figures] provenance written to {readme}")
         return 0
+    if args.command == "train":
+        return train_command(args, args.train_parser)
     return 2
+
+
+# -- train -------------------------------------------------------------------------------------
+def _int_at_least(low: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _float_at_least_zero(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
+def _add_train_parser(sub) -> argparse.ArgumentParser:
+    from pemamoe.core import SCALES
+    from pemamoe.mappo import METHODS
+    from pemamoe.phase_controller import MECHANISMS
+
+    p = sub.add_parser("train", help=TRAIN_HELP, description=(
+        "Train one MAPPO run with the same code path as pemamoe.mappo.train(config, run_dir). "
+        "A progress bar is shown when stderr is a terminal; a summary is printed at the end."))
+    p.add_argument("--method", default="pemamoe", choices=METHODS, help="actor/critic kind (default: pemamoe)")
+    p.add_argument("--scale", default="small", choices=SCALES, help="preset budget (default: small)")
+    p.add_argument("--seed", type=_int_at_least(0), default=0, help="random seed, an integer >= 0 (default: 0)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="run directory (default: results/train/<method>-s<seed>-<config hash>)")
+    p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
+                   help="switch a phase-controller mechanism off (repeatable; --method pemamoe only): "
+                        + ", ".join(MECHANISMS))
+    p.add_argument("--noise-gamma", type=_float_at_least_zero, default=None, metavar="GAMMA",
+                   help="expert noise scale of the phase controller (--method pemamoe only; default: the preset's)")
+    p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
+                   help="torch device (default: the config's)")
+    p.add_argument("--iterations", type=_int_at_least(1), default=None, metavar="N",
+                   help="training iterations, overriding the preset's")
+    p.add_argument("--no-resume", action="store_true",
+                   help="start afresh even if --out holds a checkpoint or a finished run of this config")
+    p.set_defaults(train_parser=p)
+    return p
+
+
+def train_command(args, parser: argparse.ArgumentParser) -> int:
+    """Build the TrainConfig from the flags, run pemamoe.mappo.train, print a summary."""
+    from pemamoe import mappo
+
+    overrides = {}
+    if args.iterations is not None:
+        overrides["iterations"] = args.iterations
+    if args.without:
+        overrides["without"] = tuple(args.without)
+    if args.noise_gamma is not None:
+        overrides["noise_gamma"] = args.noise_gamma
+    if args.device is not None:
+        overrides["device"] = args.device
+    if args.method != "pemamoe" and (args.without or args.noise_gamma is not None):
+        parser.error(f"--without and --noise-gamma configure the phase controller, which only --method pemamoe "
+                     f"uses; got --method {args.method}")
+    try:
+        config = mappo.TrainConfig.for_scale(args.scale, method=args.method, seed=args.seed, **overrides)
+    except ValueError as err:
+        parser.error(str(err))
+    out = Path(args.out) if args.out is not None else Path("results") / "train" / config.run_name()
+    stored = out / "config.json"
+    if not args.no_resume and stored.exists():
+        try:
+            same = mappo.TrainConfig.from_dict(json.loads(stored.read_text())).identity() == config.identity()
+        except (ValueError, TypeError, KeyError):
+            same = False
+        if not same:
+            parser.error(f"--out {out} holds a run with a different config; choose another --out, "
+                         f"or pass --no-resume to overwrite it")
+    out.mkdir(parents=True, exist_ok=True)
+    result = mappo.train(config, out, resume=not args.no_resume, progress=None)
+    print_summary(result, out)
+    return 0
+
+
+def print_summary(result, out: Path) -> None:
+    config, m = result.config, result.metrics
+    final = m.tail(config.phase_length_iters)  # the last phase, as done.json's final_episode_return
+    how = "loaded, finished earlier (--no-resume retrains)" if result.from_cache else (
+        f"resumed at iteration {result.resumed_from}" if result.resumed_from else "trained")
+    print(f"[train] {config.method}, seed {config.seed}: {len(m)} iterations, "
+          f"{int(m['env_steps'].iloc[-1]):,} env steps ({how})")
+    print(f"  final return   {final['episode_return'].mean():10.2f}  (mean over the last {len(final)} iterations)")
+    print(f"  coverage       {final['coverage'].mean():10.3f}")
+    print(f"  served users   {final['served_users'].mean():10.2f}")
+    print(f"  wall time      {m['wall_time'].iloc[-1]:10.1f} s")
+    print(f"  SPS            {m['sps'].median():10,.0f}  (median per iteration)")
+    print(f"  run directory  {out}")
 
 
 if __name__ == "__main__":

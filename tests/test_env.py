@@ -38,7 +38,7 @@ def test_spaces_and_dimensions():
 
 
 def test_render_returns_rgb_frame():
-    env = E.make_env()
+    env = E.make_env(render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3

@@ -1,0 +1,169 @@
+"""The command line, `python -m pemamoe ...`: a real ci-scale training run through a subprocess, the
+flags' mapping onto TrainConfig (with the trainer replaced by a stub), and the errors for bad input."""
+
+import dataclasses
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pandas as pd
+import pytest
+
+from pemamoe import mappo
+from pemamoe.__main__ import main
+from pemamoe.core import SCALES
+from pemamoe.phase_controller import MECHANISMS
+
+REPO = Path(__file__).resolve().parents[1]
+COMMANDS = ("figures", "sweep", "train", "export", "check-export")
+
+
+def run_cli(*args, timeout=300):
+    """`python -m pemamoe ARGS` from the repository root (so this checkout's package is imported)."""
+    return subprocess.run([sys.executable, "-m", "pemamoe", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+# -- a real run --------------------------------------------------------------------------------
+def test_ci_training_run_from_the_command_line(tmp_path, capsys):
+    out = tmp_path / "run"
+    proc = run_cli("train", "--method", "pemamoe", "--scale", "ci", "--seed", "0", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    for name in ("config.json", "metrics.parquet", "episodes.parquet", "checkpoint.pt"):
+        assert (out / name).is_file(), name
+    config = mappo.TrainConfig.from_dict(json.loads((out / "config.json").read_text()))
+    assert config == mappo.TrainConfig.for_scale("ci", method="pemamoe", seed=0)
+    metrics = pd.read_parquet(out / "metrics.parquet")
+    assert len(metrics) == config.iterations
+    # the summary reports the run's own numbers
+    final = metrics.tail(config.phase_length_iters)
+    assert re.search(rf"final return\s+{final['episode_return'].mean():.2f}\b", proc.stdout), proc.stdout
+    assert re.search(rf"coverage\s+{final['coverage'].mean():.3f}\b", proc.stdout)
+    assert re.search(rf"served users\s+{final['served_users'].mean():.2f}\b", proc.stdout)
+    assert re.search(r"wall time\s+[\d.]+ s", proc.stdout) and re.search(r"SPS\s+[\d,]+", proc.stdout)
+    assert "%|" not in proc.stderr and "it/s" not in proc.stderr  # no progress bar when not a terminal
+
+    # again (in this process, to save an interpreter start): the stored result, nothing recomputed
+    assert main(["train", "--method", "pemamoe", "--scale", "ci", "--seed", "0", "--out", str(out)]) == 0
+    assert "finished earlier" in capsys.readouterr().out
+
+
+def test_bad_method_exits_nonzero_naming_the_value_and_the_choices(tmp_path):
+    proc = run_cli("train", "--method", "transformer", "--scale", "ci", "--out", str(tmp_path / "run"))
+    assert proc.returncode != 0
+    assert "'transformer'" in proc.stderr
+    assert all(f"'{m}'" in proc.stderr for m in mappo.METHODS), proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_help_lists_every_command_on_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    for command in COMMANDS:
+        assert re.search(rf"^\s+{command}\s+\S.*$", text, re.M), f"{command} has no one-line help:\n{text}"
+
+
+# -- flags -> TrainConfig (the trainer is a stub) ----------------------------------------------------
+@pytest.fixture
+def calls(monkeypatch):
+    """Replace mappo.train by a stub that records its arguments and returns a one-row result."""
+    seen = []
+
+    def fake_train(config, run_dir=None, resume=True, **kwargs):
+        seen.append(SimpleNamespace(config=config, run_dir=run_dir, resume=resume, **kwargs))
+        metrics = pd.DataFrame({"env_steps": [64], "episode_return": [1.0], "coverage": [0.5], "served_users": [2.0],
+                                "sps": [100.0], "wall_time": [0.1]})
+        return SimpleNamespace(config=config, metrics=metrics, from_cache=False, resumed_from=None)
+
+    monkeypatch.setattr(mappo, "train", fake_train)
+    return seen
+
+
+def test_flags_reach_the_config(calls, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "--method", "pemamoe", "--scale", "ci", "--seed", "3", "--iterations", "4",
+                 "--without", "adam_reset", "--without", "lr_drop", "--noise-gamma", "0.02", "--out", str(out)]) == 0
+    (call,) = calls
+    expected = mappo.TrainConfig.for_scale("ci", method="pemamoe", seed=3, iterations=4,
+                                           without=("adam_reset", "lr_drop"), noise_gamma=0.02)
+    assert call.config == expected
+    assert not call.config.controller.adam_reset and not call.config.controller.lr_drop
+    assert call.config.controller.kl_anchor  # the others stay on
+    assert call.run_dir == out and call.resume is True and call.progress is None
+    assert "final return" in capsys.readouterr().out
+
+
+def test_defaults_and_no_resume(calls, tmp_path):
+    main(["train", "--out", str(tmp_path), "--no-resume", "--method", "mlp"])
+    (call,) = calls
+    assert call.config == mappo.TrainConfig.for_scale("small", method="mlp", seed=0)
+    assert call.resume is False
+
+
+def test_default_out_is_named_after_the_run(calls, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    main(["train", "--scale", "ci"])
+    (call,) = calls
+    assert call.run_dir == Path("results") / "train" / call.config.run_name()
+
+
+@pytest.mark.skipif("device" not in {f.name for f in dataclasses.fields(mappo.TrainConfig)},
+                    reason="TrainConfig has no device field yet")
+@pytest.mark.parametrize("device", ["cpu", "cuda", "auto"])
+def test_device_flag_reaches_the_config(calls, tmp_path, device):
+    main(["train", "--scale", "ci", "--device", device, "--out", str(tmp_path)])
+    assert calls[0].config.device == device
+
+
+def test_without_device_flag_the_config_default_is_kept(calls, tmp_path):
+    main(["train", "--scale", "ci", "--out", str(tmp_path)])
+    assert calls[0].config == mappo.TrainConfig.for_scale("ci")
+
+
+@pytest.mark.parametrize(
+    "argv, needles",
+    [
+        (["--method", "gpt"], ["--method", "'gpt'", *mappo.METHODS]),
+        (["--scale", "huge"], ["--scale", "'huge'", *SCALES]),
+        (["--iterations", "0"], ["--iterations", "'0'", ">= 1"]),
+        (["--iterations", "two"], ["--iterations", "'two'"]),
+        (["--seed", "-1"], ["--seed", "'-1'", ">= 0"]),
+        (["--without", "dropout"], ["--without", "'dropout'", *MECHANISMS]),
+        (["--noise-gamma", "-0.1"], ["--noise-gamma", "'-0.1'", ">= 0"]),
+        (["--device", "tpu"], ["--device", "'tpu'", "cpu", "cuda", "auto"]),
+        (["--method", "mlp", "--without", "adam_reset"], ["--method pemamoe", "mlp"]),
+    ],
+)
+def test_bad_input_is_rejected_naming_the_value_and_what_is_allowed(calls, capsys, tmp_path, argv, needles):
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--out", str(tmp_path / "run"), *argv])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert not calls
+
+
+def test_out_holding_another_config_is_refused_unless_no_resume(calls, capsys, tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps(mappo.TrainConfig.for_scale("ci", seed=1).to_dict()))
+    with pytest.raises(SystemExit):
+        main(["train", "--scale", "ci", "--seed", "0", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert "different config" in err and "--no-resume" in err and not calls
+    main(["train", "--scale", "ci", "--seed", "0", "--out", str(tmp_path), "--no-resume"])
+    assert calls[0].resume is False
+
+
+# -- the progress bar (train's own keyword) ----------------------------------------------------
+def test_train_progress_bar_only_on_request_or_a_terminal(capsys):
+    config = mappo.TrainConfig.for_scale("ci", iterations=2)
+    mappo.train(config, progress=True)
+    err = capsys.readouterr().err
+    assert "2/2" in err and "phase=" in err and "sps=" in err
+    mappo.train(config)  # progress=None: stderr is not a terminal here
+    assert capsys.readouterr().err == ""
