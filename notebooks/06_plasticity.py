@@ -54,6 +54,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
 from pemamoe.nets import gaussian_kl
@@ -778,21 +779,43 @@ class RunAdamW:
     def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
         """lr (R,), stepping (R,) bool, frozen (R, G) bool or None. Uses and clears flat.grad."""
         p, grad = self.flat, self.flat.grad
+        lr = lr.to(p.dtype).unsqueeze(1)
         active_g = stepping.unsqueeze(1).expand(-1, self.n_groups)
         if frozen is not None:
             active_g = active_g & ~frozen
         steps = self.steps + active_g.to(self.steps.dtype)
-        active = active_g.index_select(1, self.group_of)
-        lr = lr.to(p.dtype).unsqueeze(1)
-        m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
-        v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
-        safe = steps.clamp(min=1)
-        step_size = (lr / (1 - self.beta1 ** safe).index_select(1, self.group_of))
-        bc2_sqrt = (1 - self.beta2 ** safe).sqrt().index_select(1, self.group_of)
-        new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
-        p.copy_(torch.where(active, new, p))
-        self.exp_avg, self.exp_avg_sq, self.steps = m, v, steps
+        cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
+        if self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
+            # every group of a member has the same step count: (R, 1) factors broadcast
+            active = stepping.unsqueeze(1)
+            safe = steps[:, :1].clamp(min=1)
+            step_size = lr / (1 - self.beta1 ** safe)
+            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
+        else:  # per-element factors: group values spread by a one-hot product (exact: x * 1 + 0)
+            onehot = self._onehot()
+            active = (active_g.to(p.dtype) @ onehot) > 0.5
+            safe = steps.clamp(min=1)
+            step_size = (lr / (1 - self.beta1 ** safe)).to(p.dtype) @ onehot
+            bc2_sqrt = (1 - self.beta2 ** safe).sqrt().to(p.dtype) @ onehot
+        if cpu and frozen is None and bool(stepping.all()):
+            # the usual case, in place (on the CPU the check costs nothing; on a GPU it would sync)
+            p.mul_(1 - lr * self.weight_decay)
+            self.exp_avg.lerp_(grad, 1 - self.beta1)
+            self.exp_avg_sq.mul_(self.beta2).add_((1 - self.beta2) * grad * grad)
+            p.sub_(step_size * self.exp_avg / (self.exp_avg_sq.sqrt() / bc2_sqrt + self.eps))
+        else:
+            m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
+            v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
+            new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
+            p.copy_(torch.where(active, new, p))
+            self.exp_avg, self.exp_avg_sq = m, v
+        self.steps = steps
         self.flat.grad = None
+
+    def _onehot(self) -> torch.Tensor:
+        if getattr(self, "_onehot_cache", None) is None:
+            self._onehot_cache = F.one_hot(self.group_of, self.n_groups).T.to(self.flat.dtype).contiguous()
+        return self._onehot_cache
 
     @torch.no_grad()
     def reset(self, member: int, mask: torch.Tensor | None = None) -> None:

@@ -11,12 +11,13 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
 from pemamoe.nets import gaussian_kl
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 156)
+# %% notebooks/06_plasticity.py, cell 8 (line 157)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
 GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
@@ -179,7 +180,7 @@ class BaseSchedule:
         _need(own, self, "temperature", _is_real(self.temperature) and self.temperature > 0, "a float > 0")
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 342)
+# %% notebooks/06_plasticity.py, cell 10 (line 343)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -227,7 +228,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 405)
+# %% notebooks/06_plasticity.py, cell 12 (line 406)
 def expert_parameters(actor, expert: int) -> list:
     """Views of the trunk parameters of one expert (weights and biases of both hidden layers)."""
     gate = getattr(actor, "gate", None)
@@ -279,7 +280,7 @@ def reset_adam_state(optimizer) -> None:
     optimizer.state.clear()
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 517)
+# %% notebooks/06_plasticity.py, cell 15 (line 518)
 @dataclass(frozen=True)
 class IterationSettings:
     """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
@@ -465,7 +466,7 @@ class PhaseController:
         self.settings = None
 
 
-# %% notebooks/06_plasticity.py, cell 17 (line 753)
+# %% notebooks/06_plasticity.py, cell 17 (line 754)
 class RunAdamW:
     """AdamW over a population's flat parameters (R, P), every member with its own learning
     rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
@@ -492,21 +493,43 @@ class RunAdamW:
     def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
         """lr (R,), stepping (R,) bool, frozen (R, G) bool or None. Uses and clears flat.grad."""
         p, grad = self.flat, self.flat.grad
+        lr = lr.to(p.dtype).unsqueeze(1)
         active_g = stepping.unsqueeze(1).expand(-1, self.n_groups)
         if frozen is not None:
             active_g = active_g & ~frozen
         steps = self.steps + active_g.to(self.steps.dtype)
-        active = active_g.index_select(1, self.group_of)
-        lr = lr.to(p.dtype).unsqueeze(1)
-        m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
-        v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
-        safe = steps.clamp(min=1)
-        step_size = (lr / (1 - self.beta1 ** safe).index_select(1, self.group_of))
-        bc2_sqrt = (1 - self.beta2 ** safe).sqrt().index_select(1, self.group_of)
-        new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
-        p.copy_(torch.where(active, new, p))
-        self.exp_avg, self.exp_avg_sq, self.steps = m, v, steps
+        cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
+        if self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
+            # every group of a member has the same step count: (R, 1) factors broadcast
+            active = stepping.unsqueeze(1)
+            safe = steps[:, :1].clamp(min=1)
+            step_size = lr / (1 - self.beta1 ** safe)
+            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
+        else:  # per-element factors: group values spread by a one-hot product (exact: x * 1 + 0)
+            onehot = self._onehot()
+            active = (active_g.to(p.dtype) @ onehot) > 0.5
+            safe = steps.clamp(min=1)
+            step_size = (lr / (1 - self.beta1 ** safe)).to(p.dtype) @ onehot
+            bc2_sqrt = (1 - self.beta2 ** safe).sqrt().to(p.dtype) @ onehot
+        if cpu and frozen is None and bool(stepping.all()):
+            # the usual case, in place (on the CPU the check costs nothing; on a GPU it would sync)
+            p.mul_(1 - lr * self.weight_decay)
+            self.exp_avg.lerp_(grad, 1 - self.beta1)
+            self.exp_avg_sq.mul_(self.beta2).add_((1 - self.beta2) * grad * grad)
+            p.sub_(step_size * self.exp_avg / (self.exp_avg_sq.sqrt() / bc2_sqrt + self.eps))
+        else:
+            m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
+            v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
+            new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
+            p.copy_(torch.where(active, new, p))
+            self.exp_avg, self.exp_avg_sq = m, v
+        self.steps = steps
         self.flat.grad = None
+
+    def _onehot(self) -> torch.Tensor:
+        if getattr(self, "_onehot_cache", None) is None:
+            self._onehot_cache = F.one_hot(self.group_of, self.n_groups).T.to(self.flat.dtype).contiguous()
+        return self._onehot_cache
 
     @torch.no_grad()
     def reset(self, member: int, mask: torch.Tensor | None = None) -> None:
