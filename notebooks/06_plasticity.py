@@ -114,7 +114,7 @@ from pemamoe.nets import gaussian_kl
 # group and keeps learning; the value function has to track the new rewards immediately.
 
 # %% [markdown]
-# ## Two contradictions in the paper
+# ## Contradictions in the paper, and readings it leaves open
 #
 # **Temperature direction.** The text says the router temperature is raised right after a switch
 # and lowered as the phase settles. The formula printed next to it,
@@ -145,6 +145,24 @@ from pemamoe.nets import gaussian_kl
 # the factor, $\gamma = 0.005$ is a few percent of a typical trunk weight (orthogonal init with
 # gain $\sqrt 2$ at width 32 gives weights of size $\approx 0.1$–$0.25$), a real but modest
 # shake. We follow Algorithm 1 by default; `noise_lr_factor=True` gives the equation's reading.
+#
+# **The length of the noise window.** Algorithm 1 injects noise for N = 30 update *epochs* after a
+# switch. The paper's cost paragraph counts its ~10,800 training iterations as "epochs" ("N = 30
+# epochs out of ~10,800"), which would make the window 30 *iterations* of 8 epochs each, 8 times
+# longer. We keep Algorithm 1's reading by default; `noise_window_unit="iterations"` gives the other.
+#
+# **A dense or a gated critic?** The text says the centralised critic "remains dense", while the
+# architecture figure draws a critic MoE encoder and the results plot value-router probabilities.
+# We build each method's critic with the actor's network kind (so the gated methods have a gated
+# critic with its own router, and the value-router figures exist), and we compute every value the
+# advantage estimates use with **noiseless** gating (notebook 07), so that gate noise does not add
+# variance to the baseline of the gated methods only.
+#
+# **Is the phase observable?** In the `cycle` demand mode every user's class one-hot in the
+# observation changes with the phase, so an agent can read the regime off its input. The paper
+# says the agents infer the regime from demand, which is what this does; the `mix` mode and the
+# held-out regime make the inference less direct. We note it because it makes the switches easier
+# to detect than a hidden change of dynamics would be.
 
 # %% [markdown]
 # ## Configuration

@@ -17,7 +17,7 @@ from torch.distributions import kl_divergence
 from pemamoe.nets import gaussian_kl
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 157)
+# %% notebooks/06_plasticity.py, cell 8 (line 175)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
 GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
@@ -180,7 +180,7 @@ class BaseSchedule:
         _need(own, self, "temperature", _is_real(self.temperature) and self.temperature > 0, "a float > 0")
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 343)
+# %% notebooks/06_plasticity.py, cell 10 (line 361)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -228,7 +228,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 406)
+# %% notebooks/06_plasticity.py, cell 12 (line 424)
 def expert_parameters(actor, expert: int) -> list:
     """Views of the trunk parameters of one expert (weights and biases of both hidden layers)."""
     gate = getattr(actor, "gate", None)
@@ -280,7 +280,7 @@ def reset_adam_state(optimizer) -> None:
     optimizer.state.clear()
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 518)
+# %% notebooks/06_plasticity.py, cell 15 (line 536)
 @dataclass(frozen=True)
 class IterationSettings:
     """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
@@ -466,7 +466,7 @@ class PhaseController:
         self.settings = None
 
 
-# %% notebooks/06_plasticity.py, cell 17 (line 754)
+# %% notebooks/06_plasticity.py, cell 17 (line 772)
 class RunAdamW:
     """AdamW over a population's flat parameters (R, P), every member with its own learning
     rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
