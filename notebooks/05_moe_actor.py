@@ -56,7 +56,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal
 
-from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 # %% [markdown]
 # ## Reading the architecture off the paper's parameter counts
@@ -142,7 +142,24 @@ def register_method(spec: MethodSpec) -> MethodSpec:
     return METHOD_REGISTRY[spec.name]
 
 
+def load_plugins() -> None:
+    """Import the modules named in $PEMAMOE_PLUGINS (comma-separated), once: how methods, network
+    kinds and plasticity methods defined outside the package reach every process of a sweep."""
+    import importlib
+    import os
+
+    for module in filter(None, (m.strip() for m in os.environ.get("PEMAMOE_PLUGINS", "").split(","))):
+        if module not in _LOADED_PLUGINS:
+            _LOADED_PLUGINS.add(module)
+            importlib.import_module(module)
+
+
+_LOADED_PLUGINS: set = set()
+
+
 def method_spec(name: str) -> MethodSpec:
+    if name not in METHOD_REGISTRY:
+        load_plugins()
     if name not in METHOD_REGISTRY:
         raise ValueError(f"method must be one of {', '.join(METHOD_REGISTRY)}, got {name!r}")
     return METHOD_REGISTRY[name]
@@ -1227,6 +1244,8 @@ register_network("smoe", SMoEActor, SMoECritic)
 
 def network_kind(name: str) -> str:
     """A network kind, or a method name resolved through the method registry."""
+    if name not in NETWORKS and name not in METHOD_REGISTRY:
+        load_plugins()
     if name in NETWORKS:
         return name
     if name in METHOD_REGISTRY:

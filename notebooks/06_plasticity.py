@@ -57,6 +57,7 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
+from pemamoe.methods import load_plugins
 from pemamoe.nets import gaussian_kl
 
 # %% [markdown]
@@ -922,6 +923,8 @@ def register_plasticity(cls):
 
 def plasticity_method(name: str):
     if name not in PLASTICITY_METHODS:
+        load_plugins()
+    if name not in PLASTICITY_METHODS:
         raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r}")
     return PLASTICITY_METHODS[name]
 
@@ -971,12 +974,20 @@ class NoPlasticity:
         return [0] * self.R
 
     def state_dict(self, r: int) -> dict:
-        return {}
+        gens = getattr(self, "_generators", None)
+        return {} if gens is None else {"generator": gens[r].get_state()}
 
     def load_state_dict(self, r: int, state: dict) -> None:
-        pass
+        if "generator" in state:
+            self.member_generator(r).set_state(state["generator"])
 
     # helpers for subclasses ---------------------------------------------------------------------
+    def member_generator(self, r: int) -> torch.Generator:
+        """Member r's own random generator (seeded from its config's seed; checkpointed)."""
+        if getattr(self, "_generators", None) is None:
+            self._generators = [torch.Generator().manual_seed(int(c.seed) + 11) for c in self.configs]
+        return self._generators[r]
+
     def expert_indices(self) -> list:
         """Flat indices of each expert's trunk parameters in a member's row: [(E_i,) long]."""
         if not hasattr(self, "_expert_idx"):

@@ -270,6 +270,10 @@ class TrainConfig:
             if not ok:
                 raise ValueError(f"TrainConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
 
+        try:
+            method_spec(self.method) if isinstance(self.method, str) else None
+        except ValueError:
+            pass
         need("method", isinstance(self.method, str) and self.method in METHOD_REGISTRY,
              f"one of {', '.join(METHOD_REGISTRY)}")
         need("device", self.device in DEVICES, f"one of {', '.join(DEVICES)}")

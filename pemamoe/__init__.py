@@ -15,6 +15,11 @@ _LAZY = {
     "make_env": "env",
     "parallel_env": "env",
     "aec_env": "env",
+    "train": "mappo",
+    "train_population": "mappo",
+    "TrainConfig": "mappo",
+    "register_method": "methods",
+    "MethodSpec": "methods",
 }
 
 __all__ = ["__version__", *_LAZY]

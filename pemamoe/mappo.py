@@ -111,6 +111,10 @@ class TrainConfig:
             if not ok:
                 raise ValueError(f"TrainConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
 
+        try:
+            method_spec(self.method) if isinstance(self.method, str) else None
+        except ValueError:
+            pass
         need("method", isinstance(self.method, str) and self.method in METHOD_REGISTRY,
              f"one of {', '.join(METHOD_REGISTRY)}")
         need("device", self.device in DEVICES, f"one of {', '.join(DEVICES)}")
@@ -309,13 +313,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 500)
+# %% notebooks/07_mappo.py, cell 12 (line 504)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 529)
+# %% notebooks/07_mappo.py, cell 14 (line 533)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -348,7 +352,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 585)
+# %% notebooks/07_mappo.py, cell 18 (line 589)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -391,7 +395,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 642)
+# %% notebooks/07_mappo.py, cell 20 (line 646)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -555,7 +559,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 848)
+# %% notebooks/07_mappo.py, cell 22 (line 852)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -714,7 +718,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1033)
+# %% notebooks/07_mappo.py, cell 24 (line 1037)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -767,7 +771,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1086)
+# %% notebooks/07_mappo.py, cell 25 (line 1090)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -880,7 +884,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1207)
+# %% notebooks/07_mappo.py, cell 27 (line 1211)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1162,7 +1166,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[3])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1497)
+# %% notebooks/07_mappo.py, cell 29 (line 1501)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -16,10 +16,10 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal
 
-from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 
-# %% notebooks/05_moe_actor.py, cell 9 (line 202)
+# %% notebooks/05_moe_actor.py, cell 9 (line 219)
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
@@ -77,7 +77,7 @@ class NetConfig:
             need(is_real(getattr(self, name)) and getattr(self, name) > 0, name, "a float > 0")
 
 
-# %% notebooks/05_moe_actor.py, cell 11 (line 294)
+# %% notebooks/05_moe_actor.py, cell 11 (line 311)
 class ExpertBank(nn.Module):
     """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
 
@@ -176,7 +176,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05_moe_actor.py, cell 13 (line 431)
+# %% notebooks/05_moe_actor.py, cell 13 (line 448)
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -317,7 +317,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 605)
+# %% notebooks/05_moe_actor.py, cell 15 (line 622)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -330,7 +330,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 16 (line 619)
+# %% notebooks/05_moe_actor.py, cell 16 (line 636)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -535,7 +535,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 18 (line 836)
+# %% notebooks/05_moe_actor.py, cell 18 (line 853)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -604,7 +604,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 20 (line 931)
+# %% notebooks/05_moe_actor.py, cell 20 (line 948)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -867,7 +867,7 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
     return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 
-# %% notebooks/05_moe_actor.py, cell 22 (line 1209)
+# %% notebooks/05_moe_actor.py, cell 22 (line 1226)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
@@ -887,6 +887,8 @@ register_network("smoe", SMoEActor, SMoECritic)
 
 def network_kind(name: str) -> str:
     """A network kind, or a method name resolved through the method registry."""
+    if name not in NETWORKS and name not in METHOD_REGISTRY:
+        load_plugins()
     if name in NETWORKS:
         return name
     if name in METHOD_REGISTRY:
@@ -950,7 +952,7 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
     return sum(parts[name][1] * n for name, n in used.items())
 
 
-# %% notebooks/05_moe_actor.py, cell 24 (line 1301)
+# %% notebooks/05_moe_actor.py, cell 24 (line 1320)
 def _median_us(fn, repeats: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()

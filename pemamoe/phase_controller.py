@@ -14,10 +14,11 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
+from pemamoe.methods import load_plugins
 from pemamoe.nets import gaussian_kl
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 175)
+# %% notebooks/06_plasticity.py, cell 8 (line 176)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
 GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
@@ -180,7 +181,7 @@ class BaseSchedule:
         _need(own, self, "temperature", _is_real(self.temperature) and self.temperature > 0, "a float > 0")
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 361)
+# %% notebooks/06_plasticity.py, cell 10 (line 362)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -228,7 +229,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 424)
+# %% notebooks/06_plasticity.py, cell 12 (line 425)
 def expert_parameters(actor, expert: int) -> list:
     """Views of the trunk parameters of one expert (weights and biases of both hidden layers)."""
     gate = getattr(actor, "gate", None)
@@ -280,7 +281,7 @@ def reset_adam_state(optimizer) -> None:
     optimizer.state.clear()
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 536)
+# %% notebooks/06_plasticity.py, cell 15 (line 537)
 @dataclass(frozen=True)
 class IterationSettings:
     """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
@@ -466,7 +467,7 @@ class PhaseController:
         self.settings = None
 
 
-# %% notebooks/06_plasticity.py, cell 17 (line 772)
+# %% notebooks/06_plasticity.py, cell 17 (line 773)
 class RunAdamW:
     """AdamW over a population's flat parameters (R, P), every member with its own learning
     rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
@@ -618,6 +619,8 @@ def register_plasticity(cls):
 
 def plasticity_method(name: str):
     if name not in PLASTICITY_METHODS:
+        load_plugins()
+    if name not in PLASTICITY_METHODS:
         raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r}")
     return PLASTICITY_METHODS[name]
 
@@ -667,12 +670,20 @@ class NoPlasticity:
         return [0] * self.R
 
     def state_dict(self, r: int) -> dict:
-        return {}
+        gens = getattr(self, "_generators", None)
+        return {} if gens is None else {"generator": gens[r].get_state()}
 
     def load_state_dict(self, r: int, state: dict) -> None:
-        pass
+        if "generator" in state:
+            self.member_generator(r).set_state(state["generator"])
 
     # helpers for subclasses ---------------------------------------------------------------------
+    def member_generator(self, r: int) -> torch.Generator:
+        """Member r's own random generator (seeded from its config's seed; checkpointed)."""
+        if getattr(self, "_generators", None) is None:
+            self._generators = [torch.Generator().manual_seed(int(c.seed) + 11) for c in self.configs]
+        return self._generators[r]
+
     def expert_indices(self) -> list:
         """Flat indices of each expert's trunk parameters in a member's row: [(E_i,) long]."""
         if not hasattr(self, "_expert_idx"):
