@@ -30,9 +30,11 @@ from pemamoe.phase_controller import (
     build_param_groups,
 )
 from pemamoe.phases import PhaseSchedule
+from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
+                          verify_done, write_done)
 
 
-# %% notebooks/07_mappo.py, cell 7 (line 154)
+# %% notebooks/07_mappo.py, cell 7 (line 156)
 METHODS = ACTOR_KINDS  # ("mlp", "moe", "smoe", "pemamoe")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
@@ -133,6 +135,9 @@ class TrainConfig:
             except (ValueError, TypeError) as err:
                 raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
         object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
+        for f in fields(self):  # numpy scalars (e.g. a seed from np.arange) -> plain numbers, so JSON can save them
+            if isinstance(getattr(self, f.name), (np.integer, np.floating)):
+                object.__setattr__(self, f.name, getattr(self, f.name).item())
 
     # -- derived quantities ---------------------------------------------------------------------
     @property
@@ -273,13 +278,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 425)
+# %% notebooks/07_mappo.py, cell 12 (line 430)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 454)
+# %% notebooks/07_mappo.py, cell 14 (line 459)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -312,7 +317,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 510)
+# %% notebooks/07_mappo.py, cell 18 (line 515)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -355,7 +360,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 567)
+# %% notebooks/07_mappo.py, cell 20 (line 572)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -473,7 +478,7 @@ def collect_rollout(venv, actor, critic, value_norm: RunningNorm, obs, state, st
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 726)
+# %% notebooks/07_mappo.py, cell 22 (line 731)
 def _mean(values):
     return float(np.mean(values)) if len(values) else float("nan")
 
@@ -567,7 +572,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 846)
+# %% notebooks/07_mappo.py, cell 24 (line 852)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -620,7 +625,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 899)
+# %% notebooks/07_mappo.py, cell 25 (line 905)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -672,48 +677,47 @@ def _build(config: TrainConfig, obs_dim: int, state_dim: int):
 
 
 def load_run(run_dir) -> RunResult:
-    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint)."""
-    run_dir = Path(run_dir)
-    config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint).
+    finished is True only when done.json verifies (pemamoe.runs.verify_done; a bad one raises)."""
+    run_dir = check_run_dir(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    done = verify_done(run_dir, config)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None)
     env_cfg = config.env_config()
     actor, critic, _, _ = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])
     critic.load_state_dict(ckpt["critic"])
-    return RunResult(config, pd.read_parquet(run_dir / "metrics.parquet"), pd.read_parquet(run_dir / "episodes.parquet"),
-                     actor, critic, run_dir, finished=(run_dir / "done.json").exists(), from_cache=True)
+    return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
+                     actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 969)
+# %% notebooks/07_mappo.py, cell 27 (line 977)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False) -> RunResult:
     """Run MAPPO for `config` (everything follows from it and its seed).
 
     run_dir: where config.json, metrics.parquet, episodes.parquet, checkpoint.pt and done.json go
     (None: nothing is written). resume: continue from run_dir's checkpoint (or return the stored
-    result when done.json exists). max_iterations: stop after this many iterations in total,
+    result when done.json verifies; see pemamoe.runs for the folder's lock and checks). max_iterations: stop after this many iterations in total,
     checkpointing, without done.json. threads: torch threads during the run (restored after).
     """
-    run_dir = None if run_dir is None else Path(run_dir)
-    if run_dir is not None:
-        _check_run_dir(config, run_dir, resume)
-        if resume and (run_dir / "done.json").exists():
+    # run folder rules (lock, verified done.json, checked checkpoint): pemamoe.runs, notebook 07b
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise ValueError(f"train: threads must be an int >= 1 or None, got {threads!r}")
+    if max_iterations is not None and (not _is_int(max_iterations) or max_iterations < 1):
+        raise ValueError(f"train: max_iterations must be an int >= 1 or None, got {max_iterations!r}")
+    if run_dir is None:
+        with _Determinism(threads):
+            return _train(config, None, resume, max_iterations, verbose)
+    run_dir = check_run_dir(run_dir)
+    if resume and verify_done(run_dir, config):  # a finished run is read without the lock
+        return dataclasses.replace(load_run(run_dir), config=config)
+    with lock_run(run_dir):  # one writer per folder, for the whole run
+        prepare_run_dir(run_dir, config, resume)
+        if resume and verify_done(run_dir, config):  # finished while we waited for the lock
             return dataclasses.replace(load_run(run_dir), config=config)
-    with _Determinism(threads):
-        return _train(config, run_dir, resume, max_iterations, verbose)
-
-
-def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
-    cfg_path = run_dir / "config.json"
-    if resume and cfg_path.exists():
-        stored = TrainConfig.from_dict(json.loads(cfg_path.read_text()))
-        if stored.identity() != config.identity():
-            raise ValueError(f"{run_dir} holds a run with a different config; use another run_dir or resume=False")
-        return
-    if not resume:
-        for name in ("done.json", "checkpoint.pt"):
-            (run_dir / name).unlink(missing_ok=True)
-    atomic_write_json(cfg_path, config.to_dict())
+        with _Determinism(threads):
+            return _train(config, run_dir, resume, max_iterations, verbose)
 
 
 def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> RunResult:
@@ -733,8 +737,10 @@ def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> Run
     start, global_step, metrics_rows, episode_rows, resumed_from, elapsed = 0, 0, [], [], None, 0.0
 
     ckpt_path = None if run_dir is None else run_dir / "checkpoint.pt"
+    torch_threads = {torch.get_num_threads()}  # recorded: results with 1 and 2 threads differ
     if resume and ckpt_path is not None and ckpt_path.exists():
-        ck = torch.load(ckpt_path, weights_only=True)
+        ck = load_checkpoint(ckpt_path, config)  # refuses another run's checkpoint, names a torn one
+        torch_threads.update(ck.get("torch_threads", ()))
         actor.load_state_dict(ck["actor"]), critic.load_state_dict(ck["critic"])
         cstate = dict(ck["controller"])
         if not config.controller_enabled:  # a baseline's (unused) controller settings may differ
@@ -760,7 +766,7 @@ def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> Run
             "tracker": tracker.state_dict(), "env": _encode(venv.state_dict()),
             "obs": torch.from_numpy(obs.copy()), "state": torch.from_numpy(state.copy()),
             "torch_rng": torch.get_rng_state(), "numpy_rng": rng.bit_generator.state,
-            "metrics_rows": metrics_rows, "episode_rows": episode_rows,
+            "metrics_rows": metrics_rows, "episode_rows": episode_rows, "torch_threads": sorted(torch_threads),
         }, ckpt_path)
         _write_parquet_atomic(metrics_rows, run_dir / "metrics.parquet")
         _write_parquet_atomic(episode_rows, run_dir / "episodes.parquet")
@@ -830,11 +836,9 @@ def _train(config: TrainConfig, run_dir, resume, max_iterations, verbose) -> Run
         if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
             save()
         final = pd.DataFrame(metrics_rows)
-        atomic_write_json(run_dir / "done.json", {
-            "finished": True, "iterations": config.iterations, "env_steps": global_step,
-            "config_hash": config.config_hash(), "wall_time_s": elapsed + time.perf_counter() - wall_start,
-            "final_episode_return": float(final["episode_return"].tail(config.phase_length_iters).mean()),
-        })
+        write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(torch_threads),
+                   wall_time_s=elapsed + time.perf_counter() - wall_start,
+                   final_episode_return=float(final["episode_return"].tail(config.phase_length_iters).mean()))
     return RunResult(config, pd.DataFrame(metrics_rows), pd.DataFrame(episode_rows), actor, critic, run_dir,
                      finished=finished, resumed_from=resumed_from)
 
@@ -876,7 +880,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[2])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1168)
+# %% notebooks/07_mappo.py, cell 29 (line 1173)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
