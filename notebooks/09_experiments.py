@@ -21,9 +21,9 @@
 #
 # Compute and plotting are separate. The first half defines **sweeps**: a run is a point
 # (method, seed, ablation, noise level, scale) whose resolved training configuration is hashed to
-# name its folder under `results/`. A sweep skips every run whose folder holds `done.json`, and a
-# run killed half-way resumes from its last checkpoint, so rerunning a sweep after an interruption
-# only does the missing work. The second half only *reads* those folders and draws; changing a plot
+# name its folder under `results/`. A sweep skips every run whose folder holds a `done.json` that
+# verifies (notebook 07b), and a run killed half-way resumes from its last checkpoint, so rerunning
+# a sweep after an interruption (Ctrl-C, SIGTERM, even SIGKILL) only does the missing work. The second half only *reads* those folders and draws; changing a plot
 # never retrains.
 #
 # Runs execute on a local process pool by default (each worker single-threaded so 2 cores are not
