@@ -982,8 +982,9 @@ def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterati
 
     run_dir: where config.json, metrics.parquet, episodes.parquet, checkpoint.pt and done.json go
     (None: nothing is written). resume: continue from run_dir's checkpoint (or return the stored
-    result when done.json verifies; see pemamoe.runs for the folder's lock and checks). max_iterations: stop after this many iterations in total,
+    result when done.json verifies). max_iterations: stop after this many iterations in total,
     checkpointing, without done.json. threads: torch threads during the run (restored after).
+    The folder's rules (one writer, verified done.json, checked checkpoint): pemamoe.runs, notebook 07b.
     """
     # run folder rules (lock, verified done.json, checked checkpoint): pemamoe.runs, notebook 07b
     if threads is not None and (not _is_int(threads) or threads < 1):
@@ -998,7 +999,7 @@ def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterati
         return dataclasses.replace(load_run(run_dir), config=config)
     with lock_run(run_dir):  # one writer per folder, for the whole run
         prepare_run_dir(run_dir, config, resume)
-        if resume and verify_done(run_dir, config):  # finished while we waited for the lock
+        if resume and verify_done(run_dir, config):  # finished between the check above and the lock
             return dataclasses.replace(load_run(run_dir), config=config)
         with _Determinism(threads):
             return _train(config, run_dir, resume, max_iterations, verbose)

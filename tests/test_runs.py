@@ -162,9 +162,9 @@ def test_bad_train_arguments_are_rejected(tmp_path, monkeypatch):
 
 def test_numpy_seed_saves(tmp_path):
     cfg = TrainConfig.for_scale("ci", seed=np.int64(1))
-    assert type(cfg.seed) is int and cfg == TrainConfig.for_scale("ci", seed=1)
-    res = train(cfg, tmp_path, max_iterations=1)
+    res = train(cfg, tmp_path, max_iterations=1)  # failed: "Object of type int64 is not JSON serializable"
     assert not res.finished and json.loads((tmp_path / "config.json").read_text())["seed"] == 1
+    assert type(cfg.seed) is int and cfg == TrainConfig.for_scale("ci", seed=1)
 
 
 # --- the lock -------------------------------------------------------------------------------------
