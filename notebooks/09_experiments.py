@@ -179,6 +179,8 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if not isinstance(threads_per_run, int) or isinstance(threads_per_run, bool) or threads_per_run < 1:
         raise ValueError(f"threads_per_run must be an integer >= 1, got {threads_per_run!r}")
+    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
+        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
     results_dir = Path(results_dir)
     # Two specs can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's
@@ -246,7 +248,12 @@ def _stop_on_signals():
         yield
         return
 
+    fired = []
+
     def handler(signum, frame):
+        if fired:  # already stopping: a second Ctrl-C must not interrupt the clean-up
+            return
+        fired.append(signum)
         raise SweepInterrupted(signum)
 
     old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}

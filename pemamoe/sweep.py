@@ -114,6 +114,8 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if not isinstance(threads_per_run, int) or isinstance(threads_per_run, bool) or threads_per_run < 1:
         raise ValueError(f"threads_per_run must be an integer >= 1, got {threads_per_run!r}")
+    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
+        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
     results_dir = Path(results_dir)
     # Two specs can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's
@@ -136,7 +138,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     return [s.run_dir(results_dir) for s in specs]
 
 
-# %% notebooks/09_experiments.py, cell 10 (line 219)
+# %% notebooks/09_experiments.py, cell 10 (line 221)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -165,7 +167,12 @@ def _stop_on_signals():
         yield
         return
 
+    fired = []
+
     def handler(signum, frame):
+        if fired:  # already stopping: a second Ctrl-C must not interrupt the clean-up
+            return
+        fired.append(signum)
         raise SweepInterrupted(signum)
 
     old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -277,7 +284,7 @@ def _run_ray(todo, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09_experiments.py, cell 12 (line 373)
+# %% notebooks/09_experiments.py, cell 12 (line 380)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -323,7 +330,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 14 (line 427)
+# %% notebooks/09_experiments.py, cell 14 (line 434)
 def sweep_cli(argv=None) -> int:
     import argparse
 

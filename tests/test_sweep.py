@@ -112,6 +112,8 @@ def test_numpy_seeds_work_in_a_sweep(tmp_path, finished_mlp):
     assert type(specs[0].seed) is int and specs[0] == RunSpec("mlp", 0, "ci")
     with pytest.raises(ValueError, match="RunSpec.seed must be an int >= 0"):
         RunSpec("mlp", 1.5)
+    with pytest.raises(ValueError, match="results_dir must be a non-empty folder path"):
+        run_sweep(specs, "local", workers=1, results_dir="")
 
 
 def test_a_corrupt_or_foreign_done_marker_stops_the_sweep(tmp_path, finished_mlp):
@@ -176,12 +178,12 @@ def test_sigint_stops_the_workers_and_starts_nothing_queued(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 128 + signal.SIGINT, out
-    assert "stopped by SIGINT" in out and "rerun the same command to resume" in out
-    assert stopped < 15, f"took {stopped:.1f} s to stop"
     gone, alive = psutil.wait_procs(tree, timeout=10)
     assert not alive, f"left running: {alive}"
     assert not folders[2].exists(), "a queued run started after the interrupt"
+    assert stopped < 15, f"took {stopped:.1f} s to stop"
+    assert proc.returncode == 128 + signal.SIGINT, out
+    assert "stopped by SIGINT" in out and "rerun the same command to resume" in out
 
 
 def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
