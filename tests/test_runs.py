@@ -231,3 +231,12 @@ def test_a_torch_script_reading_results_exits_cleanly(store):
         results = list(pool.map(once, range(30)))
     failures = [r for r in results if r[0] != 0]
     assert not failures, f"{len(failures)} of 30 exited non-zero, e.g. {failures[0]}"
+
+
+def test_appendix_notebook_runs(capsys):
+    """07b is not a figure notebook (figure_notebooks() lists NN_*.py only): run it as a script here."""
+    import runpy
+
+    runpy.run_path(str(ROOT / "notebooks" / "07b_run_folders.py"), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "(this process: one folder per run)" in out and "checkpoint.pt is empty (0 bytes)" in out
