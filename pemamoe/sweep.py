@@ -162,7 +162,8 @@ def _worker_init(parent_pid: int) -> None:
 
 @contextmanager
 def _stop_on_signals():
-    """In the main thread: SIGINT and SIGTERM raise SweepInterrupted (old handlers restored after)."""
+    """In the main thread: SIGINT and SIGTERM raise SweepInterrupted (old handlers restored after;
+    nestable, so a backend that installs its own handlers, as ray.init does, can take them back)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -178,6 +179,10 @@ def _stop_on_signals():
     old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
+    except SweepInterrupted:
+        raise
+    except KeyboardInterrupt as err:  # Ray turns a signal that arrives inside ray.wait into its own
+        raise SweepInterrupted(fired[0] if fired else signal.SIGINT) from err
     finally:
         for sig, h in old.items():
             signal.signal(sig, h)
@@ -263,17 +268,18 @@ def _run_ray(todo, results_dir, workers, address, threads, report):
                      runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
     errors, pending = [], []
     try:
-        task = ray.remote(num_cpus=threads)(execute_run)
-        refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
-        pending = list(refs)
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            try:
-                ray.get(done[0])
-            except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
-                errors.append((refs[done[0]], err))
-                continue
-            report(refs[done[0]])
+        with _stop_on_signals():  # again after ray.init, which may install handlers of its own
+            task = ray.remote(num_cpus=threads)(execute_run)
+            refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
+            pending = list(refs)
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                try:
+                    ray.get(done[0])
+                except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
+                    errors.append((refs[done[0]], err))
+                    continue
+                report(refs[done[0]])
     except BaseException:  # SweepInterrupted: kill the running tasks, drop the queued ones
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -284,7 +290,7 @@ def _run_ray(todo, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09_experiments.py, cell 12 (line 380)
+# %% notebooks/09_experiments.py, cell 12 (line 386)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -330,7 +336,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 14 (line 434)
+# %% notebooks/09_experiments.py, cell 14 (line 440)
 def sweep_cli(argv=None) -> int:
     import argparse
 
