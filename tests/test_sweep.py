@@ -197,6 +197,7 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
         _wait_for(lambda: any((f / "config.json").exists() for f in folders), 240, "a Ray task to start")
         os.kill(os.getpid(), signal.SIGINT)
 
+    before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. multiprocessing's resource tracker
     threading.Thread(target=interrupt, daemon=True).start()
     from pemamoe.sweep import SweepInterrupted
 
@@ -206,5 +207,6 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
     assert time.monotonic() - start < 240
     assert not ray.is_initialized()
     assert sum(f.exists() for f in folders) == 1, "a queued Ray task started after the interrupt"
-    gone, alive = psutil.wait_procs(psutil.Process().children(recursive=True), timeout=15)
+    new = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+    gone, alive = psutil.wait_procs(new, timeout=15)
     assert not alive, f"left running: {alive}"
