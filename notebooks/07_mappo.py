@@ -112,7 +112,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import atomic_path, atomic_write_json, by_scale, check_scale
+from pemamoe.core import atomic_path, by_scale, check_scale
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -126,6 +126,8 @@ from pemamoe.phase_controller import (
     plasticity_method,
 )
 from pemamoe.phases import PhaseSchedule
+from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
+                          verify_done, write_done)
 
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose
@@ -315,6 +317,9 @@ class TrainConfig:
             except (ValueError, TypeError) as err:
                 raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
         object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
+        for f in fields(self):  # numpy scalars (e.g. a seed from np.arange) -> plain numbers, so JSON can save them
+            if isinstance(getattr(self, f.name), (np.integer, np.floating)):
+                object.__setattr__(self, f.name, getattr(self, f.name).item())
 
     # -- derived quantities ---------------------------------------------------------------------
     @property
@@ -1032,7 +1037,8 @@ def explained_variance(pred, target) -> float:
 # | `metrics.parquet` | one row per iteration (columns below) |
 # | `episodes.parquet` | one row per finished training episode |
 # | `checkpoint.pt` | the resumable state (above) |
-# | `done.json` | written last: the run finished; `train` then returns the stored result |
+# | `done.json` | written last: the run finished, sealed with its config hash, iteration count and the logs' sha256; `train` then returns the stored result once it verifies (notebook 07b) |
+# | `.lock` | the writer's lock, holding its PID (notebook 07b) |
 
 # %%
 #| exporti
@@ -1137,16 +1143,18 @@ def _build(config: TrainConfig, obs_dim: int, state_dim: int):
 
 
 def load_run(run_dir) -> RunResult:
-    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint)."""
-    run_dir = Path(run_dir)
-    config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint).
+    finished is True only when done.json verifies (pemamoe.runs.verify_done; a bad one raises)."""
+    run_dir = check_run_dir(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    done = verify_done(run_dir, config)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None)
     env_cfg = config.env_config()
     actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])
     critic.load_state_dict(ckpt["critic"])
-    return RunResult(config, pd.read_parquet(run_dir / "metrics.parquet"), pd.read_parquet(run_dir / "episodes.parquet"),
-                     actor, critic, run_dir, finished=(run_dir / "done.json").exists(), from_cache=True)
+    return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
+                     actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
 def split_env_state(state: dict, rows) -> dict:
@@ -1237,46 +1245,45 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     """
     configs = list(configs)
     check_population(configs)
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise ValueError(f"train: threads must be an int >= 1 or None, got {threads!r}")
+    if max_iterations is not None and (not _is_int(max_iterations) or max_iterations < 1):
+        raise ValueError(f"train: max_iterations must be an int >= 1 or None, got {max_iterations!r}")
     if run_dirs is not None and len(run_dirs) != len(configs):
         raise ValueError(f"run_dirs has {len(run_dirs)} entries for {len(configs)} configs")
-    dirs = [None if d is None else Path(d) for d in (run_dirs or [None] * len(configs))]
-    named = [d for d in dirs if d is not None]
+    dirs = [None if d is None else check_run_dir(d) for d in (run_dirs or [None] * len(configs))]
+    named = [d.resolve() for d in dirs if d is not None]
     if len(set(named)) != len(named):
         raise ValueError("two members of a population share one run_dir")
-    results, pending = [None] * len(configs), {}
-    for r, (config, run_dir) in enumerate(zip(configs, dirs)):
-        ckpt = None
-        if run_dir is not None:
-            _check_run_dir(config, run_dir, resume)
-            if resume and (run_dir / "done.json").exists():
-                results[r] = dataclasses.replace(load_run(run_dir), config=config)
-                continue
-            path = run_dir / "checkpoint.pt"
-            if resume and path.exists():
-                ckpt = torch.load(path, weights_only=True)
-        start = 0 if ckpt is None else int(ckpt["iteration"])
-        pending.setdefault(start, []).append((r, ckpt))
-    with _Determinism(threads):
-        for start in sorted(pending):
-            members = pending[start]
-            group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                 [ck for _, ck in members], max_iterations, verbose, progress)
-            for (r, _), res in zip(members, group):
-                results[r] = res
+    results, pending, locks = [None] * len(configs), {}, []
+    try:
+        for r, (config, run_dir) in enumerate(zip(configs, dirs)):
+            ckpt = None
+            if run_dir is not None:
+                if resume and verify_done(run_dir, config):  # a finished run is read without the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                locks.append(lock_run(run_dir))  # one writer per folder, for the member's whole run
+                prepare_run_dir(run_dir, config, resume)
+                if resume and verify_done(run_dir, config):  # finished between the check and the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                path = run_dir / "checkpoint.pt"
+                if resume and path.exists():
+                    ckpt = load_checkpoint(path, config)  # refuses another run's checkpoint, names a torn one
+            start = 0 if ckpt is None else int(ckpt["iteration"])
+            pending.setdefault(start, []).append((r, ckpt))
+        with _Determinism(threads):
+            for start in sorted(pending):
+                members = pending[start]
+                group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
+                                     [ck for _, ck in members], max_iterations, verbose, progress)
+                for (r, _), res in zip(members, group):
+                    results[r] = res
+    finally:
+        for lock in locks:
+            lock.release()
     return results
-
-
-def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
-    cfg_path = run_dir / "config.json"
-    if resume and cfg_path.exists():
-        stored = TrainConfig.from_dict(json.loads(cfg_path.read_text()))
-        if stored.identity() != config.identity():
-            raise ValueError(f"{run_dir} holds a run with a different config; use another run_dir or resume=False")
-        return
-    if not resume:
-        for name in ("done.json", "checkpoint.pt"):
-            (run_dir / name).unlink(missing_ok=True)
-    atomic_write_json(cfg_path, config.to_dict())
 
 
 def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
@@ -1318,6 +1325,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     obs, state, _ = venv.reset()
     start, global_step, resumed_from = 0, 0, None
     metrics_rows, episode_rows, elapsed = [[] for _ in range(R)], [[] for _ in range(R)], [0.0] * R
+    torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
 
     if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
         env_states = []
@@ -1338,6 +1346,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             rngs[r].bit_generator.state = ck["numpy_rng"]
             global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
             metrics_rows[r], episode_rows[r] = list(ck["metrics_rows"]), list(ck["episode_rows"])
+            torch_threads[r].update(ck.get("torch_threads", ()))
             start = resumed_from = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
 
@@ -1354,7 +1363,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "tracker": tracker.member_state(r), "env": _encode(env_state),
             "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
             "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
-            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r],
+            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r], "torch_threads": sorted(torch_threads[r]),
         }, run_dirs[r] / "checkpoint.pt")
         _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet")
         _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet")
@@ -1441,12 +1450,9 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
                 save(r, stop)
             final = pd.DataFrame(metrics_rows[r])
-            atomic_write_json(run_dir / "done.json", {
-                "finished": True, "iterations": config.iterations, "env_steps": global_step,
-                "config_hash": config.config_hash(),
-                "wall_time_s": elapsed[r] + time.perf_counter() - wall_start,
-                "final_episode_return": float(final["episode_return"].tail(config.phase_length_iters).mean()),
-            })
+            write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(torch_threads[r]),
+                       wall_time_s=elapsed[r] + time.perf_counter() - wall_start,
+                       final_episode_return=float(final["episode_return"].tail(config.phase_length_iters).mean()))
         results.append(RunResult(config, pd.DataFrame(metrics_rows[r]), pd.DataFrame(episode_rows[r]),
                                  actor.member(r, singles[r][0]), critic.member(r, singles[r][1]), run_dir,
                                  finished=finished, resumed_from=resumed_from))

@@ -21,9 +21,9 @@
 #
 # Compute and plotting are separate. The first half defines **sweeps**: a run is a point
 # (method, seed, ablation, noise level, scale) whose resolved training configuration is hashed to
-# name its folder under `results/`. A sweep skips every run whose folder holds `done.json`, and a
-# run killed half-way resumes from its last checkpoint, so rerunning a sweep after an interruption
-# only does the missing work. The second half only *reads* those folders and draws; changing a plot
+# name its folder under `results/`. A sweep skips every run whose folder holds a `done.json` that
+# verifies (notebook 07b), and a run killed half-way resumes from its last checkpoint, so rerunning
+# a sweep after an interruption (Ctrl-C, SIGTERM, even SIGKILL) only does the missing work. The second half only *reads* those folders and draws; changing a plot
 # never retrains.
 #
 # Runs execute on a local process pool by default (each worker single-threaded so 2 cores are not
@@ -49,15 +49,22 @@ import dataclasses
 import hashlib
 import json
 import os
+import signal
+import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 import multiprocessing as mp
 
+import numpy as np
+
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import METHODS, TrainConfig
+from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
 
@@ -88,6 +95,12 @@ class RunSpec:
         if self.method not in METHODS:
             raise ValueError(f"RunSpec.method must be one of {', '.join(METHODS)}, got {self.method!r}")
         check_scale(self.scale)
+        if isinstance(self.seed, np.integer):  # e.g. seeds=np.arange(3): plain ints, so JSON can save them
+            object.__setattr__(self, "seed", int(self.seed))
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
+        if isinstance(self.noise_gamma, np.floating):
+            object.__setattr__(self, "noise_gamma", float(self.noise_gamma))
         object.__setattr__(self, "without", tuple(sorted(self.without)))
         object.__setattr__(self, "overrides", tuple(sorted(dict(self.overrides).items())))
 
@@ -127,6 +140,15 @@ class RunSpec:
 
 # %%
 #| export
+class SweepInterrupted(KeyboardInterrupt):
+    """The sweep was stopped by SIGINT or SIGTERM (`signum`); running runs were killed, queued
+    ones never started, and a rerun resumes them from their checkpoints."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
+
+
 def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
     """Train one run (resuming or skipping as its folder allows); return its folder."""
     import torch
@@ -144,12 +166,21 @@ def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
 
 
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
-              threads_per_run: int = 1, verbose: bool = True) -> list:
-    """Run every spec not yet done; return all run folders, in the order of `specs`."""
+              threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None) -> list:
+    """Run every spec not yet done; return all run folders, in the order of `specs`.
+
+    A run counts as done only when its done.json verifies (pemamoe.runs.verify_done; a corrupt or
+    foreign one raises). progress: a tqdm bar of runs done out of all (cached ones counted), with
+    an ETA; None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start
+    no queued one and raise SweepInterrupted (rerun to resume)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if not isinstance(workers, int) or workers < 1:
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if not isinstance(threads_per_run, int) or isinstance(threads_per_run, bool) or threads_per_run < 1:
+        raise ValueError(f"threads_per_run must be an integer >= 1, got {threads_per_run!r}")
+    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
+        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
     results_dir = Path(results_dir)
     # Two specs can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's
@@ -157,7 +188,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     by_folder = {}
     for spec in specs:
         by_folder.setdefault(spec.run_dir(results_dir), spec)
-    todo = [spec for folder, spec in by_folder.items() if not (folder / "done.json").is_file()]
+    todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
               f"on {backend} ({workers} workers)", flush=True)
@@ -165,52 +196,179 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         start = time.perf_counter()
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
-        runner(todo, results_dir, workers, address, threads_per_run, verbose)
+        with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
+            runner(todo, results_dir, workers, address, threads_per_run, report)
         if verbose:
             print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
     return [s.run_dir(results_dir) for s in specs]
 
 
+# %% [markdown]
+# ### Stopping a sweep
+#
+# A sweep must stop when asked and must not leave workers behind:
+#
+# * **SIGINT / SIGTERM** on the sweep raise `SweepInterrupted` in its main thread; the backend then
+#   kills the running workers (the process pool's processes; Ray tasks by `ray.cancel(force=True)`)
+#   and drops the queue. Killing is safe: every file of a run is written atomically, the OS drops a
+#   dead run's lock, and the next sweep resumes the run from its last checkpoint. Workers ignore
+#   SIGINT themselves (a Ctrl-C reaches the whole process group), so the sweep alone decides.
+# * **SIGKILL of the sweep** cannot be caught, so each worker watches its parent: on Linux the
+#   kernel sends it SIGKILL when the parent dies (`prctl(PR_SET_PDEATHSIG)`), and a watchdog thread
+#   checks `os.getppid()` twice a second everywhere.
+# * A run that **fails** does not stop the others; the first error is raised once they are done.
+
 # %%
 #| exporti
-def _run_local(todo, results_dir, workers, address, threads, verbose):
-    if workers == 1:
-        for spec in todo:
-            execute_run(spec, results_dir, threads)
-            if verbose:
-                print(f"[sweep] done: {spec.label()}", flush=True)
+def _worker_init(parent_pid: int) -> None:
+    """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass  # the watchdog below still works
+    if os.getppid() != parent_pid:  # the sweep died before we got here
+        os._exit(1)
+
+    def watchdog():
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watchdog, name="pemamoe-parent-watchdog", daemon=True).start()
+
+
+@contextmanager
+def _stop_on_signals():
+    """In the main thread: SIGINT and SIGTERM raise SweepInterrupted (old handlers restored after;
+    nestable, so a backend that installs its own handlers, as ray.init does, can take them back)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
         return
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+
+    fired = []
+
+    def handler(signum, frame):
+        if fired:  # already stopping: a second Ctrl-C must not interrupt the clean-up
+            return
+        fired.append(signum)
+        raise SweepInterrupted(signum)
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    except SweepInterrupted:
+        raise
+    except KeyboardInterrupt as err:  # Ray turns a signal that arrives inside ray.wait into its own
+        raise SweepInterrupted(fired[0] if fired else signal.SIGINT) from err
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+@contextmanager
+def _progress(total: int, cached: int, progress, verbose: bool):
+    """Yield report(spec): one more run done (a tqdm bar, and a line when verbose)."""
+    from tqdm.auto import tqdm
+
+    if progress is None:
+        progress = sys.stderr.isatty()
+    bar = tqdm(total=total, initial=cached, desc="sweep", unit="run", disable=not progress, dynamic_ncols=True)
+
+    def report(spec):
+        bar.update(1)
+        if verbose:
+            (bar.write if progress else print)(f"[sweep] done: {spec.label()}")
+            sys.stdout.flush()
+
+    try:
+        yield report
+    finally:
+        bar.close()
+
+
+def _finish(errors: list) -> None:
+    if errors:
+        spec, err = errors[0]
+        more = f" ({len(errors) - 1} other runs failed too)" if len(errors) > 1 else ""
+        raise RuntimeError(f"sweep run {spec.label()} failed: {type(err).__name__}: {err}{more}") from err
+
+
+def _run_local(todo, results_dir, workers, address, threads, report):
+    errors = []
+    if workers == 1:  # in this process: a signal interrupts the run itself, its lock is released
+        for spec in todo:
+            try:
+                execute_run(spec, results_dir, threads)
+            except Exception as err:  # noqa: BLE001 - reported after the others ran
+                errors.append((spec, err))
+                continue
+            report(spec)
+        return _finish(errors)
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=mp.get_context("spawn"),
+                               initializer=_worker_init, initargs=(os.getpid(),))
+    try:
         futures = {pool.submit(execute_run, spec, str(results_dir), threads): spec for spec in todo}
         for future in as_completed(futures):
-            future.result()  # re-raise a worker's error here, naming nothing lost: others finish
-            if verbose:
-                print(f"[sweep] done: {futures[future].label()}", flush=True)
+            try:
+                future.result()
+            except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
+                errors.append((futures[future], err))
+                continue
+            report(futures[future])
+    except BaseException:  # SweepInterrupted (or anything else): kill the workers, start nothing more
+        _kill_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+    _finish(errors)
 
 
-def _run_ray(todo, results_dir, workers, address, threads, verbose):
+def _kill_pool(pool) -> None:
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:  # first, so that no idle worker picks up a queued run
+        if p.is_alive():
+            p.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        p.join(timeout=10)
+
+
+def _run_ray(todo, results_dir, workers, address, threads, report):
     import ray
 
     address = address or os.environ.get("RAY_ADDRESS")
     started_here = not ray.is_initialized()
     if started_here:
         if address:
-            ray.init(address=address, log_to_driver=verbose)
+            ray.init(address=address, log_to_driver=False)
         else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=verbose,
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
                      runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+    errors, pending = [], []
     try:
-        task = ray.remote(num_cpus=threads)(execute_run)
-        refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
-        pending = list(refs)
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            ray.get(done[0])
-            if verbose:
-                print(f"[sweep] done: {refs[done[0]].label()}", flush=True)
+        with _stop_on_signals():  # again after ray.init, which may install handlers of its own
+            task = ray.remote(num_cpus=threads)(execute_run)
+            refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
+            pending = list(refs)
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                try:
+                    ray.get(done[0])
+                except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
+                    errors.append((refs[done[0]], err))
+                    continue
+                report(refs[done[0]])
+    except BaseException:  # SweepInterrupted: kill the running tasks, drop the queued ones
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
     finally:
         if started_here:
             ray.shutdown()
+    _finish(errors)
 
 
 # %% [markdown]
@@ -287,17 +445,45 @@ def sweep_cli(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
     parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all"])
     parser.add_argument("--scale", default="small")
-    parser.add_argument("--seeds", type=int, nargs="*", default=None, help="seed list (default: the scale's)")
-    parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
+                        help="one or more seeds (default: the scale's)")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, metavar="METHOD",
+                        help=f"one or more of {', '.join(METHODS)} (default: all)")
     parser.add_argument("--backend", default="local", choices=BACKENDS)
-    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workers", type=_count(1), default=2)
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bar (default: when stderr is a terminal)")
     args = parser.parse_args(argv)
-    check_scale(args.scale)
+    try:
+        check_scale(args.scale)
+    except ValueError as err:
+        parser.error(str(err))
+    if str(args.results_dir).strip() == "":
+        parser.error("--results-dir must be a folder path")
     specs = experiment_specs(args.experiment, args.scale, args.seeds, tuple(args.methods))
-    run_sweep(specs, args.backend, args.workers, args.results_dir, args.address)
+    try:
+        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress)
+    except SweepInterrupted as stop:
+        print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
+        return 128 + stop.signum
     return 0
+
+
+def _count(low: int):
+    def parse(text: str) -> int:
+        import argparse
+
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    return parse
 
 # %% [markdown]
 # ## Reading results back
@@ -315,6 +501,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from pemamoe.runs import read_json, read_parquet, verify_done
+
 METHOD_ORDER = ("mlp", "moe", "smoe", "pemamoe")
 METHOD_LABELS = {"mlp": "MLP", "moe": "MoE", "smoe": "SMoE", "pemamoe": "PE-MAMoE"}
 METHOD_COLOURS = {"mlp": "#7f7f7f", "moe": "#1f77b4", "smoe": "#ff7f0e", "pemamoe": "#d62728"}
@@ -324,10 +512,10 @@ def load_runs(run_dirs) -> tuple:
     """(metrics, episodes) DataFrames of finished runs, labelled by method/seed/without/gamma/tag."""
     metrics, episodes = [], []
     for run_dir in map(Path, run_dirs):
-        if not (run_dir / "done.json").is_file():
+        if not verify_done(run_dir):  # a corrupt or foreign done.json raises, naming it
             raise FileNotFoundError(f"{run_dir} has no done.json: run the sweep first")
-        config = json.loads((run_dir / "config.json").read_text())
-        spec = json.loads((run_dir / "sweep.json").read_text())["spec"] if (run_dir / "sweep.json").is_file() else {}
+        config = read_json(run_dir / "config.json")
+        spec = read_json(run_dir / "sweep.json")["spec"] if (run_dir / "sweep.json").is_file() else {}
         label = {
             "run": run_dir.name,
             "method": config["method"],
@@ -336,8 +524,8 @@ def load_runs(run_dirs) -> tuple:
             "noise_gamma": config["controller"]["noise_gamma"],
             "tag": spec.get("tag", ""),
         }
-        m = pd.read_parquet(run_dir / "metrics.parquet").assign(**label)
-        e = pd.read_parquet(run_dir / "episodes.parquet").assign(**label)
+        m = read_parquet(run_dir / "metrics.parquet").assign(**label)
+        e = read_parquet(run_dir / "episodes.parquet").assign(**label)
         metrics.append(m)
         episodes.append(e)
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)

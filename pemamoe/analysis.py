@@ -3,13 +3,15 @@
 
 __all__ = ['METHOD_ORDER', 'METHOD_LABELS', 'METHOD_COLOURS', 'load_runs', 'SUMMARY_METRICS', 'iqm', 'run_scores', 'normalise_scores', 'bootstrap_iqm', 'probability_of_improvement', 'relative_change', 'smooth', 'switch_iterations', 'plot_over_training', 'provenance']
 
-# %% notebooks/09_experiments.py, cell 15 (line 309)
+# %% notebooks/09_experiments.py, cell 16 (line 495)
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy import stats
+
+from pemamoe.runs import read_json, read_parquet, verify_done
 
 METHOD_ORDER = ("mlp", "moe", "smoe", "pemamoe")
 METHOD_LABELS = {"mlp": "MLP", "moe": "MoE", "smoe": "SMoE", "pemamoe": "PE-MAMoE"}
@@ -20,10 +22,10 @@ def load_runs(run_dirs) -> tuple:
     """(metrics, episodes) DataFrames of finished runs, labelled by method/seed/without/gamma/tag."""
     metrics, episodes = [], []
     for run_dir in map(Path, run_dirs):
-        if not (run_dir / "done.json").is_file():
+        if not verify_done(run_dir):  # a corrupt or foreign done.json raises, naming it
             raise FileNotFoundError(f"{run_dir} has no done.json: run the sweep first")
-        config = json.loads((run_dir / "config.json").read_text())
-        spec = json.loads((run_dir / "sweep.json").read_text())["spec"] if (run_dir / "sweep.json").is_file() else {}
+        config = read_json(run_dir / "config.json")
+        spec = read_json(run_dir / "sweep.json")["spec"] if (run_dir / "sweep.json").is_file() else {}
         label = {
             "run": run_dir.name,
             "method": config["method"],
@@ -32,14 +34,14 @@ def load_runs(run_dirs) -> tuple:
             "noise_gamma": config["controller"]["noise_gamma"],
             "tag": spec.get("tag", ""),
         }
-        m = pd.read_parquet(run_dir / "metrics.parquet").assign(**label)
-        e = pd.read_parquet(run_dir / "episodes.parquet").assign(**label)
+        m = read_parquet(run_dir / "metrics.parquet").assign(**label)
+        e = read_parquet(run_dir / "episodes.parquet").assign(**label)
         metrics.append(m)
         episodes.append(e)
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 357)
+# %% notebooks/09_experiments.py, cell 18 (line 545)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -120,7 +122,7 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
     return change(a, b), float(low), float(high)
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 447)
+# %% notebooks/09_experiments.py, cell 20 (line 635)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

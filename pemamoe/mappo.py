@@ -20,7 +20,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import atomic_path, atomic_write_json, by_scale, check_scale
+from pemamoe.core import atomic_path, by_scale, check_scale
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -34,9 +34,11 @@ from pemamoe.phase_controller import (
     plasticity_method,
 )
 from pemamoe.phases import PhaseSchedule
+from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
+                          verify_done, write_done)
 
 
-# %% notebooks/07_mappo.py, cell 7 (line 197)
+# %% notebooks/07_mappo.py, cell 7 (line 199)
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
@@ -156,6 +158,9 @@ class TrainConfig:
             except (ValueError, TypeError) as err:
                 raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
         object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
+        for f in fields(self):  # numpy scalars (e.g. a seed from np.arange) -> plain numbers, so JSON can save them
+            if isinstance(getattr(self, f.name), (np.integer, np.floating)):
+                object.__setattr__(self, f.name, getattr(self, f.name).item())
 
     # -- derived quantities ---------------------------------------------------------------------
     @property
@@ -313,13 +318,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 504)
+# %% notebooks/07_mappo.py, cell 12 (line 509)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 533)
+# %% notebooks/07_mappo.py, cell 14 (line 538)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -352,7 +357,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 589)
+# %% notebooks/07_mappo.py, cell 18 (line 594)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -395,7 +400,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 646)
+# %% notebooks/07_mappo.py, cell 20 (line 651)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -559,7 +564,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 852)
+# %% notebooks/07_mappo.py, cell 22 (line 857)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -718,7 +723,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1037)
+# %% notebooks/07_mappo.py, cell 24 (line 1043)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -771,7 +776,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1090)
+# %% notebooks/07_mappo.py, cell 25 (line 1096)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -820,16 +825,18 @@ def _build(config: TrainConfig, obs_dim: int, state_dim: int):
 
 
 def load_run(run_dir) -> RunResult:
-    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint)."""
-    run_dir = Path(run_dir)
-    config = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    ckpt = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint).
+    finished is True only when done.json verifies (pemamoe.runs.verify_done; a bad one raises)."""
+    run_dir = check_run_dir(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    done = verify_done(run_dir, config)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None)
     env_cfg = config.env_config()
     actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])
     critic.load_state_dict(ckpt["critic"])
-    return RunResult(config, pd.read_parquet(run_dir / "metrics.parquet"), pd.read_parquet(run_dir / "episodes.parquet"),
-                     actor, critic, run_dir, finished=(run_dir / "done.json").exists(), from_cache=True)
+    return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
+                     actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
 def split_env_state(state: dict, rows) -> dict:
@@ -884,7 +891,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1211)
+# %% notebooks/07_mappo.py, cell 27 (line 1219)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -912,46 +919,45 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     """
     configs = list(configs)
     check_population(configs)
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise ValueError(f"train: threads must be an int >= 1 or None, got {threads!r}")
+    if max_iterations is not None and (not _is_int(max_iterations) or max_iterations < 1):
+        raise ValueError(f"train: max_iterations must be an int >= 1 or None, got {max_iterations!r}")
     if run_dirs is not None and len(run_dirs) != len(configs):
         raise ValueError(f"run_dirs has {len(run_dirs)} entries for {len(configs)} configs")
-    dirs = [None if d is None else Path(d) for d in (run_dirs or [None] * len(configs))]
-    named = [d for d in dirs if d is not None]
+    dirs = [None if d is None else check_run_dir(d) for d in (run_dirs or [None] * len(configs))]
+    named = [d.resolve() for d in dirs if d is not None]
     if len(set(named)) != len(named):
         raise ValueError("two members of a population share one run_dir")
-    results, pending = [None] * len(configs), {}
-    for r, (config, run_dir) in enumerate(zip(configs, dirs)):
-        ckpt = None
-        if run_dir is not None:
-            _check_run_dir(config, run_dir, resume)
-            if resume and (run_dir / "done.json").exists():
-                results[r] = dataclasses.replace(load_run(run_dir), config=config)
-                continue
-            path = run_dir / "checkpoint.pt"
-            if resume and path.exists():
-                ckpt = torch.load(path, weights_only=True)
-        start = 0 if ckpt is None else int(ckpt["iteration"])
-        pending.setdefault(start, []).append((r, ckpt))
-    with _Determinism(threads):
-        for start in sorted(pending):
-            members = pending[start]
-            group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                 [ck for _, ck in members], max_iterations, verbose, progress)
-            for (r, _), res in zip(members, group):
-                results[r] = res
+    results, pending, locks = [None] * len(configs), {}, []
+    try:
+        for r, (config, run_dir) in enumerate(zip(configs, dirs)):
+            ckpt = None
+            if run_dir is not None:
+                if resume and verify_done(run_dir, config):  # a finished run is read without the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                locks.append(lock_run(run_dir))  # one writer per folder, for the member's whole run
+                prepare_run_dir(run_dir, config, resume)
+                if resume and verify_done(run_dir, config):  # finished between the check and the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                path = run_dir / "checkpoint.pt"
+                if resume and path.exists():
+                    ckpt = load_checkpoint(path, config)  # refuses another run's checkpoint, names a torn one
+            start = 0 if ckpt is None else int(ckpt["iteration"])
+            pending.setdefault(start, []).append((r, ckpt))
+        with _Determinism(threads):
+            for start in sorted(pending):
+                members = pending[start]
+                group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
+                                     [ck for _, ck in members], max_iterations, verbose, progress)
+                for (r, _), res in zip(members, group):
+                    results[r] = res
+    finally:
+        for lock in locks:
+            lock.release()
     return results
-
-
-def _check_run_dir(config: TrainConfig, run_dir: Path, resume: bool) -> None:
-    cfg_path = run_dir / "config.json"
-    if resume and cfg_path.exists():
-        stored = TrainConfig.from_dict(json.loads(cfg_path.read_text()))
-        if stored.identity() != config.identity():
-            raise ValueError(f"{run_dir} holds a run with a different config; use another run_dir or resume=False")
-        return
-    if not resume:
-        for name in ("done.json", "checkpoint.pt"):
-            (run_dir / name).unlink(missing_ok=True)
-    atomic_write_json(cfg_path, config.to_dict())
 
 
 def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
@@ -993,6 +999,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     obs, state, _ = venv.reset()
     start, global_step, resumed_from = 0, 0, None
     metrics_rows, episode_rows, elapsed = [[] for _ in range(R)], [[] for _ in range(R)], [0.0] * R
+    torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
 
     if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
         env_states = []
@@ -1013,6 +1020,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             rngs[r].bit_generator.state = ck["numpy_rng"]
             global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
             metrics_rows[r], episode_rows[r] = list(ck["metrics_rows"]), list(ck["episode_rows"])
+            torch_threads[r].update(ck.get("torch_threads", ()))
             start = resumed_from = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
 
@@ -1029,7 +1037,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "tracker": tracker.member_state(r), "env": _encode(env_state),
             "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
             "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
-            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r],
+            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r], "torch_threads": sorted(torch_threads[r]),
         }, run_dirs[r] / "checkpoint.pt")
         _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet")
         _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet")
@@ -1116,12 +1124,9 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
                 save(r, stop)
             final = pd.DataFrame(metrics_rows[r])
-            atomic_write_json(run_dir / "done.json", {
-                "finished": True, "iterations": config.iterations, "env_steps": global_step,
-                "config_hash": config.config_hash(),
-                "wall_time_s": elapsed[r] + time.perf_counter() - wall_start,
-                "final_episode_return": float(final["episode_return"].tail(config.phase_length_iters).mean()),
-            })
+            write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(torch_threads[r]),
+                       wall_time_s=elapsed[r] + time.perf_counter() - wall_start,
+                       final_episode_return=float(final["episode_return"].tail(config.phase_length_iters).mean()))
         results.append(RunResult(config, pd.DataFrame(metrics_rows[r]), pd.DataFrame(episode_rows[r]),
                                  actor.member(r, singles[r][0]), critic.member(r, singles[r][1]), run_dir,
                                  finished=finished, resumed_from=resumed_from))
@@ -1166,7 +1171,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[3])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1501)
+# %% notebooks/07_mappo.py, cell 29 (line 1507)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -1,12 +1,22 @@
 """Sweeps: cache keys, skipping finished runs, resuming killed ones, process pool and real Ray."""
 
 import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
+import numpy as np
+import psutil
 import pytest
 
 from pemamoe.mappo import train
-from pemamoe.sweep import RunSpec, experiment_specs, noise_specs, run_sweep
+from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep, sweep_cli
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_spec_resolves_to_config_and_folder(tmp_path):
@@ -75,7 +85,128 @@ def test_two_run_sweep_on_a_real_local_ray(tmp_path):
     local = run_sweep([RunSpec("mlp", 1, "ci")], "local", workers=1, results_dir=tmp_path / "local", verbose=False)
     import pandas as pd
 
+    from pemamoe.runs import read_parquet
+
     cols = ["iteration", "episode_return", "served_users", "approx_kl"]
-    pd.testing.assert_frame_equal(pd.read_parquet(folders[0] / "metrics.parquet")[cols],
-                                  pd.read_parquet(local[0] / "metrics.parquet")[cols])
+    pd.testing.assert_frame_equal(read_parquet(folders[0] / "metrics.parquet")[cols],
+                                  read_parquet(local[0] / "metrics.parquet")[cols])
     assert time.perf_counter() - start < 300
+
+
+# --- reliability: verified done check, numpy seeds, CLI, progress, interrupts ---------------------
+@pytest.fixture(scope="module")
+def finished_mlp(tmp_path_factory):
+    """A finished ci run of mlp seed 0, and one stopped at iteration 5 of 6 (copy before use)."""
+    base = tmp_path_factory.mktemp("sweep_runs")
+    spec = RunSpec("mlp", 0, "ci")
+    train(spec.to_config(), base / "done")
+    train(RunSpec("moe", 0, "ci").to_config(), base / "partial", max_iterations=5)
+    return base
+
+
+def test_numpy_seeds_work_in_a_sweep(tmp_path, finished_mlp):
+    specs = main_specs("ci", seeds=np.arange(1), methods=("mlp",))
+    folder = tmp_path / "ci" / RunSpec("mlp", 0, "ci").to_config().run_name()
+    shutil.copytree(finished_mlp / "done", folder)
+    assert run_sweep(specs, "local", workers=1, results_dir=tmp_path, verbose=False) == [folder]  # failed: int64 JSON
+    assert type(specs[0].seed) is int and specs[0] == RunSpec("mlp", 0, "ci")
+    with pytest.raises(ValueError, match="RunSpec.seed must be an int >= 0"):
+        RunSpec("mlp", 1.5)
+    with pytest.raises(ValueError, match="results_dir must be a non-empty folder path"):
+        run_sweep(specs, "local", workers=1, results_dir="")
+
+
+def test_a_corrupt_or_foreign_done_marker_stops_the_sweep(tmp_path, finished_mlp):
+    spec = RunSpec("mlp", 0, "ci")
+    folder = Path(shutil.copytree(finished_mlp / "done", spec.run_dir(tmp_path)))
+    (folder / "done.json").write_text("garbage")
+    with pytest.raises(ValueError, match=r"done.json is not valid JSON"):
+        run_sweep([spec], "local", workers=1, results_dir=tmp_path, verbose=False)
+    shutil.copy(finished_mlp / "partial" / "config.json", folder / "config.json")  # another run's folder
+    (folder / "done.json").write_text((finished_mlp / "done" / "done.json").read_text())
+    with pytest.raises(ValueError, match=r"config.json holds a run with a different config \(method: stored 'moe'"):
+        run_sweep([spec], "local", workers=1, results_dir=tmp_path, verbose=False)
+
+
+@pytest.mark.parametrize("argv", [["--methods"], ["--seeds"], ["--seeds", "-1"], ["--methods", "gpt"],
+                                  ["--workers", "0"], ["--scale", "huge"]])
+def test_cli_rejects_empty_or_bad_lists(argv, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        sweep_cli(["--scale", "ci", "--results-dir", str(tmp_path), *argv])
+    assert exit_.value.code == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_progress_bar_counts_cached_runs_and_is_off_without_a_terminal(tmp_path, finished_mlp, capsys):
+    specs = [RunSpec("mlp", 0, "ci"), RunSpec("moe", 0, "ci")]
+    shutil.copytree(finished_mlp / "done", specs[0].run_dir(tmp_path))
+    shutil.copytree(finished_mlp / "partial", specs[1].run_dir(tmp_path))  # one iteration left
+    run_sweep(specs, "local", workers=1, results_dir=tmp_path, verbose=False, progress=True)
+    err = capsys.readouterr().err
+    assert "1/2" in err and "2/2" in err and "run" in err  # cached run counted from the start
+    run_sweep(specs, "local", workers=1, results_dir=tmp_path, verbose=False)  # stderr is not a terminal here
+    assert capsys.readouterr().err == ""
+
+
+def _wait_for(predicate, timeout, what):
+    import time as _time
+
+    end = _time.monotonic() + timeout
+    while _time.monotonic() < end:
+        if predicate():
+            return
+        _time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_sigint_stops_the_workers_and_starts_nothing_queued(tmp_path):
+    specs = [RunSpec(m, 0, "ci") for m in ("mlp", "moe", "smoe")]
+    folders = [s.run_dir(tmp_path) for s in specs]
+    proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "sweep", "--experiment", "main", "--scale", "ci",
+                             "--seeds", "0", "--methods", "mlp", "moe", "smoe", "--workers", "2",
+                             "--results-dir", str(tmp_path), "--no-progress"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        _wait_for(lambda: all((f / "config.json").exists() for f in folders[:2]) or proc.poll() is not None,
+                  240, "two runs to start")
+        assert proc.poll() is None, proc.stdout.read()
+        tree = psutil.Process(proc.pid).children(recursive=True)
+        start = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+        stopped = time.monotonic() - start
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    gone, alive = psutil.wait_procs(tree, timeout=10)
+    assert not alive, f"left running: {alive}"
+    assert not folders[2].exists(), "a queued run started after the interrupt"
+    assert stopped < 15, f"took {stopped:.1f} s to stop"
+    assert proc.returncode == 128 + signal.SIGINT, out
+    assert "stopped by SIGINT" in out and "rerun the same command to resume" in out
+
+
+def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
+    ray = pytest.importorskip("ray")
+    import threading
+
+    specs = [RunSpec(m, 2, "ci") for m in ("mlp", "moe", "smoe")]
+    folders = [s.run_dir(tmp_path) for s in specs]
+
+    def interrupt():
+        _wait_for(lambda: any((f / "config.json").exists() for f in folders), 240, "a Ray task to start")
+        os.kill(os.getpid(), signal.SIGINT)
+
+    before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. multiprocessing's resource tracker
+    threading.Thread(target=interrupt, daemon=True).start()
+    from pemamoe.sweep import SweepInterrupted
+
+    start = time.monotonic()
+    with pytest.raises(SweepInterrupted, match="SIGINT"):
+        run_sweep(specs, "ray", workers=1, results_dir=tmp_path, verbose=False)
+    assert time.monotonic() - start < 240
+    assert not ray.is_initialized()
+    assert sum(f.exists() for f in folders) == 1, "a queued Ray task started after the interrupt"
+    new = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+    gone, alive = psutil.wait_procs(new, timeout=15)
+    assert not alive, f"left running: {alive}"
