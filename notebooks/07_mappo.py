@@ -1182,6 +1182,12 @@ def merge_env_states(states: list) -> dict:
 MEMBER_FIELDS = ("seed", "controller", "force_controller")
 
 
+def population_key(config: TrainConfig) -> str:
+    """What members of one population must share: the run identity without MEMBER_FIELDS."""
+    ident = {k: v for k, v in config.identity().items() if k not in MEMBER_FIELDS}
+    return json.dumps(ident, sort_keys=True, separators=(",", ":"))
+
+
 def check_population(configs) -> None:
     """Raise ValueError naming the first field on which two members disagree in a shared setting."""
     if not configs:

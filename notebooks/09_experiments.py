@@ -63,7 +63,7 @@ import numpy as np
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
 from pemamoe.env import compile_step_kernels
-from pemamoe.mappo import METHODS, TrainConfig
+from pemamoe.mappo import METHODS, TrainConfig, population_key
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -149,6 +149,43 @@ class SweepInterrupted(KeyboardInterrupt):
         super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
 
 
+def execute_population(specs, results_dir, threads: int = 1) -> list:
+    """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
+    skipping as that folder allows); return their folders."""
+    import torch
+
+    from pemamoe.mappo import train_population
+
+    torch.set_num_threads(threads)
+    specs = list(specs)
+    dirs = [spec.run_dir(results_dir) for spec in specs]
+    start = time.perf_counter()
+    train_population([spec.to_config() for spec in specs], dirs, resume=True, threads=threads, progress=False)
+    for spec, run_dir in zip(specs, dirs):
+        marker = run_dir / "sweep.json"
+        if not marker.exists():
+            atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start,
+                                       "population": len(specs)})
+    return [str(d) for d in dirs]
+
+
+def group_specs(specs, population: int, workers: int = 1) -> list:
+    """Pending runs as populations: runs whose configs share everything but the member fields
+    (seed, controller settings, force_controller) go together, at most `population` per group,
+    in the order they first appear. A group larger than the others is split so that `workers`
+    processes get work when there are fewer groups than workers."""
+    groups = {}
+    for spec in specs:
+        groups.setdefault(population_key(spec.to_config()), []).append(spec)
+    out = []
+    for members in groups.values():
+        size = population
+        if len(groups) < workers:  # fewer populations than workers: spread each one over the workers
+            size = min(size, max(1, -(-len(members) // max(1, workers // len(groups)))))
+        out += [members[i:i + size] for i in range(0, len(members), size)]
+    return out
+
+
 def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
     """Train one run (resuming or skipping as its folder allows); return its folder."""
     import torch
@@ -165,8 +202,12 @@ def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
     return str(run_dir)
 
 
+DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
+
+
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
-              threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None) -> list:
+              threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
+              population: int = DEFAULT_POPULATION) -> list:
     """Run every spec not yet done; return all run folders, in the order of `specs`.
 
     A run counts as done only when its done.json verifies (pemamoe.runs.verify_done; a corrupt or
@@ -179,6 +220,8 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     if not isinstance(threads_per_run, int) or isinstance(threads_per_run, bool) or threads_per_run < 1:
         raise ValueError(f"threads_per_run must be an integer >= 1, got {threads_per_run!r}")
+    if not isinstance(population, int) or isinstance(population, bool) or population < 1:
+        raise ValueError(f"population must be an integer >= 1, got {population!r}")
     if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
         raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
@@ -189,15 +232,16 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     for spec in specs:
         by_folder.setdefault(spec.run_dir(results_dir), spec)
     todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+    groups = group_specs(todo, population, workers)
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
-              f"on {backend} ({workers} workers)", flush=True)
+              f"as {len(groups)} populations on {backend} ({workers} workers)", flush=True)
     if todo:
         start = time.perf_counter()
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            runner(todo, results_dir, workers, address, threads_per_run, report)
+            runner(groups, results_dir, workers, address, threads_per_run, report)
         if verbose:
             print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
     return [s.run_dir(results_dir) for s in specs]
@@ -292,33 +336,36 @@ def _progress(total: int, cached: int, progress, verbose: bool):
 
 def _finish(errors: list) -> None:
     if errors:
-        spec, err = errors[0]
+        group, err = errors[0]
+        spec = group[0] if isinstance(group, list) else group
         more = f" ({len(errors) - 1} other runs failed too)" if len(errors) > 1 else ""
         raise RuntimeError(f"sweep run {spec.label()} failed: {type(err).__name__}: {err}{more}") from err
 
 
-def _run_local(todo, results_dir, workers, address, threads, report):
+def _run_local(groups, results_dir, workers, address, threads, report):
     errors = []
     if workers == 1:  # in this process: a signal interrupts the run itself, its lock is released
-        for spec in todo:
+        for group in groups:
             try:
-                execute_run(spec, results_dir, threads)
+                execute_population(group, results_dir, threads)
             except Exception as err:  # noqa: BLE001 - reported after the others ran
-                errors.append((spec, err))
+                errors.append((group, err))
                 continue
-            report(spec)
+            for spec in group:
+                report(spec)
         return _finish(errors)
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=mp.get_context("spawn"),
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(groups)), mp_context=mp.get_context("spawn"),
                                initializer=_worker_init, initargs=(os.getpid(),))
     try:
-        futures = {pool.submit(execute_run, spec, str(results_dir), threads): spec for spec in todo}
+        futures = {pool.submit(execute_population, group, str(results_dir), threads): group for group in groups}
         for future in as_completed(futures):
             try:
                 future.result()
-            except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
+            except Exception as err:  # noqa: BLE001 - a failed population does not stop the others
                 errors.append((futures[future], err))
                 continue
-            report(futures[future])
+            for spec in futures[future]:
+                report(spec)
     except BaseException:  # SweepInterrupted (or anything else): kill the workers, start nothing more
         _kill_pool(pool)
         raise
@@ -336,7 +383,7 @@ def _kill_pool(pool) -> None:
         p.join(timeout=10)
 
 
-def _run_ray(todo, results_dir, workers, address, threads, report):
+def _run_ray(groups, results_dir, workers, address, threads, report):
     import ray
 
     address = address or os.environ.get("RAY_ADDRESS")
@@ -350,17 +397,18 @@ def _run_ray(todo, results_dir, workers, address, threads, report):
     errors, pending = [], []
     try:
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own
-            task = ray.remote(num_cpus=threads)(execute_run)
-            refs = {task.remote(spec, str(Path(results_dir).resolve()), threads): spec for spec in todo}
+            task = ray.remote(num_cpus=threads)(execute_population)
+            refs = {task.remote(group, str(Path(results_dir).resolve()), threads): group for group in groups}
             pending = list(refs)
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 try:
                     ray.get(done[0])
-                except Exception as err:  # noqa: BLE001 - a failed run does not stop the others
+                except Exception as err:  # noqa: BLE001 - a failed population does not stop the others
                     errors.append((refs[done[0]], err))
                     continue
-                report(refs[done[0]])
+                for spec in refs[done[0]]:
+                    report(spec)
     except BaseException:  # SweepInterrupted: kill the running tasks, drop the queued ones
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -451,6 +499,8 @@ def sweep_cli(argv=None) -> int:
                         help=f"one or more of {', '.join(METHODS)} (default: all)")
     parser.add_argument("--backend", default="local", choices=BACKENDS)
     parser.add_argument("--workers", type=_count(1), default=2)
+    parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
+                        help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
@@ -464,7 +514,8 @@ def sweep_cli(argv=None) -> int:
         parser.error("--results-dir must be a folder path")
     specs = experiment_specs(args.experiment, args.scale, args.seeds, tuple(args.methods))
     try:
-        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress)
+        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
+                  population=args.population)
     except SweepInterrupted as stop:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
