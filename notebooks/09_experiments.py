@@ -383,6 +383,24 @@ def _kill_pool(pool) -> None:
         p.join(timeout=10)
 
 
+def _start_local_ray(workers: int, attempts: int = 3) -> None:
+    """ray.init of a local instance. Ray gives its node a fixed 30 s to register and gives up
+    otherwise; on a busy 2-core machine that happens now and then, so try again (a fresh node)."""
+    import ray
+
+    for attempt in range(attempts):
+        try:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                     runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+            return
+        except Exception as err:  # noqa: BLE001 - Ray raises a bare Exception for this
+            if "timed out during startup" not in str(err) or attempt == attempts - 1:
+                raise
+            ray.shutdown()
+            print(f"[sweep] the local Ray node did not start in time ({attempt + 1}/{attempts}); trying again",
+                  flush=True)
+
+
 def _run_ray(groups, results_dir, workers, address, threads, report):
     import ray
 
@@ -392,8 +410,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
         if address:
             ray.init(address=address, log_to_driver=False)
         else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
-                     runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+            _start_local_ray(workers)
     errors, pending = [], []
     try:
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own

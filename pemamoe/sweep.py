@@ -302,6 +302,24 @@ def _kill_pool(pool) -> None:
         p.join(timeout=10)
 
 
+def _start_local_ray(workers: int, attempts: int = 3) -> None:
+    """ray.init of a local instance. Ray gives its node a fixed 30 s to register and gives up
+    otherwise; on a busy 2-core machine that happens now and then, so try again (a fresh node)."""
+    import ray
+
+    for attempt in range(attempts):
+        try:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                     runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+            return
+        except Exception as err:  # noqa: BLE001 - Ray raises a bare Exception for this
+            if "timed out during startup" not in str(err) or attempt == attempts - 1:
+                raise
+            ray.shutdown()
+            print(f"[sweep] the local Ray node did not start in time ({attempt + 1}/{attempts}); trying again",
+                  flush=True)
+
+
 def _run_ray(groups, results_dir, workers, address, threads, report):
     import ray
 
@@ -311,8 +329,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
         if address:
             ray.init(address=address, log_to_driver=False)
         else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
-                     runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
+            _start_local_ray(workers)
     errors, pending = [], []
     try:
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own
@@ -338,7 +355,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09_experiments.py, cell 12 (line 434)
+# %% notebooks/09_experiments.py, cell 12 (line 451)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -384,7 +401,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 14 (line 488)
+# %% notebooks/09_experiments.py, cell 14 (line 505)
 def sweep_cli(argv=None) -> int:
     import argparse
 
