@@ -64,6 +64,7 @@ import numpy as np
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import METHODS, TrainConfig, population_key
+from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -92,8 +93,10 @@ class RunSpec:
     tag: str = field(default="", compare=False)  # which experiment asked for it; not part of the run
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise ValueError(f"RunSpec.method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        try:
+            method_spec(self.method)  # the registry (plugins included)
+        except ValueError:
+            raise ValueError(f"RunSpec.method must be one of {', '.join(METHOD_REGISTRY)}, got {self.method!r}") from None
         check_scale(self.scale)
         if isinstance(self.seed, np.integer):  # e.g. seeds=np.arange(3): plain ints, so JSON can save them
             object.__setattr__(self, "seed", int(self.seed))
@@ -512,8 +515,9 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--scale", default="small")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, metavar="METHOD",
-                        help=f"one or more of {', '.join(METHODS)} (default: all)")
+    parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
+                        help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
+                             "default: all)")
     parser.add_argument("--backend", default="local", choices=BACKENDS)
     parser.add_argument("--workers", type=_count(1), default=2)
     parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
@@ -529,7 +533,8 @@ def sweep_cli(argv=None) -> int:
         parser.error(str(err))
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path")
-    specs = experiment_specs(args.experiment, args.scale, args.seeds, tuple(args.methods))
+    methods = tuple(args.methods) if args.methods else tuple(METHOD_REGISTRY)
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
                   population=args.population)
@@ -537,6 +542,15 @@ def sweep_cli(argv=None) -> int:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
+
+
+def _method(text: str) -> str:
+    import argparse
+
+    try:
+        return method_spec(text).name
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _count(low: int):

@@ -23,12 +23,13 @@ import numpy as np
 from pemamoe.core import REPO_ROOT, atomic_write_json, by_scale, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import METHODS, TrainConfig, population_key
+from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
 
 
-# %% notebooks/09_experiments.py, cell 6 (line 80)
+# %% notebooks/09_experiments.py, cell 6 (line 81)
 @dataclass(frozen=True)
 class RunSpec:
     """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
@@ -42,8 +43,10 @@ class RunSpec:
     tag: str = field(default="", compare=False)  # which experiment asked for it; not part of the run
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise ValueError(f"RunSpec.method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        try:
+            method_spec(self.method)  # the registry (plugins included)
+        except ValueError:
+            raise ValueError(f"RunSpec.method must be one of {', '.join(METHOD_REGISTRY)}, got {self.method!r}") from None
         check_scale(self.scale)
         if isinstance(self.seed, np.integer):  # e.g. seeds=np.arange(3): plain ints, so JSON can save them
             object.__setattr__(self, "seed", int(self.seed))
@@ -74,7 +77,7 @@ class RunSpec:
         return ", ".join(parts)
 
 
-# %% notebooks/09_experiments.py, cell 8 (line 141)
+# %% notebooks/09_experiments.py, cell 8 (line 144)
 class SweepInterrupted(KeyboardInterrupt):
     """The sweep was stopped by SIGINT or SIGTERM (`signum`); running runs were killed, queued
     ones never started, and a rerun resumes them from their checkpoints."""
@@ -182,7 +185,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     return [s.run_dir(results_dir) for s in specs]
 
 
-# %% notebooks/09_experiments.py, cell 10 (line 265)
+# %% notebooks/09_experiments.py, cell 10 (line 268)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -355,7 +358,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09_experiments.py, cell 12 (line 451)
+# %% notebooks/09_experiments.py, cell 12 (line 454)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -401,7 +404,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 14 (line 505)
+# %% notebooks/09_experiments.py, cell 14 (line 508)
 def sweep_cli(argv=None) -> int:
     import argparse
 
@@ -410,8 +413,9 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--scale", default="small")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, metavar="METHOD",
-                        help=f"one or more of {', '.join(METHODS)} (default: all)")
+    parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
+                        help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
+                             "default: all)")
     parser.add_argument("--backend", default="local", choices=BACKENDS)
     parser.add_argument("--workers", type=_count(1), default=2)
     parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
@@ -427,7 +431,8 @@ def sweep_cli(argv=None) -> int:
         parser.error(str(err))
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path")
-    specs = experiment_specs(args.experiment, args.scale, args.seeds, tuple(args.methods))
+    methods = tuple(args.methods) if args.methods else tuple(METHOD_REGISTRY)
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
                   population=args.population)
@@ -435,6 +440,15 @@ def sweep_cli(argv=None) -> int:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
+
+
+def _method(text: str) -> str:
+    import argparse
+
+    try:
+        return method_spec(text).name
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _count(low: int):
