@@ -3,7 +3,7 @@
 
 __all__ = ['METHOD_ORDER', 'METHOD_LABELS', 'METHOD_COLOURS', 'load_runs', 'SUMMARY_METRICS', 'iqm', 'run_scores', 'normalise_scores', 'bootstrap_iqm', 'probability_of_improvement', 'relative_change', 'smooth', 'switch_iterations', 'plot_over_training', 'provenance']
 
-# %% notebooks/09_experiments.py, cell 16 (line 577)
+# %% notebooks/09_experiments.py, cell 16 (line 587)
 import json
 from pathlib import Path
 
@@ -41,7 +41,7 @@ def load_runs(run_dirs) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 18 (line 627)
+# %% notebooks/09_experiments.py, cell 18 (line 637)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -122,7 +122,7 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
     return change(a, b), float(low), float(high)
 
 
-# %% notebooks/09_experiments.py, cell 20 (line 717)
+# %% notebooks/09_experiments.py, cell 20 (line 727)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

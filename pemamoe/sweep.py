@@ -308,17 +308,27 @@ def _kill_pool(pool) -> None:
 def _start_local_ray(workers: int, attempts: int = 3) -> None:
     """ray.init of a local instance. Ray gives its node a fixed 30 s to register and gives up
     otherwise; on a busy 2-core machine that happens now and then, so try again (a fresh node)."""
+    import psutil
     import ray
 
     for attempt in range(attempts):
+        before = {p.pid for p in psutil.Process().children(recursive=True)}
         try:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
                      runtime_env={"env_vars": {"PYTHONPATH": str(REPO_ROOT)}})
             return
         except Exception as err:  # noqa: BLE001 - Ray raises a bare Exception for this
+            ray.shutdown()
+            # a failed ray.init leaves the processes it started (GCS, raylet, workers) running
+            stray = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
+            for p in stray:
+                try:
+                    p.kill()
+                except psutil.NoSuchProcess:
+                    pass
+            psutil.wait_procs(stray, timeout=10)
             if "timed out during startup" not in str(err) or attempt == attempts - 1:
                 raise
-            ray.shutdown()
             print(f"[sweep] the local Ray node did not start in time ({attempt + 1}/{attempts}); trying again",
                   flush=True)
 
@@ -358,7 +368,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09_experiments.py, cell 12 (line 454)
+# %% notebooks/09_experiments.py, cell 12 (line 464)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
@@ -404,7 +414,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
     return makers[experiment]()
 
 
-# %% notebooks/09_experiments.py, cell 14 (line 508)
+# %% notebooks/09_experiments.py, cell 14 (line 518)
 def sweep_cli(argv=None) -> int:
     import argparse
 
