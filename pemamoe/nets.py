@@ -685,8 +685,16 @@ def run_experts(x, w1, b1, w2, b2):
     (R, E, n, h), the ReLU trunk in -> h -> h (one batched matmul per layer over R*E)."""
     R, E, d, h = w1.shape
     n = x.shape[1]
-    xe = x.unsqueeze(1).expand(R, E, n, d).reshape(R * E, n, d)
-    a1 = F.relu(torch.baddbmm(b1.reshape(R * E, 1, h), xe, w1.reshape(R * E, d, h)))
+    if R > 1:
+        # Layer 1 as one product over R per expert, on x itself: no E-fold copy of x (about 2x
+        # faster at R = 16 on the CPU, forward and backward). Each batch entry is the same
+        # (n, in) @ (in, h) product as below, so outputs and gradients are the same bits (checked
+        # over many shapes, sign of zero included); `unbind` backward stacks, it adds nothing.
+        a1 = torch.stack([torch.baddbmm(b1e.unsqueeze(1), x, w1e) for b1e, w1e in zip(b1.unbind(1), w1.unbind(1))], 1)
+        a1 = F.relu(a1).reshape(R * E, n, h)
+    else:  # one member: a single call on E copies of x is cheaper than E calls
+        xe = x.unsqueeze(1).expand(R, E, n, d).reshape(R * E, n, d)
+        a1 = F.relu(torch.baddbmm(b1.reshape(R * E, 1, h), xe, w1.reshape(R * E, d, h)))
     a2 = F.relu(torch.baddbmm(b2.reshape(R * E, 1, h), a1, w2.reshape(R * E, h, h)))
     return a2.reshape(R, E, n, h)
 
@@ -867,7 +875,7 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
     return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 
-# %% notebooks/05_moe_actor.py, cell 22 (line 1226)
+# %% notebooks/05_moe_actor.py, cell 22 (line 1234)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
@@ -952,7 +960,7 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
     return sum(parts[name][1] * n for name, n in used.items())
 
 
-# %% notebooks/05_moe_actor.py, cell 24 (line 1320)
+# %% notebooks/05_moe_actor.py, cell 24 (line 1328)
 def _median_us(fn, repeats: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()
