@@ -934,7 +934,7 @@ from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
 figure("rank/stable/mean", "stable rank (mean over experts)", "results_feature_rank",
        "Average expert feature rank over training")
 
-fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
 for ax, (column, title) in zip(axes, (
         ("dormant/paper/mean", f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}"),
         ("dormant/tau/mean", f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}"))):
@@ -1006,7 +1006,8 @@ for side in ("policy", "value"):
     routed = [m for m in method_list if m in set(ranked.method)]
     if not routed:
         continue
-    fig, axes = plt.subplots(1, len(routed), figsize=(4 * len(routed), 3.2), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(routed), figsize=(4 * len(routed), 3.6), sharey=True, squeeze=False,
+                             layout="constrained")
     for ax, method in zip(axes[0], routed):
         sub = ranked[ranked.method == method]
         for rank in sorted(sub.usage_rank.unique()):
@@ -1020,8 +1021,9 @@ for side in ("policy", "value"):
         ax.set_xlabel("training iteration")
     axes[0, 0].set_ylabel(f"{side}-router probability")
     axes[0, 0].legend(fontsize=8)
-    fig.suptitle(f"{side.capitalize()}-side expert routing probability; each seed's experts ordered by their mean "
-                 f"routing probability over the run (rank 1 = most used) before averaging\n({note})", fontsize=9)
+    fig.suptitle(f"{side.capitalize()}-side expert routing probability\neach seed's experts ordered by their mean "
+                 f"routing probability over the run (rank 1 = most used) before averaging over seeds\n{note}",
+                 fontsize=9)
     save_figure(fig, f"results_router_{side}", figures_dir)
     plt.show()
 

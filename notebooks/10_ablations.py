@@ -218,7 +218,8 @@ headline = pd.DataFrame(claims)
 write_table(headline.round(2), "headline_claims", figures_dir)
 
 reference = pd.concat([main, kmeans_scores], ignore_index=True)
-reference_table = reference.groupby("method")[list(SUMMARY_METRICS)].agg(["mean", "min", "max"]).round(3)
+reference_table = (reference.groupby("method")[list(SUMMARY_METRICS)].agg(["mean", "min", "max"])
+                   .reindex([*method_order(main.method), "kmeans"]).round(3))
 reference_table.columns = [f"{a} {b}" for a, b in reference_table.columns]
 reference_table = reference_table.reset_index()
 write_table(reference_table, "headline_reference_iqm", figures_dir)
