@@ -37,7 +37,7 @@ scale = "small"
 figures_dir = "paper_figures"
 seed = 0
 seeds = None  # None: the scale's default (ci: 1, small: 3, paper: 3)
-methods = ("mlp", "moe", "smoe", "pemamoe")
+methods = None  # None: every registered method (pemamoe.methods), in registry order
 backend = "local"  # "local" | "ray"
 workers = 2
 ray_address = None
@@ -582,44 +582,81 @@ def _count(low: int):
 #
 # Everything below reads the run folders; nothing trains. `load_runs` stacks the per-iteration logs
 # (`metrics.parquet`) and the per-episode logs (`episodes.parquet`) of a list of run folders into
-# two tidy frames, each row labelled with its run's method, seed, ablation and γ.
+# two tidy frames. Each row carries its run's labels, read from **that run's own `config.json`**
+# (the resolved `TrainConfig`), never from a marker left by whichever experiment asked for the run
+# first: the method, the seed, the phase-controller mechanisms switched off, whether a baseline ran
+# the controller, the noise scale γ, a short `variant` ("", "w/o lr_drop", "+ noise_injection")
+# and the display `label` of `TrainConfig.label()`.
+#
+# Which methods exist, in which order, with which label and colour, comes from the method registry
+# (`pemamoe.methods`, notebook 05): a method registered by outside code (a plugin) appears in every
+# figure below without a change here.
 
 # %%
 #| export analysis
+import dataclasses
+import hashlib
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy import stats
 
+from pemamoe.core import atomic_write_text, by_scale
+from pemamoe.methods import METHOD_REGISTRY, load_plugins, method_colour, method_label, proposed_method
 from pemamoe.runs import read_json, read_parquet, verify_done
 
-METHOD_ORDER = ("mlp", "moe", "smoe", "pemamoe")
-METHOD_LABELS = {"mlp": "MLP", "moe": "MoE", "smoe": "SMoE", "pemamoe": "PE-MAMoE"}
-METHOD_COLOURS = {"mlp": "#7f7f7f", "moe": "#1f77b4", "smoe": "#ff7f0e", "pemamoe": "#d62728"}
+# The columns that label each row of load_runs' frames (one value per run).
+RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
+
+
+def method_order(names=None) -> list:
+    """Method names in the figures' order: registered methods in registration order, then any
+    unregistered name, sorted. names None: every registered method (plugins loaded)."""
+    if names is None:
+        load_plugins()
+        return list(METHOD_REGISTRY)
+    names = set(names)
+    return [m for m in METHOD_REGISTRY if m in names] + sorted(names - set(METHOD_REGISTRY))
+
+
+def is_proposed(name: str) -> bool:
+    """Whether `name` is the registry's proposed method (the headline comparisons are against it)."""
+    return name in METHOD_REGISTRY and METHOD_REGISTRY[name].proposed
+
+
+def run_labels(config: dict, run: str = "") -> dict:
+    """The labels of one run, from its config.json (a TrainConfig.to_dict())."""
+    from pemamoe.mappo import TrainConfig
+    from pemamoe.phase_controller import MECHANISMS
+
+    ctrl = config.get("controller", {})
+    force = bool(config.get("force_controller", False))
+    try:
+        cfg = TrainConfig.from_dict(config)
+        enabled, label = cfg.controller_enabled, cfg.label()
+    except ValueError:  # a method no loaded plugin registers: describe it from the dict alone
+        enabled, label = force, config["method"]
+    off = [m for m in MECHANISMS if enabled and not ctrl.get(m, True)]
+    on = [m for m in MECHANISMS if enabled and ctrl.get(m, True)]
+    variant = ("+ " + "+".join(on) if on else "+ controller") if force else ("w/o " + "+".join(off) if off else "")
+    return {"run": run, "method": config["method"], "seed": int(config["seed"]),
+            "without": "+".join(off) or "none", "force_controller": force,
+            "noise_gamma": float(ctrl.get("noise_gamma", float("nan"))), "variant": variant, "label": label}
 
 
 def load_runs(run_dirs) -> tuple:
-    """(metrics, episodes) DataFrames of finished runs, labelled by method/seed/without/gamma/tag."""
+    """(metrics, episodes) DataFrames of finished runs; every row carries RUN_COLUMNS, read from
+    its own run's config.json."""
     metrics, episodes = [], []
     for run_dir in map(Path, run_dirs):
         if not verify_done(run_dir):  # a corrupt or foreign done.json raises, naming it
             raise FileNotFoundError(f"{run_dir} has no done.json: run the sweep first")
-        config = read_json(run_dir / "config.json")
-        spec = read_json(run_dir / "sweep.json")["spec"] if (run_dir / "sweep.json").is_file() else {}
-        label = {
-            "run": run_dir.name,
-            "method": config["method"],
-            "seed": config["seed"],
-            "without": "+".join(spec.get("without", ())) or "none",
-            "noise_gamma": config["controller"]["noise_gamma"],
-            "tag": spec.get("tag", ""),
-        }
-        m = read_parquet(run_dir / "metrics.parquet").assign(**label)
-        e = read_parquet(run_dir / "episodes.parquet").assign(**label)
-        metrics.append(m)
-        episodes.append(e)
+        label = run_labels(read_json(run_dir / "config.json"), run_dir.name)
+        metrics.append(read_parquet(run_dir / "metrics.parquet").assign(**label))
+        episodes.append(read_parquet(run_dir / "episodes.parquet").assign(**label))
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
@@ -632,7 +669,7 @@ def load_runs(run_dirs) -> tuple:
 # methods, and plots energy and collisions as one minus the normalised value so that taller is
 # better everywhere. We follow that protocol per run, and add what a single seed cannot give: for
 # several seeds, the stratified bootstrap confidence intervals of rliable (IQM across runs), and
-# the probability that PE-MAMoE improves on each baseline.
+# the probability that the proposed method improves on each baseline.
 
 # %%
 #| export analysis
@@ -655,8 +692,7 @@ def iqm(values) -> float:
 
 def run_scores(episodes: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd.DataFrame:
     """One row per run: the IQM of each metric's per-episode values (the paper's protocol)."""
-    keys = ["run", "method", "seed", "without", "noise_gamma", "tag"]
-    return episodes.groupby(keys)[list(metrics)].agg(iqm).reset_index()
+    return episodes.groupby(list(RUN_COLUMNS))[list(metrics)].agg(iqm).reset_index()
 
 
 def normalise_scores(scores: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd.DataFrame:
@@ -717,12 +753,86 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
 
 
 # %% [markdown]
+# ## What no learning gives: reference levels of the heuristics
+#
+# A curve of served users says little until one knows what a policy that learns nothing gets. The
+# environment of notebook 04 has two such policies: the **random** policy (uniform actions) and the
+# **k-means heuristic** (each UAV flies to the centroid of the users it owns). `heuristic_episodes`
+# runs one of them for a few episodes in one phase and summarises each episode exactly as the
+# trainer's episode log does (return and collisions summed over the episode, the other metrics
+# averaged over its slots, under the same names as `episodes.parquet`). `reference_levels` averages
+# them per phase, renames the columns to those of the training curves (`metrics.parquet`:
+# `episode_return`, `collisions_per_episode`, ...) and caches the small table as
+# `results/<scale>/reference_levels.csv` (keyed by a hash of the environment and of the rollout
+# budget, so a changed environment recomputes it). The figures draw each phase's level as a short
+# horizontal segment over that phase's blocks of iterations.
+
+# %%
+#| export analysis
+# The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
+REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
+# Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
+CURVE_COLUMNS = {"return": "episode_return", "coverage": "coverage", "served_users": "served_users",
+                 "uav_using_rate": "uav_using_rate", "energy_rate_kj": "energy_rate_kj",
+                 "collisions": "collisions_per_episode"}
+_EPISODE_SUMS = ("return", "collisions")
+
+
+def heuristic_episodes(policy: str, config, phase: int, n_envs: int, episodes: int, seed: int = 0) -> pd.DataFrame:
+    """Per-episode metrics of a heuristic (pemamoe.env.HEURISTICS) in one phase of `config`'s
+    environment: one row per (episode, environment), columns named as in episodes.parquet."""
+    from pemamoe.env import rollout_heuristic
+
+    T = config.env_config().episode_steps
+    # The vector env restarts every env after T slots, so the log splits into whole episodes.
+    logs = rollout_heuristic(policy, n_envs, episodes * T, seed=seed, phase=phase, **config.env_overrides)
+    per = {k: v.reshape(episodes, T, n_envs) for k, v in logs.items()}
+    per["return"] = per["reward"]
+    values = {k: per[k].sum(1) if k in _EPISODE_SUMS else per[k].mean(1) for k in CURVE_COLUMNS}
+    e, b = np.meshgrid(np.arange(episodes), np.arange(n_envs), indexing="ij")
+    return pd.DataFrame({"policy": policy, "phase": phase, "episode": e.ravel(), "env": b.ravel(),
+                         **{k: v.astype(float).ravel() for k, v in values.items()}})
+
+
+def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE_POLICIES)) -> pd.DataFrame:
+    """Mean per-episode metric of each heuristic in each phase at `scale`, one row per (policy,
+    phase), columns named as the training curves; cached in <results_dir>/<scale>/reference_levels.csv."""
+    from pemamoe.mappo import TrainConfig
+
+    config = TrainConfig.for_scale(scale, proposed_method(), 0)
+    n_envs, episodes = by_scale(scale, ci=(4, 1), small=(16, 2), paper=(32, 4))
+    identity = {"env": dataclasses.asdict(config.env_config()), "n_phases": config.n_phases,
+                "policies": list(policies), "n_envs": n_envs, "episodes": episodes, "version": 1}
+    key = hashlib.sha256(json.dumps(identity, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    path = Path(results_dir) / scale / "reference_levels.csv"
+    if path.is_file():
+        cached = pd.read_csv(path)
+        if "key" in cached and (cached["key"] == key).all() and len(cached) == len(policies) * config.n_phases:
+            return cached
+    rows = []
+    for phase in range(config.n_phases):
+        for policy in policies:  # the same environment seeds for every policy: common random numbers
+            eps = heuristic_episodes(policy, config, phase, n_envs, episodes, seed=7919 + phase)
+            rows.append({"policy": policy, "phase": phase,
+                         **{CURVE_COLUMNS[k]: float(eps[k].mean()) for k in CURVE_COLUMNS},
+                         "episodes": len(eps), "key": key})
+    atomic_write_text(path, pd.DataFrame(rows).to_csv(index=False))
+    return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
+
+
+# %% [markdown]
 # ## Time-series figures
 #
 # Every curve is the mean over seeds with a band from the lowest to the highest seed, phase
 # switches are dashed vertical lines, and the figure says how many seeds and which scale it shows.
 # Curves are smoothed with a short moving average (stated on the axis) because per-iteration values
-# of a few episodes are noisy.
+# of a few episodes are noisy. A system metric also shows the heuristics' level in each phase
+# (`reference=`; dotted: random policy, dash-dot: k-means heuristic).
+#
+# **Routers.** Which expert is "expert 0" is an accident of each seed's initialisation, so
+# averaging expert 0 over seeds mixes unrelated experts. `experts_by_usage` renames each run's
+# experts by how much its router uses them (usage rank 1: the highest mean routing probability on
+# the probe batch over the whole run) before anything is averaged over seeds.
 
 # %%
 #| export analysis
@@ -735,23 +845,70 @@ def switch_iterations(metrics: pd.DataFrame) -> list:
     return sorted(one_run.loc[one_run.switch.astype(bool), "iteration"].tolist())
 
 
-def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=METHOD_ORDER, window: int = 5,
-                       label_fn=None):
-    """Mean over seeds and min-max band of `column` against iteration, one curve per method."""
-    for method in methods:
+def phase_blocks(metrics: pd.DataFrame) -> list:
+    """[(start, end, phase)] of the phase schedule (of the first run): each block from its first
+    iteration to the next block's first iteration (the last block to its last iteration)."""
+    one_run = metrics[metrics.run == metrics.run.iloc[0]].sort_values("iteration")
+    its, phases = one_run.iteration.to_numpy(), one_run.phase.to_numpy()
+    starts = [0] + [i for i in range(1, len(its)) if phases[i] != phases[i - 1]]
+    ends = [its[s] for s in starts[1:]] + [its[-1]]
+    return [(int(its[s]), int(e), int(phases[s])) for s, e in zip(starts, ends)]
+
+
+def plot_reference_levels(ax, metrics: pd.DataFrame, levels: pd.DataFrame, column: str) -> None:
+    """Each heuristic's level of `column` in each phase, as a horizontal segment over every block
+    of that phase."""
+    if levels is None or column not in levels:
+        return
+    blocks = phase_blocks(metrics)
+    for policy, (name, style) in REFERENCE_POLICIES.items():
+        level = levels[levels.policy == policy].set_index("phase")[column]
+        for i, (start, end, phase) in enumerate(blocks):
+            if phase in level.index:
+                ax.hlines(level[phase], start, end, colors="black", linestyles=style, lw=1.0,
+                          label=f"{name} (per phase)" if i == 0 else None)
+
+
+def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=None, window: int = 5,
+                       label_fn=None, reference: pd.DataFrame | None = None):
+    """Mean over seeds and min-max band of `column` against iteration, one curve per method
+    (methods None: every method in `metrics`, in registry order); reference: reference_levels()."""
+    for method in method_order(set(metrics.method) if methods is None else methods):
         sub = metrics[metrics.method == method]
         if sub.empty or column not in sub:
             continue
         table = sub.pivot_table(index="iteration", columns="seed", values=column)
         table = table.apply(lambda c: pd.Series(smooth(c.to_numpy(), window), index=c.index))
         mean, lo, hi = table.mean(axis=1), table.min(axis=1), table.max(axis=1)
-        colour = METHOD_COLOURS.get(method)
-        ax.plot(mean.index, mean.to_numpy(), color=colour, lw=1.4,
-                label=(label_fn or METHOD_LABELS.get)(method) if label_fn or method in METHOD_LABELS else method)
+        colour = method_colour(method)
+        ax.plot(mean.index, mean.to_numpy(), color=colour, lw=1.4, label=(label_fn or method_label)(method))
         ax.fill_between(mean.index, lo.to_numpy(), hi.to_numpy(), color=colour, alpha=0.15, lw=0)
+    plot_reference_levels(ax, metrics, reference, column)
     for t in switch_iterations(metrics):
         ax.axvline(t, color="0.5", ls="--", lw=0.7)
     ax.set_xlabel(f"training iteration (curves: {window}-iteration moving average)")
+
+
+def experts_by_usage(metrics: pd.DataFrame, side: str = "policy") -> pd.DataFrame:
+    """Router probabilities of each run with its experts ordered by usage: usage_rank 1 is the
+    expert with the highest mean probability of router/<side>/p<j> over the run (ties: lower j).
+    Long frame: run, method, seed, iteration, usage_rank, expert (the run's own index), p.
+    Runs with fewer than two experts (the MLP logs p0 = 1) are left out."""
+    pattern = re.compile(rf"router/{side}/p(\d+)")
+    cols = sorted((c for c in metrics.columns if pattern.fullmatch(c)), key=lambda c: int(pattern.fullmatch(c)[1]))
+    out = []
+    for run, sub in metrics.groupby("run", sort=True):
+        probs = sub.set_index("iteration")[cols].dropna(axis=1, how="all").dropna(axis=0, how="any")
+        if probs.shape[1] < 2:
+            continue
+        usage = probs.mean()
+        order = sorted(probs.columns, key=lambda c: (-usage[c], int(pattern.fullmatch(c)[1])))
+        for rank, col in enumerate(order, start=1):
+            out.append(pd.DataFrame({"run": run, "method": sub.method.iloc[0], "seed": sub.seed.iloc[0],
+                                     "iteration": probs.index.to_numpy(), "usage_rank": rank,
+                                     "expert": int(pattern.fullmatch(col)[1]), "p": probs[col].to_numpy()}))
+    columns = ["run", "method", "seed", "iteration", "usage_rank", "expert", "p"]
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=columns)
 
 
 def provenance(metrics: pd.DataFrame, scale: str) -> str:
@@ -763,34 +920,42 @@ def provenance(metrics: pd.DataFrame, scale: str) -> str:
 # ## Run (or reuse) the main comparison
 #
 # At the `ci` scale this trains a few iterations per method in seconds; at `small` it is the
-# default of `make figures`; finished runs under `results/` are reused, never retrained.
+# default of `make figures`; finished runs under `results/` are reused, never retrained. The
+# parameter `methods = None` means every registered method.
 
 # %%
 import dataclasses as _dc
 
 import matplotlib.pyplot as plt
 
-from pemamoe.analysis import (METHOD_COLOURS, METHOD_LABELS, SUMMARY_METRICS, bootstrap_iqm, load_runs,
-                              normalise_scores, plot_over_training, probability_of_improvement, provenance,
-                              run_scores)
+from pemamoe.analysis import (REFERENCE_POLICIES, SUMMARY_METRICS, bootstrap_iqm, experts_by_usage, is_proposed,
+                              load_runs, method_order, normalise_scores, plot_over_training,
+                              probability_of_improvement, provenance, reference_levels, run_scores)
 from pemamoe.core import save_figure, write_table
+from pemamoe.methods import method_colour, method_label, proposed_method
 # Worker processes import what they run by module path, so the sweep must use the package's copies
 # of these definitions, not the ones this notebook's cells just created in __main__.
 from pemamoe.sweep import default_seeds, main_specs, run_sweep
 
+method_list = method_order(None if methods is None else tuple(methods))
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
-run_dirs = run_sweep(main_specs(scale, seed_list, methods), backend, workers, results_dir, ray_address)
+run_dirs = run_sweep(main_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address)
 metrics, episodes = load_runs(run_dirs)
+levels = reference_levels(scale, results_dir)
 note = provenance(metrics, scale)
+STYLE_NAMES = {":": "dotted", "-.": "dash-dot", "--": "dashed", "-": "solid"}
+reference_note = "; ".join(f"{STYLE_NAMES.get(style, style)}: {name}" for name, style in REFERENCE_POLICIES.values())
 print(note, "|", len(episodes), "training episodes")
+levels.drop(columns="key")
 
 
-def figure(column, ylabel, name, title, methods_shown=methods):
+def figure(column, ylabel, name, title, methods_shown=method_list, reference=None):
     fig, ax = plt.subplots(figsize=(8, 3.6))
-    plot_over_training(ax, metrics, column, methods_shown)
+    plot_over_training(ax, metrics, column, methods_shown, reference=reference)
     ax.set_ylabel(ylabel)
-    ax.set_title(f"{title}\n{note}", fontsize=9)
-    ax.legend(fontsize=8, ncol=4)
+    extra = f"\nblack lines: each phase's level without learning ({reference_note})" if reference is not None else ""
+    ax.set_title(f"{title}\n{note}{extra}", fontsize=9)
+    ax.legend(fontsize=8, ncol=3)
     save_figure(fig, name, figures_dir)
     plt.show()
 
@@ -799,32 +964,48 @@ def figure(column, ylabel, name, title, methods_shown=methods):
 # ## Plasticity indicators
 #
 # Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
-# trunk), and the dormant-neuron fraction (τ-dormant score, τ = 0.025, averaged over layers and
-# experts).
+# trunk), and the dormant-neuron fraction under both definitions of notebook 06, averaged over
+# layers and experts: the **paper's** (a unit whose mean absolute pre-activation is below
+# δ = 0.01) and **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025). They
+# measure different things (collapsed units versus silent ones), so the figure shows both.
 
 # %%
+from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
+
 figure("rank/stable/mean", "stable rank (mean over experts)", "results_feature_rank",
        "Average expert feature rank over training")
-figure("dormant/tau/mean", "dormant fraction (tau = 0.025)", "results_dormant_fraction",
-       "Dormant neuron fraction over training")
+
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
+for ax, (column, title) in zip(axes, (
+        ("dormant/paper/mean", f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}"),
+        ("dormant/tau/mean", f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}"))):
+    plot_over_training(ax, metrics, column, method_list)
+    ax.set_title(title, fontsize=9)
+    ax.set_ylabel("dormant fraction")
+axes[0].legend(fontsize=8)
+fig.suptitle(f"Dormant neuron fraction over training, two definitions (left: paper, right: tau-dormant)\n{note}",
+             fontsize=9)
+save_figure(fig, "results_dormant_fraction", figures_dir)
+plt.show()
 
 # %% [markdown]
 # ## Task performance
 
 # %%
-figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training")
+figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training", reference=levels)
 
 # %%
 scores = run_scores(episodes)
 norm = normalise_scores(scores)
-boot = bootstrap_iqm(norm, [m for m in methods if m in set(norm.method)])
+present = [m for m in method_list if m in set(norm.method)]
+boot = bootstrap_iqm(norm, present)
 fig, ax = plt.subplots(figsize=(8, 3.8))
 width = 0.8 / len(boot)
 x = np.arange(len(SUMMARY_METRICS))
 rows = []
 for i, (method, (point, ci)) in enumerate(boot.items()):
     err = np.vstack([point - ci[0], ci[1] - point])
-    ax.bar(x + i * width, point, width, yerr=err, capsize=3, color=METHOD_COLOURS[method], label=METHOD_LABELS[method])
+    ax.bar(x + i * width, point, width, yerr=err, capsize=3, color=method_colour(method), label=method_label(method))
     for j, metric in enumerate(SUMMARY_METRICS):
         rows.append({"method": method, "metric": SUMMARY_METRICS[metric][0], "normalised IQM": point[j],
                      "ci_low": ci[0][j], "ci_high": ci[1][j]})
@@ -839,14 +1020,15 @@ save_figure(fig, "results_normalised_iqm", figures_dir)
 plt.show()
 iqm_table = pd.DataFrame(rows)
 write_table(iqm_table.round(3), "results_normalised_iqm", figures_dir)
-raw = scores.groupby("method")[list(SUMMARY_METRICS)].mean().reindex([m for m in methods if m in set(scores.method)])
+raw = scores.groupby("method")[list(SUMMARY_METRICS)].mean().reindex(present)
 print("per-episode IQM of each metric, mean over seeds (raw units):")
 raw.round(3)
 
 # %%
-baselines = [m for m in methods if m != "pemamoe" and m in set(norm.method)]
-if "pemamoe" in set(norm.method) and baselines:
-    poi = probability_of_improvement(norm, "pemamoe", baselines)
+proposed = proposed_method()
+baselines = [m for m in present if not is_proposed(m)]
+if proposed in present and baselines:
+    poi = probability_of_improvement(norm, proposed, baselines)
     write_table(poi.round(3), "results_probability_of_improvement", figures_dir)
     print(poi.round(3))
 
@@ -854,27 +1036,35 @@ if "pemamoe" in set(norm.method) and baselines:
 # ## Where the routers send their inputs
 #
 # Mean routing probability of each expert on the probe batch, for the policy router and the value
-# router of the three MoE methods.
+# router of every method with more than one expert. Each seed's experts are first ordered by usage
+# (usage rank 1 = the expert its router uses most over the whole run); the curves are the mean over
+# seeds of the expert of each usage rank, so they show how unequal the routing is and how it moves
+# at the switches, not the fate of any particular expert.
 
 # %%
-moe_methods = [m for m in methods if m != "mlp"]
-n_experts = sum(c.startswith("router/policy/p") for c in metrics.columns)
 for side in ("policy", "value"):
-    fig, axes = plt.subplots(1, len(moe_methods), figsize=(4 * len(moe_methods), 3.2), sharey=True, squeeze=False)
-    for ax, method in zip(axes[0], moe_methods):
-        sub = metrics[metrics.method == method]
-        for j in range(n_experts):
-            col = f"router/{side}/p{j}"
-            table = sub.pivot_table(index="iteration", columns="seed", values=col)
-            ax.plot(table.index, table.mean(axis=1), label=f"expert {j}")
+    ranked = experts_by_usage(metrics, side)
+    routed = [m for m in method_list if m in set(ranked.method)]
+    if not routed:
+        continue
+    fig, axes = plt.subplots(1, len(routed), figsize=(4 * len(routed), 3.6), sharey=True, squeeze=False,
+                             layout="constrained")
+    for ax, method in zip(axes[0], routed):
+        sub = ranked[ranked.method == method]
+        for rank in sorted(sub.usage_rank.unique()):
+            table = sub[sub.usage_rank == rank].pivot_table(index="iteration", columns="seed", values="p")
+            ax.plot(table.index, table.mean(axis=1), label=f"usage rank {rank}")
             ax.fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.15, lw=0)
-        for t in sorted(sub.loc[sub.switch.astype(bool), "iteration"].unique()):
+        one = metrics[metrics.method == method]
+        for t in sorted(one.loc[one.switch.astype(bool), "iteration"].unique()):
             ax.axvline(t, color="0.5", ls="--", lw=0.7)
-        ax.set_title(METHOD_LABELS[method])
+        ax.set_title(method_label(method))
         ax.set_xlabel("training iteration")
     axes[0, 0].set_ylabel(f"{side}-router probability")
     axes[0, 0].legend(fontsize=8)
-    fig.suptitle(f"{side.capitalize()}-side expert routing probability ({note})", fontsize=9)
+    fig.suptitle(f"{side.capitalize()}-side expert routing probability\neach seed's experts ordered by their mean "
+                 f"routing probability over the run (rank 1 = most used) before averaging over seeds\n{note}",
+                 fontsize=9)
     save_figure(fig, f"results_router_{side}", figures_dir)
     plt.show()
 
@@ -882,24 +1072,27 @@ for side in ("policy", "value"):
 # ## System performance and internal state
 
 # %%
-figure("collisions_per_episode", "collisions per episode", "results_collisions", "Collisions per episode over training")
-figure("energy_rate_kj", "energy per UAV per slot [kJ]", "results_energy_rate", "Mean UAV energy rate over training")
+figure("collisions_per_episode", "collisions per episode", "results_collisions", "Collisions per episode over training",
+       reference=levels)
+figure("energy_rate_kj", "energy per UAV per slot [kJ]", "results_energy_rate", "Mean UAV energy rate over training",
+       reference=levels)
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
-plot_over_training(axes[0], metrics, "served_users", methods)
+plot_over_training(axes[0], metrics, "served_users", method_list, reference=levels)
 axes[0].set_ylabel("served users (mean per slot)")
-plot_over_training(axes[1], metrics, "uav_using_rate", methods)
+plot_over_training(axes[1], metrics, "uav_using_rate", method_list, reference=levels)
 axes[1].set_ylabel("UAV using rate")
-axes[0].set_title(f"Served users and UAV using rate over training\n{note}", fontsize=9)
-axes[0].legend(fontsize=8, ncol=4)
+axes[0].set_title(f"Served users and UAV using rate over training\n{note}\n"
+                  f"black lines: each phase's level without learning ({reference_note})", fontsize=9)
+axes[0].legend(fontsize=8, ncol=3)
 save_figure(fig, "results_service", figures_dir)
 plt.show()
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
 for ax, comp in zip(axes, ("x", "y")):
-    plot_over_training(ax, metrics, f"action/mean_{comp}", methods, window=1)
+    plot_over_training(ax, metrics, f"action/mean_{comp}", method_list, window=1)
     ax.set_ylabel(f"mean action, {comp}")
 axes[0].set_title(f"Mean action response to phase switches (probe batch, deterministic)\n{note}", fontsize=9)
 axes[0].legend(fontsize=8, ncol=4)
@@ -928,7 +1121,7 @@ def flatten(obj, prefix=""):
 
 
 params = {**{f"env.{k}": v for k, v in flatten(EnvConfig()).items()},
-          **{f"train.{k}": v for k, v in flatten(TrainConfig.for_scale("paper", "pemamoe", 0)).items()
+          **{f"train.{k}": v for k, v in flatten(TrainConfig.for_scale("paper", proposed_method(), 0)).items()
              if k not in ("method", "seed")}}
 param_table = pd.DataFrame({"parameter": list(params), "value": [str(v) for v in params.values()]})
 write_table(param_table, "table_parameters", figures_dir)

@@ -40,19 +40,30 @@ ray_address = None
 results_dir = "results"
 
 # %%
+from pathlib import Path
+
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from pemamoe.analysis import (METHOD_COLOURS, METHOD_LABELS, SUMMARY_METRICS, iqm, load_runs, relative_change,
-                              run_scores)
+from pemamoe.analysis import (SUMMARY_METRICS, heuristic_episodes, iqm, is_proposed, load_runs, method_order,
+                              relative_change, run_scores)
 from pemamoe.core import by_scale, save_figure, write_table
+from pemamoe.methods import method_colour, method_label, proposed_method
 from pemamoe.sweep import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, run_sweep,
                            trick_specs)
 
+proposed = proposed_method()
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
-specs = main_specs(scale, seed_list) + noise_specs(scale, seed_list) + trick_specs(scale, seed_list)
-run_dirs = run_sweep(specs, backend, workers, results_dir, ray_address)
+experiments = {"main": main_specs(scale, seed_list, method_order()), "noise": noise_specs(scale, seed_list),
+               "tricks": trick_specs(scale, seed_list)}
+run_dirs = run_sweep([s for specs in experiments.values() for s in specs], backend, workers, results_dir, ray_address)
+# Which experiment asked for which run folder (one folder can serve two: the main PE-MAMoE runs are
+# also the noise sweep's default-gamma point). What a run *is* comes from its own config.json.
+runs_of, start = {}, 0
+for name, specs in experiments.items():
+    runs_of[name] = {Path(d).name for d in run_dirs[start:start + len(specs)]}
+    start += len(specs)
 metrics, episodes = load_runs(dict.fromkeys(run_dirs))
 n_seeds = len(seed_list)
 note = f"scale={scale}, {n_seeds} seed{'s' if n_seeds != 1 else ''} per point"
@@ -81,23 +92,29 @@ def converged_by_phase(frame: pd.DataFrame, column: str) -> pd.DataFrame:
 
 
 def gamma_of(frame):
-    return frame.drop_duplicates("run").set_index("run")[["method", "seed", "noise_gamma", "without", "tag"]]
+    return frame.drop_duplicates("run").set_index("run")[["method", "seed", "noise_gamma", "variant", "label"]]
 
 
-noise_runs = metrics[((metrics.method == "pemamoe") & (metrics.without == "none"))
-                     | ((metrics.method == "moe") & (metrics.without != "none"))]
+def series_name(method, variant):
+    return f"{method_label(method)} {variant}".strip()
+
+
+noise_runs = metrics[metrics.run.isin(runs_of["noise"])]
 labels = gamma_of(noise_runs)
+series = labels[["method", "variant"]].drop_duplicates()
+series = sorted(map(tuple, series.to_numpy()), key=lambda mv: (method_order(labels.method).index(mv[0]), mv[1]))
 table_rows = []
 fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True)
 for row_i, column in enumerate(("served_users", "coverage")):
     conv = converged_by_phase(noise_runs, column).join(labels, on="run")
     for phase in range(3):
         ax = axes[row_i, phase]
-        for method, name in (("pemamoe", "PE-MAMoE"), ("moe", "MoE + expert noise")):
-            sub = conv[(conv.method == method) & (conv.phase == phase)]
+        for method, variant in series:
+            name = series_name(method, variant)
+            sub = conv[(conv.method == method) & (conv.variant == variant) & (conv.phase == phase)]
             agg = sub.groupby("noise_gamma")[column].agg(["mean", "min", "max", "count"]).reindex(NOISE_GAMMAS)
             ax.errorbar(agg.index, agg["mean"], yerr=[agg["mean"] - agg["min"], agg["max"] - agg["mean"]],
-                        marker="o", capsize=3, color=METHOD_COLOURS[method], label=name)
+                        marker="o", capsize=3, color=method_colour(method), label=name)
             for g, r in agg.iterrows():
                 table_rows.append({"metric": column, "phase": phase, "method": name, "gamma": g,
                                    "mean": r["mean"], "min": r["min"], "max": r["max"], "seeds": r["count"]})
@@ -127,11 +144,11 @@ noise_table[noise_table.metric == "served_users"].pivot_table(index=["method", "
 # %%
 PAPER_TRICK_DROPS = {"entropy annealing": -46.7, "log-std reset": -101.3, "LR annealing": -5.6, "noise injection": -23.6}
 scores = run_scores(episodes)
-main = scores[scores.tag == "main"]  # the four methods of notebook 09, at the default gamma
-full = (scores.tag == "main") & (scores.method == "pemamoe")
+main = scores[scores.run.isin(runs_of["main"])]  # the methods of notebook 09, at the default gamma
+full = scores.run.isin(runs_of["main"]) & (scores.method == proposed)
 trick_rows = []
 for label, mech in TRICKS.items():
-    ablated = (scores.method == "pemamoe") & (scores.without == mech)
+    ablated = scores.run.isin(runs_of["tricks"]) & (scores.method == proposed) & (scores.without == mech)
     point, low, high = relative_change(scores, "return", ablated, full)
     trick_rows.append({"removed": label, "IQM return change %": point, "ci_low": low, "ci_high": high,
                        "paper %": PAPER_TRICK_DROPS[label], "runs": int(ablated.sum())})
@@ -139,7 +156,7 @@ tricks = pd.DataFrame(trick_rows)
 write_table(tricks.round(2), "ablation_tricks", figures_dir)
 fig, ax = plt.subplots(figsize=(7, 3.6))
 x = np.arange(len(tricks))
-ax.bar(x - 0.2, tricks["IQM return change %"], 0.4, color="#d62728", label="ours",
+ax.bar(x - 0.2, tricks["IQM return change %"], 0.4, color=method_colour(proposed), label="ours",
        yerr=[tricks["IQM return change %"] - tricks.ci_low, tricks.ci_high - tricks["IQM return change %"]], capsize=3)
 ax.bar(x + 0.2, tricks["paper %"], 0.4, color="0.6", label="paper (1 seed)")
 ax.axhline(0, color="black", lw=0.8)
@@ -157,46 +174,32 @@ tricks.round(2)
 # Each row gives the paper's claim, our measurement at the scale that ran, and a 95 % bootstrap
 # interval over seeds. All changes are relative changes of the per-episode IQM (the paper states
 # its return claim on a normalised IQM; min-max normalisation across methods makes a relative
-# change depend on the worst method, so we compare the raw IQMs). "Best baseline" is, for each metric, whichever of MLP, MoE and SMoE has the
-# best IQM in our runs. The k-means heuristic of notebook 04, which does not learn, is run through
-# the same phases for as many episodes and reported as a reference row.
+# change depend on the worst method, so we compare the raw IQMs). "Best baseline" is, for each
+# metric, whichever registered baseline (MLP, MoE and SMoE, plus any plugin method) has the best
+# IQM in our runs. The k-means heuristic of notebook 04, which does not learn, is run through the
+# same phases for as many episodes and reported as a reference row.
 
 # %%
-from pemamoe.env import rollout_heuristic
 from pemamoe.mappo import TrainConfig
 
 
 def heuristic_episode_scores(policy: str, scale: str, seeds) -> pd.DataFrame:
-    """Per-episode metrics of a heuristic over the training phase cycle (3 cycles of the 3 phases)."""
-    cfg = TrainConfig.for_scale(scale, "pemamoe", 0)
-    env_cfg = cfg.env_config()
-    n_envs, episodes, T = 8, by_scale(scale, ci=1, small=4, paper=8), env_cfg.episode_steps
-    rows = []
-    for s in seeds:
-        for block in range(9):
-            phase = block % 3
-            # The vector env restarts every env after T slots, so the log splits into whole episodes.
-            logs = rollout_heuristic(policy, n_envs, episodes * T, seed=1000 + 9 * s + block, phase=phase,
-                                     **cfg.env_overrides)
-            per_episode = {k: v.reshape(episodes, T, n_envs) for k, v in logs.items()}
-            summary = {"return": per_episode["reward"].sum(1), "coverage": per_episode["coverage"].mean(1),
-                       "served_users": per_episode["served_users"].mean(1),
-                       "energy_rate_kj": per_episode["energy_rate_kj"].mean(1),
-                       "collisions": per_episode["collisions"].sum(1)}
-            for e in range(episodes):
-                for b in range(n_envs):
-                    rows.append({"run": f"{policy}-s{s}", "method": policy, "seed": s, "phase": phase,
-                                 **{k: float(v[e, b]) for k, v in summary.items()}})
-    return pd.DataFrame(rows)
+    """Per-episode metrics of a heuristic over the training phase cycle (3 cycles of the 3 phases),
+    with the names of the per-episode log (pemamoe.analysis.heuristic_episodes)."""
+    cfg = TrainConfig.for_scale(scale, proposed, 0)
+    n_envs, episodes = 8, by_scale(scale, ci=1, small=4, paper=8)
+    frames = [heuristic_episodes(policy, cfg, block % cfg.n_phases, n_envs, episodes, seed=1000 + 9 * s + block)
+              .assign(run=f"{policy}-s{s}", method=policy, seed=s) for s in seeds for block in range(9)]
+    return pd.concat(frames, ignore_index=True)
 
 
 kmeans_eps = heuristic_episode_scores("kmeans", scale, seed_list)
 kmeans_scores = kmeans_eps.groupby(["run", "method", "seed"])[list(SUMMARY_METRICS)].agg(iqm).reset_index()
-pe = main.method == "pemamoe"
+pe = main.method == proposed
 
 
 def best_baseline(metric, higher_is_better=True):
-    by = main[main.method != "pemamoe"].groupby("method")[metric].agg(iqm)
+    by = main[~main.method.map(is_proposed)].groupby("method")[metric].agg(iqm)
     return by.idxmax() if higher_is_better else by.idxmin()
 
 
@@ -207,15 +210,16 @@ for metric, paper_text, higher in (("return", "+26.3 % IQM return over the best 
     base = best_baseline(metric, higher)
     point, low, high = relative_change(main, metric, pe, main.method == base)
     claims.append({"claim": paper_text, "ours %": point, "ci_low": low, "ci_high": high,
-                   "compared with": METHOD_LABELS[base]})
+                   "compared with": method_label(base)})
 for _, r in tricks.iterrows():
     claims.append({"claim": f"{r['paper %']:+.1f} % IQM when removing {r.removed}", "ours %": r["IQM return change %"],
-                   "ci_low": r.ci_low, "ci_high": r.ci_high, "compared with": "full PE-MAMoE"})
+                   "ci_low": r.ci_low, "ci_high": r.ci_high, "compared with": f"full {method_label(proposed)}"})
 headline = pd.DataFrame(claims)
 write_table(headline.round(2), "headline_claims", figures_dir)
 
 reference = pd.concat([main, kmeans_scores], ignore_index=True)
-reference_table = reference.groupby("method")[list(SUMMARY_METRICS)].agg(["mean", "min", "max"]).round(3)
+reference_table = (reference.groupby("method")[list(SUMMARY_METRICS)].agg(["mean", "min", "max"])
+                   .reindex([*method_order(main.method), "kmeans"]).round(3))
 reference_table.columns = [f"{a} {b}" for a, b in reference_table.columns]
 reference_table = reference_table.reset_index()
 write_table(reference_table, "headline_reference_iqm", figures_dir)
@@ -255,15 +259,15 @@ for (_, row), value in zip(headline.iterrows(), paper_values):
 # under repeated switches that the paper studies; only the `paper` scale can settle the claims.
 
 # %%
-run_cfg = TrainConfig.for_scale(scale, "pemamoe", 0)
-paper_cfg = TrainConfig.for_scale("paper", "pemamoe", 0)
+run_cfg = TrainConfig.for_scale(scale, proposed, 0)
+paper_cfg = TrainConfig.for_scale("paper", proposed, 0)
 print(f"env steps per run: {run_cfg.total_env_steps:,} at scale={scale} vs {paper_cfg.total_env_steps:,} in the paper "
       f"({paper_cfg.total_env_steps / run_cfg.total_env_steps:.0f}x more); "
       f"phase length {run_cfg.phase_length_iters} vs {paper_cfg.phase_length_iters} iterations")
-learned = main.groupby("method")[["coverage", "served_users", "return"]].mean()
+learned = main.groupby("method")[["coverage", "served_users", "return"]].mean().reindex(method_order(main.method))
 heuristic = kmeans_scores[["coverage", "served_users", "return"]].mean()
 for method, row in learned.iterrows():
-    print(f"{METHOD_LABELS[method]:>9s}: coverage {row.coverage:.2f}, served users {row.served_users:.2f}, "
+    print(f"{method_label(method):>9s}: coverage {row.coverage:.2f}, served users {row.served_users:.2f}, "
           f"return IQM {row['return']:.0f}")
 print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuristic.served_users:.2f}, "
       f"return IQM {heuristic['return']:.0f}  (no learning)")
