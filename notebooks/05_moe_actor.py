@@ -56,6 +56,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal
 
+from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 # %% [markdown]
@@ -249,30 +250,16 @@ class NetConfig:
     gain_router: float = 0.01
 
     def __post_init__(self):
-        def need(ok, name, allowed):
-            if not ok:
-                raise ValueError(f"NetConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        def is_int(v):
-            return isinstance(v, int) and not isinstance(v, bool)
-
-        def is_real(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-        need(is_int(self.hidden) and self.hidden >= 1, "hidden", "an int >= 1")
-        need(is_int(self.n_experts) and self.n_experts >= 1, "n_experts", "an int >= 1")
-        need(
-            is_int(self.top_k) and 1 <= self.top_k <= (self.n_experts if is_int(self.n_experts) else 1),
-            "top_k",
-            f"an int in [1, n_experts={self.n_experts}]",
-        )
-        need(is_real(self.init_log_std), "init_log_std", "a finite float")
-        need(is_real(self.load_balance_coef) and self.load_balance_coef >= 0, "load_balance_coef", "a float >= 0")
-        need(isinstance(self.noisy_gating, bool), "noisy_gating", "True or False")
-        need(self.expert_impl in EXPERT_IMPLS, "expert_impl", f"one of {', '.join(EXPERT_IMPLS)}")
-        need(is_int(self.masked_min_batch) and self.masked_min_batch >= 1, "masked_min_batch", "an int >= 1")
+        require_field(self, "hidden", "int", ge=1)
+        require_field(self, "n_experts", "int", ge=1)
+        require_field(self, "top_k", "int", ge=1, le=self.n_experts)
+        require_field(self, "init_log_std", "real")
+        require_field(self, "load_balance_coef", "real", ge=0)
+        require_field(self, "noisy_gating", "bool")
+        require_field(self, "expert_impl", "choice", EXPERT_IMPLS)
+        require_field(self, "masked_min_batch", "int", ge=1)
         for name in ("gain_hidden", "gain_policy", "gain_value", "gain_router"):
-            need(is_real(getattr(self, name)) and getattr(self, name) > 0, name, "a float > 0")
+            require_field(self, name, "real", gt=0)
 
 
 # %% [markdown]

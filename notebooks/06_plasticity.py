@@ -57,6 +57,7 @@ import torch
 import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
+from pemamoe.core import require_field
 from pemamoe.methods import load_plugins
 from pemamoe.nets import gaussian_kl
 
@@ -180,19 +181,6 @@ NOISE_WINDOW_UNITS = ("epochs", "iterations")
 GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
 
 
-def _need(owner, obj, name, ok, allowed):
-    if not ok:
-        raise ValueError(f"{owner}.{name} must be {allowed}, got {getattr(obj, name)!r}")
-
-
-def _is_int(v):
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_real(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
 @dataclass(frozen=True)
 class PhaseControllerConfig:
     """Switch-time mechanisms of PE-MAMoE (paper Algorithm 1); each has its own on/off switch."""
@@ -237,46 +225,27 @@ class PhaseControllerConfig:
     temperature_routers: str = "both"
 
     def __post_init__(self):
-        own = "PhaseControllerConfig"
         for f in fields(self):
             if f.type in (bool, "bool"):
-                _need(own, self, f.name, isinstance(getattr(self, f.name), bool), "True or False")
-        _need(own, self, "kl_coef", _is_real(self.kl_coef) and self.kl_coef >= 0, "a float >= 0")
-        _need(own, self, "kl_decay", _is_real(self.kl_decay) and 0 < self.kl_decay <= 1, "a float in (0, 1]")
-        _need(own, self, "kl_release", _is_real(self.kl_release) and self.kl_release >= 0, "a float >= 0")
-        _need(own, self, "noise_gamma", _is_real(self.noise_gamma) and self.noise_gamma >= 0, "a float >= 0")
-        _need(own, self, "noise_epochs", _is_int(self.noise_epochs) and self.noise_epochs >= 0, "an int >= 0")
-        _need(own, self, "log_std_value", _is_real(self.log_std_value), "a finite float")
-        _need(
-            own,
-            self,
-            "entropy_phase_portion",
-            _is_real(self.entropy_phase_portion) and 0 < self.entropy_phase_portion <= 1,
-            "a float in (0, 1]",
-        )
-        _need(own, self, "lr_drop_factor", _is_real(self.lr_drop_factor) and 0 <= self.lr_drop_factor <= 1, "a float in [0, 1]")
+                require_field(self, f.name, "bool")
+        require_field(self, "kl_coef", "real", ge=0)
+        require_field(self, "kl_decay", "real", gt=0, le=1)
+        require_field(self, "kl_release", "real", ge=0)
+        require_field(self, "noise_gamma", "real", ge=0)
+        require_field(self, "noise_epochs", "int", ge=0)
+        require_field(self, "noise_window_unit", "choice", NOISE_WINDOW_UNITS)
+        require_field(self, "log_std_value", "real")
+        require_field(self, "entropy_phase_portion", "real", gt=0, le=1)
+        require_field(self, "lr_drop_factor", "real", ge=0, le=1)
         for name in ("lr_warmup_iters", "conservative_iters", "router_freeze_iters"):
-            _need(own, self, name, _is_int(getattr(self, name)) and getattr(self, name) >= 0, "an int >= 0")
-        _need(own, self, "conservative_clip", _is_real(self.conservative_clip) and self.conservative_clip > 0, "a float > 0")
-        _need(
-            own,
-            self,
-            "conservative_target_kl",
-            _is_real(self.conservative_target_kl) and self.conservative_target_kl > 0,
-            "a float > 0",
-        )
-        _need(own, self, "tau_min", _is_real(self.tau_min) and self.tau_min > 0, "a float > 0")
-        _need(
-            own,
-            self,
-            "tau_max",
-            _is_real(self.tau_max) and _is_real(self.tau_min) and self.tau_max >= self.tau_min,
-            f"a float >= tau_min={self.tau_min!r}",
-        )
-        _need(own, self, "tau_kappa", _is_real(self.tau_kappa) and self.tau_kappa > 0, "a float > 0")
-        _need(own, self, "tau_beta", _is_real(self.tau_beta) and self.tau_beta >= 0, "a float >= 0")
-        _need(own, self, "noise_window_unit", self.noise_window_unit in NOISE_WINDOW_UNITS, f"one of {', '.join(NOISE_WINDOW_UNITS)}")
-        _need(own, self, "temperature_routers", self.temperature_routers in TEMPERATURE_TARGETS, f"one of {', '.join(TEMPERATURE_TARGETS)}")
+            require_field(self, name, "int", ge=0)
+        require_field(self, "conservative_clip", "real", gt=0)
+        require_field(self, "conservative_target_kl", "real", gt=0)
+        require_field(self, "tau_min", "real", gt=0)
+        require_field(self, "tau_max", "real", ge=self.tau_min)
+        require_field(self, "tau_kappa", "real", gt=0)
+        require_field(self, "tau_beta", "real", ge=0)
+        require_field(self, "temperature_routers", "choice", TEMPERATURE_TARGETS)
 
     def without(self, mechanism: str) -> "PhaseControllerConfig":
         """The same config with one mechanism switched off (for ablations), e.g. .without("noise_injection")."""
@@ -313,28 +282,15 @@ class BaseSchedule:
     temperature: float = 1.0  # router temperature outside the controller's schedule
 
     def __post_init__(self):
-        own = "BaseSchedule"
-        _need(own, self, "lr", _is_real(self.lr) and self.lr > 0, "a float > 0")
-        _need(own, self, "clip_coef", _is_real(self.clip_coef) and self.clip_coef > 0, "a float > 0")
-        _need(
-            own,
-            self,
-            "target_kl",
-            self.target_kl is None or (_is_real(self.target_kl) and self.target_kl > 0),
-            "None or a float > 0",
-        )
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "clip_coef", "real", gt=0)
+        require_field(self, "target_kl", "real", gt=0, optional=True)
         for name in ("ent_start", "ent_end"):
-            _need(own, self, name, _is_real(getattr(self, name)) and getattr(self, name) >= 0, "a float >= 0")
-        _need(
-            own,
-            self,
-            "ent_anneal_portion",
-            _is_real(self.ent_anneal_portion) and 0 < self.ent_anneal_portion <= 1,
-            "a float in (0, 1]",
-        )
+            require_field(self, name, "real", ge=0)
+        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
         for name in ("total_iterations", "phase_length"):
-            _need(own, self, name, _is_int(getattr(self, name)) and getattr(self, name) >= 1, "an int >= 1")
-        _need(own, self, "temperature", _is_real(self.temperature) and self.temperature > 0, "a float > 0")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "temperature", "real", gt=0)
 
 
 # %% [markdown]

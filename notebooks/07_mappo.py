@@ -112,7 +112,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import atomic_path, by_scale, check_scale
+from pemamoe.core import atomic_path, by_scale, check_scale, config_error, require_field
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -220,8 +220,14 @@ def _is_int(v):
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 
 
-def _is_real(v):
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (tuple, list)):
+        return type(v)(_plain(x) for x in v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
 
 
 @dataclass(frozen=True)
@@ -268,58 +274,53 @@ class TrainConfig:
     device: str = "cpu"  # networks and the update: "cpu", "cuda" or "auto"; the environment stays on the CPU
 
     def __post_init__(self):
-        def need(name, ok, allowed):
-            if not ok:
-                raise ValueError(f"TrainConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        try:
-            method_spec(self.method) if isinstance(self.method, str) else None
-        except ValueError:
-            pass
-        need("method", isinstance(self.method, str) and self.method in METHOD_REGISTRY,
-             f"one of {', '.join(METHOD_REGISTRY)}")
-        need("device", self.device in DEVICES, f"one of {', '.join(DEVICES)}")
-        need("seed", _is_int(self.seed) and self.seed >= 0, "an int >= 0")
+        own = "TrainConfig"
+        if isinstance(self.method, str):
+            try:
+                method_spec(self.method)  # loads $PEMAMOE_PLUGINS on an unknown name
+            except ValueError:
+                pass
+        require_field(self, "method", "choice", tuple(METHOD_REGISTRY))
+        require_field(self, "device", "choice", DEVICES)
+        require_field(self, "seed", "int", ge=0)
         for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
-            need(name, _is_int(getattr(self, name)) and getattr(self, name) >= 1, "an int >= 1")
-        need("n_phases", _is_int(self.n_phases) and 1 <= self.n_phases <= 3, "an int in [1, 3]")
-        if _is_int(self.num_envs) and _is_int(self.rollout_steps) and _is_int(self.num_minibatches):
-            batch = self.num_envs * self.rollout_steps
-            need("num_minibatches", batch % self.num_minibatches == 0 and self.num_minibatches <= batch,
-                 f"a divisor of num_envs * rollout_steps = {batch}")
-        need("lr", _is_real(self.lr) and self.lr > 0, "a float > 0")
-        need("weight_decay", _is_real(self.weight_decay) and self.weight_decay >= 0, "a float >= 0")
-        need("adam_betas", isinstance(self.adam_betas, (tuple, list)) and len(self.adam_betas) == 2
-             and all(_is_real(b) and 0 <= b < 1 for b in self.adam_betas), "two floats in [0, 1)")
-        need("adam_eps", _is_real(self.adam_eps) and self.adam_eps > 0, "a float > 0")
-        need("gamma", _is_real(self.gamma) and 0 <= self.gamma <= 1, "a float in [0, 1]")
-        need("gae_lambda", _is_real(self.gae_lambda) and 0 <= self.gae_lambda <= 1, "a float in [0, 1]")
-        need("clip_coef", _is_real(self.clip_coef) and self.clip_coef > 0, "a float > 0")
-        need("vf_coef", _is_real(self.vf_coef) and self.vf_coef >= 0, "a float >= 0")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "n_phases", "int", ge=1, le=3)
+        batch = self.num_envs * self.rollout_steps
+        if batch % self.num_minibatches or self.num_minibatches > batch:
+            raise config_error(own, "num_minibatches", self.num_minibatches,
+                               f"a divisor of num_envs * rollout_steps = {batch}")
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "weight_decay", "real", ge=0)
+        require_field(self, "adam_betas", "reals", ge=0, lt=1, length=2)
+        require_field(self, "adam_eps", "real", gt=0)
+        require_field(self, "gamma", "real", ge=0, le=1)
+        require_field(self, "gae_lambda", "real", ge=0, le=1)
+        require_field(self, "clip_coef", "real", gt=0)
+        require_field(self, "vf_coef", "real", ge=0)
         for name in ("ent_start", "ent_end"):
-            need(name, _is_real(getattr(self, name)) and getattr(self, name) >= 0, "a float >= 0")
-        need("ent_anneal_portion", _is_real(self.ent_anneal_portion) and 0 < self.ent_anneal_portion <= 1,
-             "a float in (0, 1]")
-        need("target_kl", self.target_kl is None or (_is_real(self.target_kl) and self.target_kl > 0),
-             "None or a float > 0")
-        need("max_grad_norm", _is_real(self.max_grad_norm) and self.max_grad_norm > 0, "a float > 0")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
+        require_field(self, "target_kl", "real", gt=0, optional=True)
+        require_field(self, "max_grad_norm", "real", gt=0)
         for name in ("force_controller", "anneal_lr", "clip_vloss", "norm_adv", "value_norm"):
-            need(name, isinstance(getattr(self, name), bool), "True or False")
-        need("net", isinstance(self.net, NetConfig), "a NetConfig")
-        need("controller", isinstance(self.controller, PhaseControllerConfig), "a PhaseControllerConfig")
-        need("env_overrides", isinstance(self.env_overrides, dict), "a dict of EnvConfig overrides")
-        if isinstance(self.env_overrides, dict):
-            need("env_overrides", self.env_overrides.get("phase_clock", "external") == "external",
-                 "free of phase_clock other than 'external' (the trainer owns the phase clock)")
-            try:
-                self.env_config()
-            except (ValueError, TypeError) as err:
-                raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
-        object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
-        for f in fields(self):  # numpy scalars (e.g. a seed from np.arange) -> plain numbers, so JSON can save them
-            if isinstance(getattr(self, f.name), (np.integer, np.floating)):
-                object.__setattr__(self, f.name, getattr(self, f.name).item())
+            require_field(self, name, "bool")
+        if not isinstance(self.net, NetConfig):
+            raise config_error(own, "net", self.net, "a NetConfig")
+        if not isinstance(self.controller, PhaseControllerConfig):
+            raise config_error(own, "controller", self.controller, "a PhaseControllerConfig")
+        if not isinstance(self.env_overrides, dict):
+            raise config_error(own, "env_overrides", self.env_overrides, "a dict of EnvConfig overrides")
+        if self.env_overrides.get("phase_clock", "external") != "external":
+            raise config_error(own, "env_overrides", self.env_overrides,
+                               "free of phase_clock other than 'external' (the trainer owns the phase clock)")
+        try:
+            self.env_config()
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
+        # numpy scalars -> Python numbers, so that to_dict / config_hash never meet a type JSON cannot write
+        object.__setattr__(self, "env_overrides", {k: _plain(v) for k, v in self.env_overrides.items()})
 
     # -- derived quantities ---------------------------------------------------------------------
     @property

@@ -20,7 +20,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import atomic_path, by_scale, check_scale
+from pemamoe.core import atomic_path, by_scale, check_scale, config_error, require_field
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -61,8 +61,14 @@ def _is_int(v):
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 
 
-def _is_real(v):
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (tuple, list)):
+        return type(v)(_plain(x) for x in v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v
 
 
 @dataclass(frozen=True)
@@ -109,58 +115,53 @@ class TrainConfig:
     device: str = "cpu"  # networks and the update: "cpu", "cuda" or "auto"; the environment stays on the CPU
 
     def __post_init__(self):
-        def need(name, ok, allowed):
-            if not ok:
-                raise ValueError(f"TrainConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        try:
-            method_spec(self.method) if isinstance(self.method, str) else None
-        except ValueError:
-            pass
-        need("method", isinstance(self.method, str) and self.method in METHOD_REGISTRY,
-             f"one of {', '.join(METHOD_REGISTRY)}")
-        need("device", self.device in DEVICES, f"one of {', '.join(DEVICES)}")
-        need("seed", _is_int(self.seed) and self.seed >= 0, "an int >= 0")
+        own = "TrainConfig"
+        if isinstance(self.method, str):
+            try:
+                method_spec(self.method)  # loads $PEMAMOE_PLUGINS on an unknown name
+            except ValueError:
+                pass
+        require_field(self, "method", "choice", tuple(METHOD_REGISTRY))
+        require_field(self, "device", "choice", DEVICES)
+        require_field(self, "seed", "int", ge=0)
         for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
-            need(name, _is_int(getattr(self, name)) and getattr(self, name) >= 1, "an int >= 1")
-        need("n_phases", _is_int(self.n_phases) and 1 <= self.n_phases <= 3, "an int in [1, 3]")
-        if _is_int(self.num_envs) and _is_int(self.rollout_steps) and _is_int(self.num_minibatches):
-            batch = self.num_envs * self.rollout_steps
-            need("num_minibatches", batch % self.num_minibatches == 0 and self.num_minibatches <= batch,
-                 f"a divisor of num_envs * rollout_steps = {batch}")
-        need("lr", _is_real(self.lr) and self.lr > 0, "a float > 0")
-        need("weight_decay", _is_real(self.weight_decay) and self.weight_decay >= 0, "a float >= 0")
-        need("adam_betas", isinstance(self.adam_betas, (tuple, list)) and len(self.adam_betas) == 2
-             and all(_is_real(b) and 0 <= b < 1 for b in self.adam_betas), "two floats in [0, 1)")
-        need("adam_eps", _is_real(self.adam_eps) and self.adam_eps > 0, "a float > 0")
-        need("gamma", _is_real(self.gamma) and 0 <= self.gamma <= 1, "a float in [0, 1]")
-        need("gae_lambda", _is_real(self.gae_lambda) and 0 <= self.gae_lambda <= 1, "a float in [0, 1]")
-        need("clip_coef", _is_real(self.clip_coef) and self.clip_coef > 0, "a float > 0")
-        need("vf_coef", _is_real(self.vf_coef) and self.vf_coef >= 0, "a float >= 0")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "n_phases", "int", ge=1, le=3)
+        batch = self.num_envs * self.rollout_steps
+        if batch % self.num_minibatches or self.num_minibatches > batch:
+            raise config_error(own, "num_minibatches", self.num_minibatches,
+                               f"a divisor of num_envs * rollout_steps = {batch}")
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "weight_decay", "real", ge=0)
+        require_field(self, "adam_betas", "reals", ge=0, lt=1, length=2)
+        require_field(self, "adam_eps", "real", gt=0)
+        require_field(self, "gamma", "real", ge=0, le=1)
+        require_field(self, "gae_lambda", "real", ge=0, le=1)
+        require_field(self, "clip_coef", "real", gt=0)
+        require_field(self, "vf_coef", "real", ge=0)
         for name in ("ent_start", "ent_end"):
-            need(name, _is_real(getattr(self, name)) and getattr(self, name) >= 0, "a float >= 0")
-        need("ent_anneal_portion", _is_real(self.ent_anneal_portion) and 0 < self.ent_anneal_portion <= 1,
-             "a float in (0, 1]")
-        need("target_kl", self.target_kl is None or (_is_real(self.target_kl) and self.target_kl > 0),
-             "None or a float > 0")
-        need("max_grad_norm", _is_real(self.max_grad_norm) and self.max_grad_norm > 0, "a float > 0")
+            require_field(self, name, "real", ge=0)
+        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
+        require_field(self, "target_kl", "real", gt=0, optional=True)
+        require_field(self, "max_grad_norm", "real", gt=0)
         for name in ("force_controller", "anneal_lr", "clip_vloss", "norm_adv", "value_norm"):
-            need(name, isinstance(getattr(self, name), bool), "True or False")
-        need("net", isinstance(self.net, NetConfig), "a NetConfig")
-        need("controller", isinstance(self.controller, PhaseControllerConfig), "a PhaseControllerConfig")
-        need("env_overrides", isinstance(self.env_overrides, dict), "a dict of EnvConfig overrides")
-        if isinstance(self.env_overrides, dict):
-            need("env_overrides", self.env_overrides.get("phase_clock", "external") == "external",
-                 "free of phase_clock other than 'external' (the trainer owns the phase clock)")
-            try:
-                self.env_config()
-            except (ValueError, TypeError) as err:
-                raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
-        object.__setattr__(self, "adam_betas", tuple(float(b) for b in self.adam_betas))
-        for f in fields(self):  # numpy scalars (e.g. a seed from np.arange) -> plain numbers, so JSON can save them
-            if isinstance(getattr(self, f.name), (np.integer, np.floating)):
-                object.__setattr__(self, f.name, getattr(self, f.name).item())
+            require_field(self, name, "bool")
+        if not isinstance(self.net, NetConfig):
+            raise config_error(own, "net", self.net, "a NetConfig")
+        if not isinstance(self.controller, PhaseControllerConfig):
+            raise config_error(own, "controller", self.controller, "a PhaseControllerConfig")
+        if not isinstance(self.env_overrides, dict):
+            raise config_error(own, "env_overrides", self.env_overrides, "a dict of EnvConfig overrides")
+        if self.env_overrides.get("phase_clock", "external") != "external":
+            raise config_error(own, "env_overrides", self.env_overrides,
+                               "free of phase_clock other than 'external' (the trainer owns the phase clock)")
+        try:
+            self.env_config()
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
+        # numpy scalars -> Python numbers, so that to_dict / config_hash never meet a type JSON cannot write
+        object.__setattr__(self, "env_overrides", {k: _plain(v) for k, v in self.env_overrides.items()})
 
     # -- derived quantities ---------------------------------------------------------------------
     @property
@@ -318,13 +319,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 509)
+# %% notebooks/07_mappo.py, cell 12 (line 510)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 538)
+# %% notebooks/07_mappo.py, cell 14 (line 539)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -357,7 +358,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 594)
+# %% notebooks/07_mappo.py, cell 18 (line 595)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -400,7 +401,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 651)
+# %% notebooks/07_mappo.py, cell 20 (line 652)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -564,7 +565,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 857)
+# %% notebooks/07_mappo.py, cell 22 (line 858)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -735,7 +736,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1055)
+# %% notebooks/07_mappo.py, cell 24 (line 1056)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -788,7 +789,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1108)
+# %% notebooks/07_mappo.py, cell 25 (line 1109)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -909,7 +910,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1237)
+# %% notebooks/07_mappo.py, cell 27 (line 1238)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1189,7 +1190,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[3])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1525)
+# %% notebooks/07_mappo.py, cell 29 (line 1526)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

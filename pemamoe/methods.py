@@ -3,7 +3,7 @@
 
 __all__ = ['MethodSpec', 'METHOD_REGISTRY', 'register_method', 'load_plugins', 'method_spec', 'method_names', 'method_label', 'method_colour', 'proposed_method']
 
-# %% notebooks/05_moe_actor.py, cell 7 (line 113)
+# %% notebooks/05_moe_actor.py, cell 7 (line 114)
 from dataclasses import dataclass
 
 

@@ -16,10 +16,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.distributions import Independent, Normal
 
+from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 
-# %% notebooks/05_moe_actor.py, cell 9 (line 219)
+# %% notebooks/05_moe_actor.py, cell 9 (line 220)
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
@@ -51,33 +52,19 @@ class NetConfig:
     gain_router: float = 0.01
 
     def __post_init__(self):
-        def need(ok, name, allowed):
-            if not ok:
-                raise ValueError(f"NetConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
-
-        def is_int(v):
-            return isinstance(v, int) and not isinstance(v, bool)
-
-        def is_real(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-        need(is_int(self.hidden) and self.hidden >= 1, "hidden", "an int >= 1")
-        need(is_int(self.n_experts) and self.n_experts >= 1, "n_experts", "an int >= 1")
-        need(
-            is_int(self.top_k) and 1 <= self.top_k <= (self.n_experts if is_int(self.n_experts) else 1),
-            "top_k",
-            f"an int in [1, n_experts={self.n_experts}]",
-        )
-        need(is_real(self.init_log_std), "init_log_std", "a finite float")
-        need(is_real(self.load_balance_coef) and self.load_balance_coef >= 0, "load_balance_coef", "a float >= 0")
-        need(isinstance(self.noisy_gating, bool), "noisy_gating", "True or False")
-        need(self.expert_impl in EXPERT_IMPLS, "expert_impl", f"one of {', '.join(EXPERT_IMPLS)}")
-        need(is_int(self.masked_min_batch) and self.masked_min_batch >= 1, "masked_min_batch", "an int >= 1")
+        require_field(self, "hidden", "int", ge=1)
+        require_field(self, "n_experts", "int", ge=1)
+        require_field(self, "top_k", "int", ge=1, le=self.n_experts)
+        require_field(self, "init_log_std", "real")
+        require_field(self, "load_balance_coef", "real", ge=0)
+        require_field(self, "noisy_gating", "bool")
+        require_field(self, "expert_impl", "choice", EXPERT_IMPLS)
+        require_field(self, "masked_min_batch", "int", ge=1)
         for name in ("gain_hidden", "gain_policy", "gain_value", "gain_router"):
-            need(is_real(getattr(self, name)) and getattr(self, name) > 0, name, "a float > 0")
+            require_field(self, name, "real", gt=0)
 
 
-# %% notebooks/05_moe_actor.py, cell 11 (line 311)
+# %% notebooks/05_moe_actor.py, cell 11 (line 298)
 class ExpertBank(nn.Module):
     """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
 
@@ -176,7 +163,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05_moe_actor.py, cell 13 (line 448)
+# %% notebooks/05_moe_actor.py, cell 13 (line 435)
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -317,7 +304,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 622)
+# %% notebooks/05_moe_actor.py, cell 15 (line 609)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -330,7 +317,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 16 (line 636)
+# %% notebooks/05_moe_actor.py, cell 16 (line 623)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -535,7 +522,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 18 (line 853)
+# %% notebooks/05_moe_actor.py, cell 18 (line 840)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -604,7 +591,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 20 (line 948)
+# %% notebooks/05_moe_actor.py, cell 20 (line 935)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -875,7 +862,7 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
     return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 
-# %% notebooks/05_moe_actor.py, cell 22 (line 1234)
+# %% notebooks/05_moe_actor.py, cell 22 (line 1221)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
@@ -960,7 +947,7 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
     return sum(parts[name][1] * n for name, n in used.items())
 
 
-# %% notebooks/05_moe_actor.py, cell 24 (line 1328)
+# %% notebooks/05_moe_actor.py, cell 24 (line 1315)
 def _median_us(fn, repeats: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()
