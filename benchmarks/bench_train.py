@@ -70,8 +70,10 @@ def sweep_groups(scale: str) -> list:
     """[(method, members)] of the 39-run sweep as run_sweep groups it (population cap 16)."""
     from pemamoe.sweep import experiment_specs, group_specs
 
-    specs = experiment_specs("all", scale)
-    return [(g[0].method, len(g)) for g in group_specs(specs, 16)]
+    unique = {}
+    for spec in experiment_specs("all", scale):  # as run_sweep does: one run per folder
+        unique.setdefault(spec.to_config().config_hash(), spec)
+    return [(g[0].method, len(g)) for g in group_specs(list(unique.values()), 16, 2)]
 
 
 def main() -> int:

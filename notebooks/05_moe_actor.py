@@ -1598,7 +1598,7 @@ plt.show()
 
 # %%
 x = torch.randn(64, PAPER_OBS_DIM)
-for kind in ("moe", "smoe"):
+for kind in [m for m, spec in METHOD_REGISTRY.items() if spec.network != "mlp" and spec.plasticity == "none"]:
     net = paper_actors[kind]
     _, _, r = net.act(x)
     means = {}

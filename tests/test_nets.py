@@ -60,7 +60,7 @@ def test_active_parameter_conventions():
     assert active_parameters(smoe, "paper") == 534 + 534 + 6752
     assert active_parameters(smoe, "sampling") == 7820 + 66 + 2
     assert active_parameters(smoe, "eval") == 534 + 6752 + 66 + 2
-    for kind in ("mlp", "moe"):
+    for kind in (n for n, sp in METHOD_REGISTRY.items() if sp.network in ("mlp", "moe")):  # dense networks
         actor = make_actor(kind, PAPER_OBS_DIM)
         for mode in ("paper", "sampling", "eval"):
             assert active_parameters(actor, mode) == count_parameters(actor)

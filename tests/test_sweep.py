@@ -14,9 +14,11 @@ import psutil
 import pytest
 
 from pemamoe.mappo import train
+from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep, sweep_cli
 
 ROOT = Path(__file__).resolve().parent.parent
+BASELINES = tuple(n for n, sp in METHOD_REGISTRY.items() if not sp.proposed)  # three runs without the controller
 
 
 def test_spec_resolves_to_config_and_folder(tmp_path):
@@ -160,10 +162,10 @@ def _wait_for(predicate, timeout, what):
 
 
 def test_sigint_stops_the_workers_and_starts_nothing_queued(tmp_path):
-    specs = [RunSpec(m, 0, "ci") for m in ("mlp", "moe", "smoe")]
+    specs = [RunSpec(m, 0, "ci") for m in BASELINES]
     folders = [s.run_dir(tmp_path) for s in specs]
     proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "sweep", "--experiment", "main", "--scale", "ci",
-                             "--seeds", "0", "--methods", "mlp", "moe", "smoe", "--workers", "2",
+                             "--seeds", "0", "--methods", *BASELINES, "--workers", "2",
                              "--results-dir", str(tmp_path), "--no-progress"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -190,7 +192,7 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
     ray = pytest.importorskip("ray")
     import threading
 
-    specs = [RunSpec(m, 2, "ci") for m in ("mlp", "moe", "smoe")]
+    specs = [RunSpec(m, 2, "ci") for m in BASELINES]
     folders = [s.run_dir(tmp_path) for s in specs]
 
     def interrupt():
