@@ -100,6 +100,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -1098,6 +1099,8 @@ class _Determinism:
         self.old = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled())
         if self.threads is not None:
             torch.set_num_threads(int(self.threads))
+        # cuBLAS needs a fixed workspace for deterministic products on a GPU; read when CUDA starts
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True)
         return self
 

@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -38,7 +39,7 @@ from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_
                           verify_done, write_done)
 
 
-# %% notebooks/07_mappo.py, cell 7 (line 199)
+# %% notebooks/07_mappo.py, cell 7 (line 200)
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
@@ -319,13 +320,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 510)
+# %% notebooks/07_mappo.py, cell 12 (line 511)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 539)
+# %% notebooks/07_mappo.py, cell 14 (line 540)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -358,7 +359,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 595)
+# %% notebooks/07_mappo.py, cell 18 (line 596)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -401,7 +402,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 652)
+# %% notebooks/07_mappo.py, cell 20 (line 653)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -565,7 +566,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 858)
+# %% notebooks/07_mappo.py, cell 22 (line 859)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -736,7 +737,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1056)
+# %% notebooks/07_mappo.py, cell 24 (line 1057)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -780,6 +781,8 @@ class _Determinism:
         self.old = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled())
         if self.threads is not None:
             torch.set_num_threads(int(self.threads))
+        # cuBLAS needs a fixed workspace for deterministic products on a GPU; read when CUDA starts
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True)
         return self
 
@@ -789,7 +792,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1109)
+# %% notebooks/07_mappo.py, cell 25 (line 1112)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -910,7 +913,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1238)
+# %% notebooks/07_mappo.py, cell 27 (line 1241)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1190,7 +1193,7 @@ def actor_rows_per_step(ro: Rollout) -> int:
     return int(ro.obs.shape[3])
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1526)
+# %% notebooks/07_mappo.py, cell 29 (line 1529)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
