@@ -1064,8 +1064,8 @@ def run_gate(p, prefix, x, tau, noise, experts, gate):
     return features, (probs, experts, weights)
 
 
-class PopulationActor:
-    """R actors of one kind as one flat parameter tensor (R, P) with batched forward passes."""
+class _Population:
+    """R networks of one kind (built as single-run modules) as one flat parameter tensor (R, P)."""
 
     def __init__(self, members: list):
         if not members:
@@ -1074,8 +1074,6 @@ class PopulationActor:
         self.layout = ParamLayout(self.template)
         self.R = len(members)
         self.flat = self.layout.flatten(members).requires_grad_(True)
-        self.act_dim = self.template.act_dim
-        self.obs_dim = self.template.obs_dim
         gate = getattr(self.template, "gate", None)
         self.n_experts = 1 if gate is None else gate.n_experts
         self.k = 0 if gate is None else gate.k
@@ -1083,12 +1081,26 @@ class PopulationActor:
         self.gated = gate is not None
         self.lb_coef = self.template.cfg.load_balance_coef
 
-    def to(self, device) -> "PopulationActor":
+    def to(self, device):
         self.flat = self.flat.detach().to(device).requires_grad_(True)
         return self
 
     def params(self, flat=None) -> dict:
         return self.layout.views(self.flat if flat is None else flat)
+
+    def member(self, r: int, module=None):
+        """Member r as a single-run module (a copy; `module` is filled in place if given)."""
+        module = module if module is not None else copy.deepcopy(self.template)
+        return self.layout.load_member(self.flat[r].detach().cpu(), module)
+
+
+class PopulationActor(_Population):
+    """R actors of one kind with batched forward passes."""
+
+    def __init__(self, members: list):
+        super().__init__(members)
+        self.act_dim = self.template.act_dim
+        self.obs_dim = self.template.obs_dim
 
     def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None):
         """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None)."""
@@ -1140,30 +1152,8 @@ class PopulationActor:
             chosen = probs.argmax(-1, keepdim=True)
         return logp, entropy, run_load_balance(probs, chosen, self.n_experts), mean, log_std, chosen
 
-    def member(self, r: int, module=None):
-        """Member r as a single-run module (a copy; `module` is filled in place if given)."""
-        module = module if module is not None else copy.deepcopy(self.template)
-        return self.layout.load_member(self.flat[r].detach().cpu(), module)
-
-
-class PopulationCritic:
+class PopulationCritic(_Population):
     """R centralised critics of one kind; noiseless gating (see notebook 07 on why)."""
-
-    def __init__(self, members: list):
-        if not members:
-            raise ValueError("a population needs at least one member")
-        self.template = members[0]
-        self.layout = ParamLayout(self.template)
-        self.R = len(members)
-        self.flat = self.layout.flatten(members).requires_grad_(True)
-        gate = getattr(self.template, "gate", None)
-        self.n_experts = 1 if gate is None else gate.n_experts
-        self.gated = gate is not None
-        self.lb_coef = self.template.cfg.load_balance_coef
-
-    def to(self, device) -> "PopulationCritic":
-        self.flat = self.flat.detach().to(device).requires_grad_(True)
-        return self
 
     def __call__(self, state, tau):
         """state (R, n, state_dim), tau (R,) -> (value (R, n), load balance (R,), probs or None)."""
@@ -1178,9 +1168,6 @@ class PopulationCritic:
             chosen = probs.argmax(-1, keepdim=True)
         return value, run_load_balance(probs, chosen, self.n_experts), probs
 
-    def member(self, r: int, module=None):
-        module = module if module is not None else copy.deepcopy(self.template)
-        return self.layout.load_member(self.flat[r].detach().cpu(), module)
 
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
