@@ -215,7 +215,7 @@ print("environment 1 of the batch draws what a lone environment draws:", same)
 # can be read against notebooks 01–03 and the paper. It is also slow for this problem's sizes. A step
 # at 3 UAVs and 20 users makes about a thousand numpy calls, each on a few dozen numbers, so the
 # interpreter's per-call overhead, not arithmetic, sets the pace: about 1.1 ms per PettingZoo step
-# and 22,000 environment steps per second at B = 64 (`make bench`, 2-core machine), against the
+# and 22,000 environment steps per second at B = 64 (`make bench` at commit `d2066cc`, 2-core machine), against the
 # 200 µs and 50,000 this project targets.
 #
 # The compiled engine (`step_engine="compiled"`, the default) runs the same step as explicit loops
@@ -247,7 +247,7 @@ print("environment 1 of the batch draws what a lone environment draws:", same)
 # The compiled step also skips work the reference does for every link: it computes distances for
 # all links, the large-scale channel only for users inside a service radius, and this slot's
 # realised gain only on the links of admitted users. The random numbers of every link are drawn
-# regardless, so no stream changes. Measured with `make bench`: 110–130 µs per PettingZoo step
+# regardless, so no stream changes. Measured with `make bench` at commit `d2066cc`: 110–130 µs per PettingZoo step
 # and 63,000–83,000 env-steps/s at B = 64 (47,000–60,000 when every user is covered), depending on
 # how busy the shared machine is.
 #
