@@ -678,8 +678,11 @@ class EpisodeTracker:
         self.sums = {k: np.zeros(num_envs) for k in _EPISODE_SUMS + _EPISODE_MEANS}
 
     def update(self, reward, info, terminated, truncated, iteration: int) -> list:
-        """Add one step; returns the finished episodes' rows (a list, or one list per member
-        when members > 1)."""
+        """Add one step; returns the finished episodes' rows (of every member, in environment order)."""
+        return [row for rows in self.update_members(reward, info, terminated, truncated, iteration) for row in rows]
+
+    def update_members(self, reward, info, terminated, truncated, iteration: int) -> list:
+        """Add one step; returns one list of finished-episode rows per member."""
         phase = np.asarray(info["phase"], dtype=np.int64)
         self.phase_start = np.where(self.length == 0, phase, self.phase_start)
         self.ret += reward
@@ -697,7 +700,7 @@ class EpisodeTracker:
             rows[r].append(row)
             self.episodes[r] += 1
             self._clear(b)
-        return rows[0] if self.members == 1 else rows
+        return rows
 
     def _clear(self, b) -> None:
         self.ret[b], self.length[b] = 0.0, 0
@@ -794,9 +797,9 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
             routes.append(routing.reshape(R, 1, B, U))
         for k in _STEP_KEYS + _AGENT_FLAGS:
             step_sums[k] += np.asarray(info[k], dtype=float).reshape(R, -1).mean(axis=1)
-        finished = tracker.update(np.asarray(reward, dtype=float), info, terminated, truncated, iteration)
+        finished = tracker.update_members(np.asarray(reward, dtype=float), info, terminated, truncated, iteration)
         for r in range(R):
-            episode_rows[r] += finished[r] if R > 1 else finished
+            episode_rows[r] += finished[r]
     last_v, _, _ = critic(_member_view(state, R).to(device), tau_v)
 
     def stack(name, dev=None):
@@ -1335,7 +1338,10 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
                           c0.adam_eps, c0.weight_decay)
     router_group = group_names.index("router") if "router" in group_names else None
-    method_cls = plasticity_method(sorted({plasticity_name(c) for c in configs})[-1])
+    names = {plasticity_name(c) for c in configs}
+    # check_population lets only "none" and "phase_controller" mix; the controller serves both
+    # (a member with the controller off behaves exactly as NoPlasticity)
+    method_cls = plasticity_method(names.pop() if len(names) == 1 else "phase_controller")
     plasticity = method_cls(configs, actor, critic, actor_opt, critic_opt)
     norms = ValueNorms(configs)
     tracker = EpisodeTracker(R * B, members=R)
@@ -1372,14 +1378,15 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             start = resumed_from = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
 
-    def save(r, iteration):
+    def save(r, iteration, env_state):
+        """Member r's checkpoint and logs; env_state: the whole population's (taken once per checkpoint)."""
         if run_dirs[r] is None:
             return
-        env_state = split_env_state(venv.state_dict(), range(r * B, (r + 1) * B))
+        env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
         _torch_save_atomic({
             "format": 2, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
             "elapsed": elapsed[r] + time.perf_counter() - wall_start,
-            "actor": actor.member(r).state_dict(), "critic": critic.member(r).state_dict(),
+            "actor": actor.member(r, singles[r][0]).state_dict(), "critic": critic.member(r, singles[r][1]).state_dict(),
             "optimizer": {"actor": actor_opt.member_state(r), "critic": critic_opt.member_state(r)},
             "plasticity": plasticity.state_dict(r), "value_norm": norms.norms[r].state_dict(),
             "tracker": tracker.member_state(r), "env": _encode(env_state),
@@ -1438,7 +1445,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
 
         # --- 5. logging, diagnostics and checkpoints, per member ---------------------------------
         diag = it % c0.diag_every == 0 or switch or it == c0.iterations - 1
-        last = it == stop - 1
+        checkpoint = (it + 1) % c0.checkpoint_every == 0 or it == stop - 1
+        env_state = venv.state_dict() if checkpoint and any(d is not None for d in run_dirs) else None
         for r in range(R):
             row = _iteration_row(configs[r], r, it, phase, switch, global_step, sched, group_names, actor, norms,
                                  step_stats, new_episodes[r], upd, ro, ret, U)
@@ -1454,8 +1462,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
                        wall_time=elapsed[r] + now - wall_start, population=R)
             metrics_rows[r].append(row)
             episode_rows[r] += new_episodes[r]
-            if (it + 1) % c0.checkpoint_every == 0 or last:
-                save(r, it + 1)
+            if checkpoint:
+                save(r, it + 1, env_state)
         recent = [m[-1]["episode_return"] for m in metrics_rows if np.isfinite(m[-1]["episode_return"])]
         recent = float(np.mean(recent)) if recent else float("nan")
         if verbose:
@@ -1466,11 +1474,12 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
 
     finished = stop == c0.iterations
     results = []
+    env_state = venv.state_dict() if finished and start >= stop else None
     for r, config in enumerate(configs):
         run_dir = run_dirs[r]
         if run_dir is not None and finished:
             if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
-                save(r, stop)
+                save(r, stop, env_state)
             final = pd.DataFrame(metrics_rows[r])
             write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(torch_threads[r]),
                        wall_time_s=elapsed[r] + time.perf_counter() - wall_start,
@@ -1513,10 +1522,6 @@ def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names
             row[f"rollout/expert_frac{j}"] = float(c)
     return row
 
-
-def actor_rows_per_step(ro: Rollout) -> int:
-    """Agent rows per environment step (U)."""
-    return int(ro.obs.shape[3])
 
 
 # %% [markdown]

@@ -130,13 +130,15 @@ class RunSpec:
 # %% [markdown]
 # ## Executing one run, and many
 #
-# `execute_run` is what a worker runs: it caps torch at the worker's thread budget, resolves the
-# spec and calls `train`, which resumes from a checkpoint if one is there and returns at once if
-# the run is already done. `run_sweep` drops finished runs first, then hands the rest to a backend:
+# `execute_population` is what a worker runs: it caps torch at the worker's thread budget,
+# resolves a group of compatible specs and calls `train_population` (notebook 07), which resumes
+# each member from its checkpoint and reads finished members back. `run_sweep` drops finished runs
+# first, groups the rest into populations (`group_specs`, at most `population` members each), then
+# hands the populations to a backend:
 #
 # * `local`: a `ProcessPoolExecutor` with the `spawn` start method (no fork of a process that has
 #   already started torch threads);
-# * `ray`: each run is a Ray task needing one CPU. `ray.init(address=...)` joins a cluster when an
+# * `ray`: each population is a Ray task needing one CPU. `ray.init(address=...)` joins a cluster when an
 #   address is given (or `RAY_ADDRESS` is set) and starts a local Ray instance otherwise.
 #
 # Both backends return the run folders in the order of the specs.
@@ -187,22 +189,6 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
             size = min(size, max(1, -(-len(members) // max(1, workers // len(groups)))))
         out += [members[i:i + size] for i in range(0, len(members), size)]
     return out
-
-
-def execute_run(spec: RunSpec, results_dir, threads: int = 1) -> str:
-    """Train one run (resuming or skipping as its folder allows); return its folder."""
-    import torch
-
-    from pemamoe.mappo import train
-
-    torch.set_num_threads(threads)
-    run_dir = spec.run_dir(results_dir)
-    start = time.perf_counter()
-    train(spec.to_config(), run_dir, resume=True, threads=threads)
-    marker = run_dir / "sweep.json"
-    if not marker.exists():
-        atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start})
-    return str(run_dir)
 
 
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)

@@ -187,22 +187,20 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
 
 # %% notebooks/06_plasticity.py, cell 12 (line 381)
 def expert_parameters(actor, expert: int) -> list:
-    """Views of the trunk parameters of one expert (weights and biases of both hidden layers)."""
-    gate = getattr(actor, "gate", None)
-    if gate is None:  # MLP: the trunk is the single expert 0
-        if expert != 0:
-            raise ValueError(f"expert index must be 0 for an MLP actor, got {expert!r}")
-        return [*actor.fc1.parameters(), *actor.fc2.parameters()]
-    bank = gate.experts
-    if not 0 <= expert < bank.n_experts:
-        raise ValueError(f"expert index must be in [0, {bank.n_experts}), got {expert!r}")
-    return [bank.w1[expert], bank.b1[expert], bank.w2[expert], bank.b2[expert]]
+    """Views of the trunk parameters of one expert, as the actor names them (`trunk_parameters`):
+    a whole parameter for an unstacked trunk (the MLP's single expert 0), slice `expert` of a
+    stacked (E, ...) one."""
+    n = n_experts_of(actor)
+    if not (isinstance(expert, int) and 0 <= expert < n):
+        raise ValueError(f"expert index must be in [0, {n}), got {expert!r}")
+    params = dict(actor.named_parameters())
+    return [params[name] if e is None else params[name][e]
+            for name, e in actor.trunk_parameters() if e is None or e == expert]
 
 
 def n_experts_of(actor) -> int:
-    """Number of experts (1 for the MLP actor)."""
-    gate = getattr(actor, "gate", None)
-    return 1 if gate is None else gate.n_experts
+    """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
+    return len({0 if e is None else e for _, e in actor.trunk_parameters()})
 
 
 def selected_expert_ids(selected, n_experts: int) -> list:
@@ -237,7 +235,7 @@ def reset_adam_state(optimizer) -> None:
     optimizer.state.clear()
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 493)
+# %% notebooks/06_plasticity.py, cell 15 (line 491)
 @dataclass(frozen=True)
 class IterationSettings:
     """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
@@ -423,7 +421,7 @@ class PhaseController:
         self.settings = None
 
 
-# %% notebooks/06_plasticity.py, cell 17 (line 729)
+# %% notebooks/06_plasticity.py, cell 17 (line 727)
 class RunAdamW:
     """AdamW over a population's flat parameters (R, P), every member with its own learning
     rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
@@ -634,10 +632,13 @@ class NoPlasticity:
             self.member_generator(r).set_state(state["generator"])
 
     # helpers for subclasses ---------------------------------------------------------------------
+    generator_seed_offset = 11  # member r's generator starts from its config's seed + this
+
     def member_generator(self, r: int) -> torch.Generator:
         """Member r's own random generator (seeded from its config's seed; checkpointed)."""
         if getattr(self, "_generators", None) is None:
-            self._generators = [torch.Generator().manual_seed(int(c.seed) + 11) for c in self.configs]
+            self._generators = [torch.Generator().manual_seed(int(c.seed) + self.generator_seed_offset)
+                                for c in self.configs]
         return self._generators[r]
 
     def expert_indices(self) -> list:
@@ -669,16 +670,12 @@ class PhaseControllerMethod(NoPlasticity):
     members with controller_enabled False behave exactly as NoPlasticity."""
 
     name = "phase_controller"
+    generator_seed_offset = 7  # the noise generator of the single-network PhaseController (seed + 7)
 
     def __init__(self, configs, actor, critic, actor_opt, critic_opt):
         super().__init__(configs, actor, critic, actor_opt, critic_opt)
         self.cfgs = [c.controller for c in self.configs]
         self.enabled = [bool(c.controller_enabled) for c in self.configs]
-        self.generators = []
-        for c in self.configs:
-            g = torch.Generator(device="cpu")
-            g.manual_seed(int(c.seed) + 7)
-            self.generators.append(g)
         self.last_switch = [None] * self.R
         self.switches = [0] * self.R
         self.noise_left = [0] * self.R
@@ -715,7 +712,7 @@ class PhaseControllerMethod(NoPlasticity):
                 self.actor_opt.reset(r)  # the actor only: the critic keeps its moments
             if cfg.noise_injection:
                 n_exp = len(self.expert_indices())
-                self.perturb_experts(r, [self._noise_std(r, 0)] * n_exp, self.generators[r])
+                self.perturb_experts(r, [self._noise_std(r, 0)] * n_exp, self.member_generator(r))
                 self.noise_left[r] = cfg.noise_epochs
             if cfg.log_std_reset:
                 self.actor.flat[r, a:b] = cfg.log_std_value
@@ -785,18 +782,18 @@ class PhaseControllerMethod(NoPlasticity):
                 shares = [float(c) / total if total > 0 else 0.0 for c in counts[r]]
             since = 0 if self.last_switch[r] is None else (self.settings[r].since_switch or 0)
             std = self._noise_std(r, since)
-            out[r] = self.perturb_experts(r, [std * s for s in shares], self.generators[r])
+            out[r] = self.perturb_experts(r, [std * s for s in shares], self.member_generator(r))
             if self.cfgs[r].noise_window_unit == "epochs":
                 self.noise_left[r] -= 1
         return out
 
     def state_dict(self, r: int) -> dict:
-        if not self.enabled[r]:  # a disabled member is a NoPlasticity member, checkpoint included
-            return super().state_dict(r)
+        if not self.enabled[r]:  # a disabled member is a NoPlasticity member that draws nothing
+            return {}
         return {"cfg": asdict(self.cfgs[r]), "base": asdict(self.bases[r]), "enabled": self.enabled[r],
                 "last_switch": self.last_switch[r], "switches": self.switches[r], "noise_left": self.noise_left[r],
                 "reference": self.reference[r].detach().cpu().clone() if self.has_reference[r] else None,
-                "generator": self.generators[r].get_state()}
+                "generator": self.member_generator(r).get_state()}
 
     @torch.no_grad()
     def load_state_dict(self, r: int, state: dict) -> None:
@@ -808,7 +805,7 @@ class PhaseControllerMethod(NoPlasticity):
                 or state["base"] != asdict(self.bases[r]):
             raise ValueError("PhaseControllerMethod.load_state_dict: the checkpoint was made with a different config")
         self.last_switch[r], self.switches[r], self.noise_left[r] = state["last_switch"], state["switches"], state["noise_left"]
-        self.generators[r].set_state(state["generator"])
+        self.member_generator(r).set_state(state["generator"])
         self.has_reference[r] = state["reference"] is not None
         if self.has_reference[r]:
             if self.reference is None:
