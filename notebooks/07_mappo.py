@@ -895,11 +895,6 @@ def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     return norm
 
 
-def _take(x, rows, idx):
-    """Member-wise gather along axis 1: x (R, N, ...), idx (R, m) -> (R, m, ...)."""
-    return x[rows, idx]
-
-
 def _take_flat(x, flat_idx, R: int):
     """x (R*N, ...) flattened over (member, step), flat_idx (R*m,) = r*N + step -> (R, m, ...)."""
     return x.index_select(0, flat_idx).reshape(R, -1, *x.shape[1:])

@@ -604,11 +604,6 @@ def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     return norm
 
 
-def _take(x, rows, idx):
-    """Member-wise gather along axis 1: x (R, N, ...), idx (R, m) -> (R, m, ...)."""
-    return x[rows, idx]
-
-
 def _take_flat(x, flat_idx, R: int):
     """x (R*N, ...) flattened over (member, step), flat_idx (R*m,) = r*N + step -> (R, m, ...)."""
     return x.index_select(0, flat_idx).reshape(R, -1, *x.shape[1:])
@@ -740,7 +735,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1060)
+# %% notebooks/07_mappo.py, cell 24 (line 1055)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -795,7 +790,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1115)
+# %% notebooks/07_mappo.py, cell 25 (line 1110)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -916,7 +911,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1244)
+# %% notebooks/07_mappo.py, cell 27 (line 1239)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1197,7 +1192,7 @@ def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names
     return row
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1534)
+# %% notebooks/07_mappo.py, cell 29 (line 1529)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
