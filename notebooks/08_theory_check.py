@@ -59,6 +59,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import (
     BaseSchedule,
@@ -177,19 +178,6 @@ print("overlap + cut:     energy", noise_energy(sched), " = gamma^2 *", int(wind
 
 # %%
 #| export
-def _real_ok(v, low=None, strict=False):
-    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
-        return False
-    if low is None:
-        return True
-    return v > low if strict else v >= low
-
-
-def _need(owner, obj, name, ok, allowed):
-    if not ok:
-        raise ValueError(f"{owner}.{name} must be {allowed}, got {getattr(obj, name)!r}")
-
-
 @dataclass(frozen=True)
 class TrackingProblemConfig:
     """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
@@ -203,12 +191,11 @@ class TrackingProblemConfig:
     probe_size: int = 512
 
     def __post_init__(self):
-        own = "TrackingProblemConfig"
         for name in ("obs_dim", "act_dim", "n_phases", "probe_size"):
-            _need(own, self, name, _int_ok(getattr(self, name), 1), "an int >= 1")
-        _need(own, self, "shift", _real_ok(self.shift, 0.0), "a float >= 0")
-        _need(own, self, "init_scale", _real_ok(self.init_scale, 0.0), "a float >= 0")
-        _need(own, self, "action_bound", _real_ok(self.action_bound, 0.0, strict=True), "a float > 0")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "shift", "real", ge=0)
+        require_field(self, "init_scale", "real", ge=0)
+        require_field(self, "action_bound", "real", gt=0)
 
 
 class TrackingProblem:
@@ -324,16 +311,16 @@ class TrackerConfig:
             network_kind(self.kind)
         except ValueError as err:
             raise ValueError(f"{own}.kind: {err}") from None
-        _need(own, self, "iterations", _int_ok(self.iterations, 1), "an int >= 1")
-        _need(own, self, "n_switches", _int_ok(self.n_switches, 0), "an int >= 0")
+        require_field(self, "iterations", "int", ge=1)
+        require_field(self, "n_switches", "int", ge=0)
         for name in ("batch", "epochs", "hidden", "n_experts"):
-            _need(own, self, name, _int_ok(getattr(self, name), 1), "an int >= 1")
-        _need(own, self, "lr", _real_ok(self.lr, 0.0, strict=True), "a float > 0")
-        _need(own, self, "clip", _real_ok(self.clip, 0.0, strict=True), "a float > 0")
-        _need(own, self, "controller", self.controller in CONTROLLERS, f"one of {', '.join(CONTROLLERS)}")
-        _need(own, self, "noise_gamma", _real_ok(self.noise_gamma, 0.0), "a float >= 0")
-        _need(own, self, "noise_epochs", _int_ok(self.noise_epochs, 0), "an int >= 0")
-        _need(own, self, "keep_means", isinstance(self.keep_means, bool), "True or False")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "clip", "real", gt=0)
+        require_field(self, "controller", "choice", CONTROLLERS)
+        require_field(self, "noise_gamma", "real", ge=0)
+        require_field(self, "noise_epochs", "int", ge=0)
+        require_field(self, "keep_means", "bool")
 
 
 def switch_times(iterations: int, n_switches: int) -> list:

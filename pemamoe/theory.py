@@ -13,6 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import (
     BaseSchedule,
@@ -24,7 +25,7 @@ from pemamoe.phase_controller import (
 )
 
 
-# %% notebooks/08_theory_check.py, cell 7 (line 108)
+# %% notebooks/08_theory_check.py, cell 7 (line 109)
 def _int_ok(v, low=0):
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= low
 
@@ -61,20 +62,7 @@ def noise_energy(schedule) -> float:
     return math.fsum((g * g).tolist())
 
 
-# %% notebooks/08_theory_check.py, cell 10 (line 178)
-def _real_ok(v, low=None, strict=False):
-    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
-        return False
-    if low is None:
-        return True
-    return v > low if strict else v >= low
-
-
-def _need(owner, obj, name, ok, allowed):
-    if not ok:
-        raise ValueError(f"{owner}.{name} must be {allowed}, got {getattr(obj, name)!r}")
-
-
+# %% notebooks/08_theory_check.py, cell 10 (line 179)
 @dataclass(frozen=True)
 class TrackingProblemConfig:
     """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
@@ -88,12 +76,11 @@ class TrackingProblemConfig:
     probe_size: int = 512
 
     def __post_init__(self):
-        own = "TrackingProblemConfig"
         for name in ("obs_dim", "act_dim", "n_phases", "probe_size"):
-            _need(own, self, name, _int_ok(getattr(self, name), 1), "an int >= 1")
-        _need(own, self, "shift", _real_ok(self.shift, 0.0), "a float >= 0")
-        _need(own, self, "init_scale", _real_ok(self.init_scale, 0.0), "a float >= 0")
-        _need(own, self, "action_bound", _real_ok(self.action_bound, 0.0, strict=True), "a float > 0")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "shift", "real", ge=0)
+        require_field(self, "init_scale", "real", ge=0)
+        require_field(self, "action_bound", "real", gt=0)
 
 
 class TrackingProblem:
@@ -159,7 +146,7 @@ def dynamic_regret(optimal_values, values) -> np.ndarray:
     return np.cumsum(opt - val)
 
 
-# %% notebooks/08_theory_check.py, cell 12 (line 298)
+# %% notebooks/08_theory_check.py, cell 12 (line 285)
 CONTROLLERS = ("off", "noise")
 
 
@@ -187,16 +174,16 @@ class TrackerConfig:
             network_kind(self.kind)
         except ValueError as err:
             raise ValueError(f"{own}.kind: {err}") from None
-        _need(own, self, "iterations", _int_ok(self.iterations, 1), "an int >= 1")
-        _need(own, self, "n_switches", _int_ok(self.n_switches, 0), "an int >= 0")
+        require_field(self, "iterations", "int", ge=1)
+        require_field(self, "n_switches", "int", ge=0)
         for name in ("batch", "epochs", "hidden", "n_experts"):
-            _need(own, self, name, _int_ok(getattr(self, name), 1), "an int >= 1")
-        _need(own, self, "lr", _real_ok(self.lr, 0.0, strict=True), "a float > 0")
-        _need(own, self, "clip", _real_ok(self.clip, 0.0, strict=True), "a float > 0")
-        _need(own, self, "controller", self.controller in CONTROLLERS, f"one of {', '.join(CONTROLLERS)}")
-        _need(own, self, "noise_gamma", _real_ok(self.noise_gamma, 0.0), "a float >= 0")
-        _need(own, self, "noise_epochs", _int_ok(self.noise_epochs, 0), "an int >= 0")
-        _need(own, self, "keep_means", isinstance(self.keep_means, bool), "True or False")
+            require_field(self, name, "int", ge=1)
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "clip", "real", gt=0)
+        require_field(self, "controller", "choice", CONTROLLERS)
+        require_field(self, "noise_gamma", "real", ge=0)
+        require_field(self, "noise_epochs", "int", ge=0)
+        require_field(self, "keep_means", "bool")
 
 
 def switch_times(iterations: int, n_switches: int) -> list:
@@ -357,7 +344,7 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
     }
 
 
-# %% notebooks/08_theory_check.py, cell 14 (line 505)
+# %% notebooks/08_theory_check.py, cell 14 (line 492)
 def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
     """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
 
@@ -405,7 +392,7 @@ def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: flo
     return out
 
 
-# %% notebooks/08_theory_check.py, cell 22 (line 736)
+# %% notebooks/08_theory_check.py, cell 22 (line 723)
 def gaussian_l1(mu1, mu2, std) -> np.ndarray:
     """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
     Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
@@ -454,7 +441,7 @@ def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
     return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
 
 
-# %% notebooks/08_theory_check.py, cell 25 (line 809)
+# %% notebooks/08_theory_check.py, cell 25 (line 796)
 def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
     """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
     dy (n,) or (n, p); dx (n,) or (n, r)."""
@@ -486,7 +473,7 @@ def lipschitz_envelope(y, U) -> np.ndarray:
     return res.x / scale
 
 
-# %% notebooks/08_theory_check.py, cell 27 (line 852)
+# %% notebooks/08_theory_check.py, cell 27 (line 839)
 DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
 
 
