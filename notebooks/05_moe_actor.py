@@ -128,6 +128,9 @@ class MethodSpec:
     proposed: bool = False  # the paper's method (the headline comparisons are against it)
     paper_actor_params: int | None = None  # the paper's cost table, for comparison only
     paper_active_params: int | None = None
+    # the plasticity method's preset: (field, value) pairs applied to the run's PhaseControllerConfig
+    # before the scale's rescaling and any override (empty: the defaults of notebook 06)
+    plasticity_preset: tuple = ()
 
 
 METHOD_REGISTRY: dict = {}

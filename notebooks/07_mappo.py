@@ -445,8 +445,9 @@ class TrainConfig:
                     f"TrainConfig.for_scale: unknown override {key!r}; use a field of TrainConfig, "
                     f"PhaseControllerConfig or NetConfig, or without=(mechanisms...)")
         settings = {**preset, **top}
+        preset = PhaseControllerConfig(**dict(method_spec(method).plasticity_preset))  # the method's preset
         ctrl = settings.pop("controller", None) or scale_controller(
-            PhaseControllerConfig(), settings["phase_length_iters"], settings["update_epochs"])
+            preset, settings["phase_length_iters"], settings["update_epochs"])
         if ctrl_over:
             ctrl = dataclasses.replace(ctrl, **ctrl_over)
         for m in without:

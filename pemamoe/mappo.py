@@ -286,8 +286,9 @@ class TrainConfig:
                     f"TrainConfig.for_scale: unknown override {key!r}; use a field of TrainConfig, "
                     f"PhaseControllerConfig or NetConfig, or without=(mechanisms...)")
         settings = {**preset, **top}
+        preset = PhaseControllerConfig(**dict(method_spec(method).plasticity_preset))  # the method's preset
         ctrl = settings.pop("controller", None) or scale_controller(
-            PhaseControllerConfig(), settings["phase_length_iters"], settings["update_epochs"])
+            preset, settings["phase_length_iters"], settings["update_epochs"])
         if ctrl_over:
             ctrl = dataclasses.replace(ctrl, **ctrl_over)
         for m in without:
@@ -320,13 +321,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 511)
+# %% notebooks/07_mappo.py, cell 12 (line 512)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 540)
+# %% notebooks/07_mappo.py, cell 14 (line 541)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -359,7 +360,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 596)
+# %% notebooks/07_mappo.py, cell 18 (line 597)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -402,7 +403,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 653)
+# %% notebooks/07_mappo.py, cell 20 (line 654)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -569,7 +570,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 862)
+# %% notebooks/07_mappo.py, cell 22 (line 863)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -735,7 +736,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1055)
+# %% notebooks/07_mappo.py, cell 24 (line 1056)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -790,7 +791,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1110)
+# %% notebooks/07_mappo.py, cell 25 (line 1111)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -911,7 +912,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1239)
+# %% notebooks/07_mappo.py, cell 27 (line 1240)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1192,7 +1193,7 @@ def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names
     return row
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1529)
+# %% notebooks/07_mappo.py, cell 29 (line 1530)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -20,7 +20,7 @@ from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 
-# %% notebooks/05_moe_actor.py, cell 9 (line 220)
+# %% notebooks/05_moe_actor.py, cell 9 (line 223)
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
@@ -64,7 +64,7 @@ class NetConfig:
             require_field(self, name, "real", gt=0)
 
 
-# %% notebooks/05_moe_actor.py, cell 11 (line 298)
+# %% notebooks/05_moe_actor.py, cell 11 (line 301)
 class ExpertBank(nn.Module):
     """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
 
@@ -163,7 +163,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05_moe_actor.py, cell 13 (line 435)
+# %% notebooks/05_moe_actor.py, cell 13 (line 438)
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -304,7 +304,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 609)
+# %% notebooks/05_moe_actor.py, cell 15 (line 612)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -317,7 +317,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 16 (line 623)
+# %% notebooks/05_moe_actor.py, cell 16 (line 626)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -522,7 +522,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 18 (line 840)
+# %% notebooks/05_moe_actor.py, cell 18 (line 843)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -591,7 +591,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 20 (line 935)
+# %% notebooks/05_moe_actor.py, cell 20 (line 938)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -849,7 +849,7 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
     return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
 
 
-# %% notebooks/05_moe_actor.py, cell 22 (line 1208)
+# %% notebooks/05_moe_actor.py, cell 22 (line 1211)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
@@ -934,7 +934,7 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
     return sum(parts[name][1] * n for name, n in used.items())
 
 
-# %% notebooks/05_moe_actor.py, cell 24 (line 1302)
+# %% notebooks/05_moe_actor.py, cell 24 (line 1305)
 def _median_us(fn, repeats: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()

@@ -82,3 +82,20 @@ def test_no_package_file_names_the_example():
         for path in (ROOT / folder).rglob("*.py"):
             text = path.read_text()
             assert not any(n in text for n in names), f"{path} names the CONTRIBUTING example"
+
+
+def test_a_method_preset_sets_its_controller_and_combinations_keep_their_labels():
+    # an MLP with PE-MAMoE's switch-time mechanisms, with a gentler noise preset, is one registry entry
+    from pemamoe.mappo import TrainConfig
+    from pemamoe.methods import METHOD_REGISTRY, MethodSpec, register_method
+
+    spec = register_method(MethodSpec("mlp_pc_test", network="mlp", plasticity="phase_controller",
+                                      label="MLP + phase controller", plasticity_preset=(("noise_gamma", 0.001),)))
+    try:
+        cfg = TrainConfig.for_scale("ci", method="mlp_pc_test")
+        assert cfg.controller_enabled and cfg.controller.noise_gamma == 0.001
+        assert TrainConfig.for_scale("ci", method="mlp_pc_test", noise_gamma=0.01).controller.noise_gamma == 0.01
+        assert cfg.label() == "MLP + phase controller" and spec.label == cfg.label()
+        assert TrainConfig.for_scale("ci", method="pemamoe").controller.noise_gamma == 0.005
+    finally:
+        METHOD_REGISTRY.pop("mlp_pc_test", None)
