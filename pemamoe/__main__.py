@@ -84,21 +84,24 @@ def _float_at_least_zero(text: str) -> float:
 def _add_train_parser(sub) -> argparse.ArgumentParser:
     from pemamoe.core import SCALES
     from pemamoe.mappo import METHODS
+    from pemamoe.methods import method_spec, proposed_method
     from pemamoe.phase_controller import MECHANISMS
 
     p = sub.add_parser("train", help=TRAIN_HELP, description=(
         "Train one MAPPO run with the same code path as pemamoe.mappo.train(config, run_dir). "
         "A progress bar is shown when stderr is a terminal; a summary is printed at the end."))
-    p.add_argument("--method", default="pemamoe", choices=METHODS, help="actor/critic kind (default: pemamoe)")
+    default = proposed_method()
+    p.add_argument("--method", default=default, choices=METHODS,
+                   help=f"a registered method: network kind and plasticity method (default: {default})")
     p.add_argument("--scale", default="small", choices=SCALES, help="preset budget (default: small)")
     p.add_argument("--seed", type=_int_at_least(0), default=0, help="random seed, an integer >= 0 (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="run directory (default: results/train/<method>-s<seed>-<config hash>)")
     p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
-                   help="switch a phase-controller mechanism off (repeatable; --method pemamoe only): "
+                   help="switch a phase-controller mechanism off (repeatable; methods with the phase controller only): "
                         + ", ".join(MECHANISMS))
     p.add_argument("--noise-gamma", type=_float_at_least_zero, default=None, metavar="GAMMA",
-                   help="expert noise scale of the phase controller (--method pemamoe only; default: the preset's)")
+                   help="expert noise scale of the phase controller (methods with the phase controller only; default: the preset's)")
     p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
                    help="torch device (default: the config's)")
     p.add_argument("--iterations", type=_int_at_least(1), default=None, metavar="N",
@@ -112,6 +115,8 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
 def train_command(args, parser: argparse.ArgumentParser) -> int:
     """Build the TrainConfig from the flags, run pemamoe.mappo.train, print a summary."""
     from pemamoe import mappo
+    from pemamoe.mappo import METHODS
+    from pemamoe.methods import method_spec
 
     overrides = {}
     if args.iterations is not None:
@@ -122,8 +127,10 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         overrides["noise_gamma"] = args.noise_gamma
     if args.device is not None:
         overrides["device"] = args.device
-    if args.method != "pemamoe" and (args.without or args.noise_gamma is not None):
-        parser.error(f"--without and --noise-gamma configure the phase controller, which only --method pemamoe "
+    uses_controller = method_spec(args.method).plasticity == "phase_controller"
+    if not uses_controller and (args.without or args.noise_gamma is not None):
+        with_controller = " or ".join(f"--method {m}" for m in METHODS if method_spec(m).plasticity == "phase_controller")
+        parser.error(f"--without and --noise-gamma configure the phase controller, which only {with_controller} "
                      f"uses; got --method {args.method}")
     try:
         config = mappo.TrainConfig.for_scale(args.scale, method=args.method, seed=args.seed, **overrides)
