@@ -462,16 +462,21 @@ class UAVBatchCore:
         self._external_phase = 0
 
     # -- phases ---------------------------------------------------------------------------
-    def set_phase(self, phase: int) -> None:
-        """Set the phase of every environment (phase_clock='external', used by the trainer)."""
+    def set_phase(self, phase) -> None:
+        """Set the phase of the environments (phase_clock='external', used by the trainer): one
+        phase for all, or one per environment (a sequence of length B, as when each member of a
+        training population stays in its own fixed phase)."""
         n = self.cfg.phases.n_regimes
-        if not 0 <= int(phase) < n:
-            raise ValueError(f"phase must be in [0, {n}), got {phase!r}")
-        self._external_phase = int(phase)
+        values = np.asarray(phase)
+        if (values.ndim > 1 or (values.ndim == 1 and len(values) != self.B) or values.size == 0
+                or values.dtype.kind not in "iu" or values.min() < 0 or values.max() >= n):
+            raise ValueError(f"phase must be an integer in [0, {n}) or a sequence of {self.B} such integers "
+                             f"(one per environment), got {phase!r}")
+        self._external_phase = int(values) if values.ndim == 0 else values.astype(np.int64)
 
     def _current_phase(self, rows) -> np.ndarray:
         if self.cfg.phase_clock == "external":
-            return np.full(len(rows), self._external_phase)
+            return np.broadcast_to(np.asarray(self._external_phase, dtype=np.int64), (self.B,))[rows].copy()
         return self.schedule.phases_at(self.clock[rows])
 
     # -- reset ----------------------------------------------------------------------------
@@ -522,7 +527,7 @@ class UAVBatchCore:
             raise RuntimeError("reset() the environment before saving its state")
         arrays = {name: getattr(self, name).copy() for name in self._STATE_ARRAYS}
         arrays.update({f"mobility.{k}": v.copy() for k, v in self.mobility._asdict().items()})
-        return {"arrays": arrays, "rng": self.rng.state_dict(), "external_phase": self._external_phase}
+        return {"arrays": arrays, "rng": self.rng.state_dict(), "external_phase": np.copy(self._external_phase) if np.ndim(self._external_phase) else self._external_phase}
 
     def load_state_dict(self, state: dict) -> None:
         if not hasattr(self, "uav_xy"):
@@ -538,7 +543,8 @@ class UAVBatchCore:
             getattr(self, name)[...] = arrays[name]
         self.mobility = type(self.mobility)(*(np.array(arrays[f"mobility.{k}"]) for k in self.mobility._fields))
         self.rng.load_state_dict(state["rng"])
-        self._external_phase = int(state["external_phase"])
+        external = np.asarray(state["external_phase"])
+        self._external_phase = int(external) if external.ndim == 0 else external.astype(np.int64).copy()
 
     # -- step -----------------------------------------------------------------------------
     def step(self, actions):

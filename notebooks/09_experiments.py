@@ -483,14 +483,53 @@ def noise_specs(scale: str, seeds=None, gammas=NOISE_GAMMAS) -> list:
                 tag="noise") for g in gammas for s in seeds]
 
 
+# The learning-budget study (notebook 09b): each method in each single, fixed phase for BUDGET_STEPS
+# environment steps, with the small preset's update settings, and MLP in phase 0 with the paper's
+# update settings to compare the two per second of compute. One study serves every scale (its runs
+# live under results/small/); at the ci scale it is a few iterations, so CI executes the notebook.
+BUDGET_STEPS = 2_000_000
+BUDGET_UPDATES = {  # name -> TrainConfig overrides of the update settings
+    "small": {},  # the small preset: 16 envs x 32 slots, 4 epochs x 4 minibatches
+    "paper": {"num_envs": 64, "rollout_steps": 32, "update_epochs": 8, "num_minibatches": 32},
+}
+
+
+def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None) -> list:
+    """The study's runs: every method x phase x seed with the small update settings, then MLP in
+    phase 0 with the paper's (ordered so that the two CPU workers start on the largest groups)."""
+    check_scale(scale)
+    preset = "ci" if scale == "ci" else "small"
+    seeds = tuple(range(by_scale(scale, ci=1, small=3, paper=3))) if seeds is None else tuple(seeds)
+    steps = (64 * 4 if scale == "ci" else BUDGET_STEPS) if steps is None else steps
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"budget_specs: steps must be an integer >= 1, got {steps!r}")
+
+    def spec(method, seed, phase, update):
+        extra = dict(BUDGET_UPDATES[update]) if update != "small" else {}
+        batch = (extra.get("num_envs") or TrainConfig.for_scale(preset).num_envs) * \
+            (extra.get("rollout_steps") or TrainConfig.for_scale(preset).rollout_steps)
+        iterations = -(-steps // batch)
+        extra.update(fixed_phase=phase, iterations=iterations, phase_length_iters=iterations,
+                     diag_every=max(1, min(100, iterations // 20)), checkpoint_every=max(1, min(100, iterations)))
+        return RunSpec(method, seed, preset, overrides=tuple(extra.items()), tag=f"budget/{update}")
+
+    specs = [spec(m, s, p, "small") for m in methods for p in phases for s in seeds]
+    if "mlp" in methods:
+        specs += [spec("mlp", s, 0, "paper") for s in seeds]
+    return specs
+
+
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
-    """The runs of one experiment ("main", "tricks", "noise") or of "all" of them."""
+    """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
+    sweep), or of the learning-budget study ("budget", not part of "all")."""
     makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":
         return [s for make in makers.values() for s in make()]
+    if experiment == "budget":
+        return budget_specs(scale, seeds, methods)
     if experiment not in makers:
-        raise ValueError(f"experiment must be one of {', '.join([*makers, 'all'])}, got {experiment!r}")
+        raise ValueError(f"experiment must be one of {', '.join([*makers, 'all', 'budget'])}, got {experiment!r}")
     return makers[experiment]()
 
 
@@ -507,7 +546,7 @@ def sweep_cli(argv=None) -> int:
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all"])
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget"])
     parser.add_argument("--scale", default="small")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")

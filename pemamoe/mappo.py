@@ -85,6 +85,9 @@ class TrainConfig:
     iterations: int = 10800
     phase_length_iters: int = 1200  # L: the phase advances every L iterations
     n_phases: int = 3
+    # None: the phases cycle (the paper). An int: every iteration is in that phase and there is no
+    # switch (the learning-budget study, notebook 09); members of a population may hold different ones.
+    fixed_phase: int | None = None
     # PPO update
     update_epochs: int = 8
     num_minibatches: int = 32
@@ -129,6 +132,8 @@ class TrainConfig:
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
             require_field(self, name, "int", ge=1)
         require_field(self, "n_phases", "int", ge=1, le=3)
+        require_field(self, "fixed_phase", "int", ge=0, lt=self.n_phases, optional=True,
+                      note=f"a phase index below n_phases = {self.n_phases}, or None to cycle")
         batch = self.num_envs * self.rollout_steps
         if batch % self.num_minibatches or self.num_minibatches > batch:
             raise config_error(own, "num_minibatches", self.num_minibatches,
@@ -239,6 +244,8 @@ class TrainConfig:
             d.pop("controller")
         d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
+        if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged
+            d.pop("fixed_phase")
         return d
 
     def config_hash(self) -> str:
@@ -321,13 +328,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 512)
+# %% notebooks/07_mappo.py, cell 12 (line 519)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 541)
+# %% notebooks/07_mappo.py, cell 14 (line 548)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -360,7 +367,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 597)
+# %% notebooks/07_mappo.py, cell 18 (line 604)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -403,7 +410,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 654)
+# %% notebooks/07_mappo.py, cell 20 (line 661)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -570,7 +577,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 863)
+# %% notebooks/07_mappo.py, cell 22 (line 870)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -736,7 +743,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1056)
+# %% notebooks/07_mappo.py, cell 24 (line 1063)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -791,7 +798,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1111)
+# %% notebooks/07_mappo.py, cell 25 (line 1118)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -862,7 +869,7 @@ def split_env_state(state: dict, rows) -> dict:
             "rng": {"buffers": {k: v[rows].copy() for k, v in rng["buffers"].items()},
                     "cursor": {k: v[rows].copy() for k, v in rng["cursor"].items()},
                     "generators": [rng["generators"][i] for i in rows]},
-            "external_phase": state["external_phase"]}
+            "external_phase": _member_phases(state["external_phase"], rows)}
 
 
 def merge_env_states(states: list) -> dict:
@@ -872,16 +879,30 @@ def merge_env_states(states: list) -> dict:
             "rng": {"buffers": {k: np.concatenate([s["rng"]["buffers"][k] for s in states]) for k in first["rng"]["buffers"]},
                     "cursor": {k: np.concatenate([s["rng"]["cursor"][k] for s in states]) for k in first["rng"]["cursor"]},
                     "generators": [g for s in states for g in s["rng"]["generators"]]},
-            "external_phase": first["external_phase"]}
+            "external_phase": _merged_phases([s["external_phase"] for s in states],
+                                             [len(s["arrays"]["phase"]) for s in states])}
+
+
+def _member_phases(external, rows):
+    """One phase for all environments stays an int; a per-environment phase array is sliced."""
+    return external if np.ndim(external) == 0 else np.asarray(external)[rows].copy()
+
+
+def _merged_phases(phases: list, sizes: list):
+    if all(np.ndim(p) == 0 for p in phases) and len({int(p) for p in phases}) == 1:
+        return phases[0]
+    return np.concatenate([np.broadcast_to(np.asarray(p, dtype=np.int64), (n,)) for p, n in zip(phases, sizes)])
 
 
 # Fields that members of one population may set differently; every other field is shared.
-MEMBER_FIELDS = ("seed", "controller", "force_controller")
+# (fixed_phase: members may sit in different fixed phases, but either all cycle or none does.)
+MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase")
 
 
 def population_key(config: TrainConfig) -> str:
     """What members of one population must share: the run identity without MEMBER_FIELDS."""
     ident = {k: v for k, v in config.identity().items() if k not in MEMBER_FIELDS}
+    ident["phase_fixed"] = config.fixed_phase is not None
     return json.dumps(ident, sort_keys=True, separators=(",", ":"))
 
 
@@ -902,6 +923,10 @@ def check_population(configs) -> None:
                 raise ValueError(f"population members must share {key!r}: {ref.get(key)!r} (seed {configs[0].seed}) "
                                  f"vs {other.get(key)!r} (seed {c.seed}); members may differ only in "
                                  f"{', '.join(MEMBER_FIELDS)}")
+    fixed = {c.fixed_phase is not None for c in configs}
+    if len(fixed) > 1:
+        raise ValueError("population members must share whether 'fixed_phase' is set: members with a fixed "
+                         "phase cannot train next to members whose phases cycle")
     names = {plasticity_name(c) for c in configs}
     if len(names - {"none", "phase_controller"}) > 0 and len(names) > 1:
         raise ValueError(f"population members must share one plasticity method, got {sorted(names)}")
@@ -912,7 +937,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1240)
+# %% notebooks/07_mappo.py, cell 27 (line 1265)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1019,7 +1044,9 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     probes = [collect_probe(c) for c in configs]
     generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
     rngs = [np.random.default_rng(int(c.seed)) for c in configs]  # minibatch permutations
-    venv.set_phase(clock.phase_at(0))
+    fixed = c0.fixed_phase is not None  # all members or none (check_population)
+    member_phase = [c.fixed_phase for c in configs]
+    venv.set_phase(np.repeat(member_phase, B) if fixed else clock.phase_at(0))
     obs, state, _ = venv.reset()
     start, global_step, resumed_from = 0, 0, None
     metrics_rows, episode_rows, elapsed = [[] for _ in range(R)], [[] for _ in range(R)], [0.0] * R
@@ -1072,9 +1099,10 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     bar = _progress_bar(c0.iterations, start, progress, label)
     for it in range(start, stop):
         # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
-        phase = int(clock.phase_at(it))
-        switch = bool(clock.is_switch(it))
-        venv.set_phase(phase)
+        phase = member_phase if fixed else [int(clock.phase_at(it))] * R
+        switch = False if fixed else bool(clock.is_switch(it))
+        if not fixed:
+            venv.set_phase(phase[0])
         if switch:
             obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
             tracker.discard_running()
@@ -1118,7 +1146,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         checkpoint = (it + 1) % c0.checkpoint_every == 0 or it == stop - 1
         env_state = venv.state_dict() if checkpoint and any(d is not None for d in run_dirs) else None
         for r in range(R):
-            row = _iteration_row(configs[r], r, it, phase, switch, global_step, sched, group_names, actor, norms,
+            row = _iteration_row(configs[r], r, it, phase[r], switch, global_step, sched, group_names, actor, norms,
                                  step_stats, new_episodes[r], upd, ro, ret, U)
             t1 = time.perf_counter()
             if diag:
@@ -1137,8 +1165,9 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         recent = [m[-1]["episode_return"] for m in metrics_rows if np.isfinite(m[-1]["episode_return"])]
         recent = float(np.mean(recent)) if recent else float("nan")
         if verbose:
-            print(f"it {it:5d} phase {phase} return {recent:9.2f} sps/member {metrics_rows[0][-1]['sps']:7.0f}", flush=True)
-        bar.set_postfix(phase=phase, ret=f"{recent:.1f}", sps=f"{metrics_rows[0][-1]['sps']:.0f}", refresh=False)
+            shown = phase[0] if len(set(phase)) == 1 else "/".join(map(str, phase))
+            print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {metrics_rows[0][-1]['sps']:7.0f}", flush=True)
+        bar.set_postfix(phase=phase[0] if len(set(phase)) == 1 else "mixed", ret=f"{recent:.1f}", sps=f"{metrics_rows[0][-1]['sps']:.0f}", refresh=False)
         bar.update(1)
     bar.close()
 
@@ -1193,7 +1222,7 @@ def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names
     return row
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1530)
+# %% notebooks/07_mappo.py, cell 29 (line 1559)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
