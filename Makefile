@@ -14,7 +14,7 @@ LAB_ARGS ?=
 
 help:
 	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
-	@echo "make figures [SCALE=ci|small|paper]  regenerate paper_figures/ with papermill (default small)"
+	@echo "make figures [SCALE=ci|small|medium|paper]  regenerate paper_figures/ with papermill (default small)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
 	@echo "make bench                 print the performance figures"

@@ -54,7 +54,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-SCALES = ("ci", "small", "paper")
+SCALES = ("ci", "small", "medium", "paper")
 
 
 def check_scale(scale: str) -> str:
@@ -64,9 +64,15 @@ def check_scale(scale: str) -> str:
     return scale
 
 
-def by_scale(scale: str, *, ci, small, paper):
-    """The value for `scale`: keeps a notebook's three problem sizes side by side."""
-    return {"ci": ci, "small": small, "paper": paper}[check_scale(scale)]
+_SAME_AS_SMALL = object()
+
+
+def by_scale(scale: str, *, ci, small, paper, medium=_SAME_AS_SMALL):
+    """The value for `scale`: keeps a notebook's problem sizes side by side. `medium` is a longer
+    training budget (notebook 09b); a size that is not about training (a figure's resolution, an
+    illustration's sample count) stays at its small value there unless `medium` is given."""
+    medium = small if medium is _SAME_AS_SMALL else medium
+    return {"ci": ci, "small": small, "medium": medium, "paper": paper}[check_scale(scale)]
 
 
 # %% [markdown]

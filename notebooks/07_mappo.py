@@ -113,7 +113,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import atomic_path, by_scale, check_scale, config_error, require_field
+from pemamoe.core import SCALES, atomic_path, by_scale, check_scale, config_error, require_field
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -172,7 +172,7 @@ from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_
 # %% [markdown]
 # ## The configuration
 #
-# `TrainConfig` holds every number of a run. Three presets come from `TrainConfig.for_scale`:
+# `TrainConfig` holds every number of a run. Four presets come from `TrainConfig.for_scale`:
 #
 # * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
 # * **small**: the budget of `make figures`: about forty runs (four methods × three seeds,
@@ -182,6 +182,11 @@ from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_
 #   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
 #   which prints the throughput of populations of 1, 4 and 16 runs and the projected sweep times;
 #   the README quotes its latest figures with the commit that measured them.
+# * **medium**: the scale at which learning is visible. It keeps the small update settings and
+#   gives each phase `MEDIUM_PHASE_ITERS` iterations, three phases twice over (six phases). Both
+#   numbers come from the learning-budget study of notebook 09b, which trains every method in each
+#   single phase for two million steps; that notebook states what the study found and whether this
+#   phase length lets every method get close to its plateau.
 # * **ci**: a handful of iterations crossing two phase switches, seconds per run.
 #
 # **Time-compressed schedules.** The phase controller's windows are counted in iterations
@@ -418,7 +423,7 @@ class TrainConfig:
     # -- presets --------------------------------------------------------------------------------
     @classmethod
     def for_scale(cls, scale: str, method: str = "pemamoe", seed: int = 0, **overrides) -> "TrainConfig":
-        """Preset for scale "ci" | "small" | "paper", then `overrides`.
+        """Preset for scale "ci" | "small" | "medium" | "paper", then `overrides`.
 
         An override may name a TrainConfig field, a PhaseControllerConfig field (e.g.
         noise_gamma=0.01), a NetConfig field, or `without=("noise_injection", ...)`.
@@ -431,6 +436,10 @@ class TrainConfig:
                     num_minibatches=2, probe_size=48, diag_every=2, checkpoint_every=2),
             small=dict(num_envs=16, rollout_steps=32, iterations=540, phase_length_iters=60, update_epochs=4,
                        num_minibatches=4, probe_size=256, diag_every=5, checkpoint_every=40),
+            # the small update settings, each phase long enough to learn in (notebook 09b), 3 phases x 2 cycles
+            medium=dict(num_envs=16, rollout_steps=32, iterations=6 * MEDIUM_PHASE_ITERS,
+                        phase_length_iters=MEDIUM_PHASE_ITERS, update_epochs=4, num_minibatches=4, probe_size=256,
+                        diag_every=20, checkpoint_every=100),
             paper=dict(num_envs=64, rollout_steps=32, iterations=10800, phase_length_iters=1200, update_epochs=8,
                        num_minibatches=32, probe_size=512, diag_every=50, checkpoint_every=100),
         )
@@ -465,6 +474,9 @@ class TrainConfig:
         return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
 
 
+MEDIUM_PHASE_ITERS = 1200  # x 512 = 614k environment steps per phase; the reason is in notebook 09b
+
+
 def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:
     """Rescale the controller's windows from the paper's 1200-iteration, 8-epoch phases to
     `phase_length_iters` iterations of `update_epochs` epochs (each window >= 1 if non-zero)."""
@@ -492,7 +504,7 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
 
 # %%
 _rows = []
-for _s in ("ci", "small", "paper"):
+for _s in SCALES:
     _c = TrainConfig.for_scale(_s)
     _rows.append({"scale": _s, "num_envs": _c.num_envs, "rollout_steps": _c.rollout_steps,
                   "env steps/iter": _c.batch_env_steps, "iterations": _c.iterations, "L": _c.phase_length_iters,

@@ -14,7 +14,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-SCALES = ("ci", "small", "paper")
+SCALES = ("ci", "small", "medium", "paper")
 
 
 def check_scale(scale: str) -> str:
@@ -24,12 +24,18 @@ def check_scale(scale: str) -> str:
     return scale
 
 
-def by_scale(scale: str, *, ci, small, paper):
-    """The value for `scale`: keeps a notebook's three problem sizes side by side."""
-    return {"ci": ci, "small": small, "paper": paper}[check_scale(scale)]
+_SAME_AS_SMALL = object()
 
 
-# %% notebooks/00b_core.py, cell 7 (line 104)
+def by_scale(scale: str, *, ci, small, paper, medium=_SAME_AS_SMALL):
+    """The value for `scale`: keeps a notebook's problem sizes side by side. `medium` is a longer
+    training budget (notebook 09b); a size that is not about training (a figure's resolution, an
+    illustration's sample count) stays at its small value there unless `medium` is given."""
+    medium = small if medium is _SAME_AS_SMALL else medium
+    return {"ci": ci, "small": small, "medium": medium, "paper": paper}[check_scale(scale)]
+
+
+# %% notebooks/00b_core.py, cell 7 (line 110)
 KINDS = ("int", "real", "bool", "choice", "str", "reals")
 
 
@@ -75,7 +81,7 @@ def require_field(obj, field: str, kind: str, allowed=None, **rules):
     return value
 
 
-# %% notebooks/00b_core.py, cell 8 (line 151)
+# %% notebooks/00b_core.py, cell 8 (line 157)
 def _show(value) -> str:
     # NumPy 2 reprs numpy scalars as np.float64(...): show the number and, if not plain, its type.
     if isinstance(value, (bool, int, float, str)) or value is None:
@@ -176,7 +182,7 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
     return True, tuple(out)
 
 
-# %% notebooks/00b_core.py, cell 10 (line 267)
+# %% notebooks/00b_core.py, cell 10 (line 273)
 def _is_checkout(folder: Path) -> bool:
     pyproject = folder / "pyproject.toml"
     if not (pyproject.is_file() and (folder / "notebooks").is_dir()):
@@ -212,7 +218,7 @@ def repo_path(path) -> Path:
     return path if path.is_absolute() else REPO_ROOT / path
 
 
-# %% notebooks/00b_core.py, cell 12 (line 316)
+# %% notebooks/00b_core.py, cell 12 (line 322)
 def current_umask() -> int:
     """The process umask (read from /proc where possible: setting it to read it is not
     thread-safe)."""
@@ -256,7 +262,7 @@ def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 14 (line 369)
+# %% notebooks/00b_core.py, cell 14 (line 375)
 def save_figure(fig, name: str, figures_dir, dpi: int = 150) -> None:
     """Write `fig` as `<figures_dir>/<name>.png` and `.pdf`, atomically (a relative figures_dir is
     under the repository root)."""
@@ -273,7 +279,7 @@ def write_table(df, name: str, figures_dir, floatfmt: str = ".4g") -> None:
     atomic_write_text(folder / f"{name}.csv", df.to_csv(index=False))
 
 
-# %% notebooks/00b_core.py, cell 15 (line 387)
+# %% notebooks/00b_core.py, cell 15 (line 393)
 def _markdown_table(df, floatfmt: str) -> str:
     # A tiny renderer, so tables do not depend on the optional `tabulate` package.
     def fmt(v):
@@ -287,7 +293,7 @@ def _markdown_table(df, floatfmt: str) -> str:
     return "\n".join([header, rule, *rows])
 
 
-# %% notebooks/00b_core.py, cell 17 (line 424)
+# %% notebooks/00b_core.py, cell 17 (line 430)
 def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1800, cwd=None,
                  stream: bool = False):
     """Execute `notebook` (a notebooks/*.py file) with papermill; return the executed notebook.
@@ -329,7 +335,7 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
     )
 
 
-# %% notebooks/00b_core.py, cell 18 (line 467)
+# %% notebooks/00b_core.py, cell 18 (line 473)
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -345,7 +351,7 @@ def _kernel_manager_config():
     return config
 
 
-# %% notebooks/00b_core.py, cell 20 (line 498)
+# %% notebooks/00b_core.py, cell 20 (line 504)
 # Paper counterpart of each output, by file stem. Stems not listed are illustrations of a model
 # that the paper describes in equations only.
 PAPER_COUNTERPARTS = {
@@ -461,7 +467,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 615)
+# %% notebooks/00b_core.py, cell 21 (line 621)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -18,7 +18,9 @@ from pemamoe import core
 def test_by_scale_picks_and_rejects():
     assert core.by_scale("ci", ci=1, small=2, paper=3) == 1
     assert core.by_scale("paper", ci=1, small=2, paper=3) == 3
-    with pytest.raises(ValueError, match="scale must be one of ci, small, paper; got 'huge'"):
+    assert core.by_scale("medium", ci=1, small=2, paper=3) == 2  # a size not about training: small's
+    assert core.by_scale("medium", ci=1, small=2, paper=3, medium=5) == 5
+    with pytest.raises(ValueError, match="scale must be one of ci, small, medium, paper; got 'huge'"):
         core.by_scale("huge", ci=1, small=2, paper=3)
 
 

@@ -1,0 +1,246 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 09b · Learning budget: how many steps does a phase need?
+#
+# The paper's figures are about what happens *inside* a phase (learning), *at* a switch (the drop)
+# and *after* it (the recovery). None of that is visible if a phase ends before the networks have
+# learned anything, which is what happens at the `small` scale: a phase there lasts 60 iterations
+# of 512 environment steps, about 31k steps, and every learned method ends it where it started.
+#
+# This appendix asks the question that fixes the `medium` scale: in each phase on its own, with no
+# switch at all, how many environment steps does each method need before its coverage is close to
+# where it levels off? We train every method in each single, fixed phase (`TrainConfig.fixed_phase`,
+# notebook 07) for 2 million environment steps, with three seeds, and read off:
+#
+# * its **plateau**: the mean coverage over the last 10 % of the steps (a lower bound if the curve
+#   still rises there);
+# * the **steps to 85 %**: the first 100k-step block whose seed-averaged coverage reaches 85 % of
+#   that plateau.
+#
+# Two update settings are on the table: the `small` preset's (16 environments x 32 slots per
+# iteration, 4 epochs x 4 minibatches) and the paper's (64 x 32, 8 epochs x 32 minibatches). The
+# paper's settings do twice as many gradient passes over every sample in minibatches a quarter the
+# size, so they cost more compute per environment step; what matters for a budget is coverage per
+# second of compute, so MLP trains in phase 0 with both and we compare them on that axis.
+#
+# The runs are an ordinary sweep (`python -m pemamoe sweep --experiment budget`), cached under
+# `results/small/` like any other run; this notebook only reads them. At the `ci` scale the study
+# shrinks to a few iterations so that CI can execute the notebook.
+
+# %%
+#| default_exp budget
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+seeds = None  # None: 3 (1 at the ci scale)
+methods = None  # None: every registered method
+backend = "local"
+workers = 2
+ray_address = None
+results_dir = "results"
+
+# %%
+#| export
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pemamoe.runs import read_json, read_parquet, verify_done
+
+BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
+PLATEAU_TAIL = 0.10  # the plateau: mean over this last fraction of the steps
+PLATEAU_FRACTION = 0.85  # "learned": this fraction of the plateau
+
+
+def update_setting(config: dict) -> str:
+    """Name of a run's update settings, from its config.json: "paper" (64 x 32, 8 x 32) or "small"."""
+    paper = (config["num_envs"], config["update_epochs"], config["num_minibatches"]) == (64, 8, 32)
+    return "paper" if paper else "small"
+
+
+def load_budget(run_dirs) -> pd.DataFrame:
+    """Per-iteration logs of finished fixed-phase runs, one frame, with the labels the study
+    needs: method, seed, phase, settings (the update settings), and the compute seconds each iteration cost
+    one member (the population's rollout + update time divided by its size)."""
+    frames = []
+    for run_dir in map(Path, run_dirs):
+        if not verify_done(run_dir):
+            raise FileNotFoundError(f"{run_dir} has no done.json: run `python -m pemamoe sweep --experiment budget`")
+        config = read_json(run_dir / "config.json")
+        if config.get("fixed_phase") is None:
+            raise ValueError(f"{run_dir} is not a fixed-phase run (fixed_phase is None); the study needs one phase per run")
+        m = read_parquet(run_dir / "metrics.parquet")
+        frames.append(m.assign(run=run_dir.name, method=config["method"], seed=int(config["seed"]),
+                               phase=int(config["fixed_phase"]), settings=update_setting(config),
+                               member_seconds=(m.rollout_time + m.update_time) / m.population))
+    return pd.concat(frames, ignore_index=True)
+
+
+def budget_curves(metrics: pd.DataFrame, column: str = "coverage", block_steps: int = BLOCK_STEPS) -> pd.DataFrame:
+    """Learning curves in blocks of `block_steps` environment steps: per run, the mean of
+    `column` over the episodes that ended in the block (iterations weighted by their episodes),
+    and the member's cumulative compute seconds at the block's end."""
+    m = metrics[metrics.episodes > 0].copy()
+    m["block"] = ((m.env_steps - 1) // block_steps + 1) * block_steps  # the block's last step
+    m["weighted"] = m[column] * m.episodes
+    keys = ["method", "settings", "phase", "seed", "run"]
+    seconds = metrics.sort_values("env_steps").groupby(keys).member_seconds.cumsum()
+    m["compute_s"] = seconds.loc[m.index]
+    g = m.groupby([*keys, "block"])
+    out = (g.weighted.sum() / g.episodes.sum()).rename(column).to_frame()
+    out["compute_s"] = g.compute_s.max()
+    return out.reset_index().rename(columns={"block": "env_steps"})
+
+
+def plateau_table(curves: pd.DataFrame, column: str = "coverage", fraction: float = PLATEAU_FRACTION,
+                  tail: float = PLATEAU_TAIL) -> pd.DataFrame:
+    """Per (method, settings, phase): the plateau (seed-mean over the last `tail` of the steps), the
+    first block whose seed-mean reaches `fraction` x plateau, and the coverage at the end."""
+    rows = []
+    for (method, settings, phase), group in curves.groupby(["method", "settings", "phase"], sort=False):
+        mean = group.groupby("env_steps")[column].mean().sort_index()
+        last = mean.index.max()
+        plateau = float(mean[mean.index > (1 - tail) * last].mean())
+        reached = mean[mean >= fraction * plateau]
+        rows.append({"method": method, "settings": settings, "phase": int(phase), "seeds": group.seed.nunique(),
+                     "steps": int(last), "plateau": plateau, f"steps_to_{round(fraction * 100)}pct":
+                     int(reached.index.min()) if len(reached) else np.nan,
+                     "first_block": float(mean.iloc[0])})
+    return pd.DataFrame(rows)
+
+
+def seconds_to_reach(curves: pd.DataFrame, level: float, column: str = "coverage") -> pd.DataFrame:
+    """Per (method, settings, phase): the member compute seconds (seed-mean) and environment steps at
+    which the seed-averaged curve first reaches `level` (NaN if never)."""
+    rows = []
+    for (method, settings, phase), group in curves.groupby(["method", "settings", "phase"], sort=False):
+        mean = group.groupby("env_steps")[[column, "compute_s"]].mean().sort_index()
+        hit = mean[mean[column] >= level]
+        rows.append({"method": method, "settings": settings, "phase": int(phase), "level": level,
+                     "env_steps": int(hit.index.min()) if len(hit) else np.nan,
+                     "compute_s": float(hit.compute_s.iloc[0]) if len(hit) else np.nan,
+                     "compute_s_per_million_steps": float(mean.compute_s.iloc[-1] / mean.index.max() * 1e6)})
+    return pd.DataFrame(rows)
+
+
+# %% [markdown]
+# ## The runs
+#
+# `budget_specs` (notebook 09) lists them: every method x phase x seed with the small update
+# settings, then MLP in phase 0 with the paper's. A run is ordinary in every respect but one:
+# `fixed_phase` pins its phase and there is never a switch, so the phase controller of PE-MAMoE has
+# nothing to react to and the four methods differ only in their networks. Members of one population
+# may sit in different phases (the environment takes one phase per environment), so each method's
+# nine runs train as one population.
+
+# %%
+import matplotlib.pyplot as plt
+
+from pemamoe.analysis import REFERENCE_POLICIES, method_order, reference_levels
+from pemamoe.core import save_figure, write_table
+from pemamoe.mappo import METHODS, TrainConfig
+from pemamoe.methods import method_colour, method_label
+from pemamoe.sweep import budget_specs, run_sweep
+
+specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)
+run_dirs = run_sweep(specs, backend, workers, results_dir, ray_address)
+metrics = load_budget(run_dirs)
+block = BLOCK_STEPS if scale != "ci" else 64
+curves = budget_curves(metrics, block_steps=block)
+table = plateau_table(curves)
+study_scale = "ci" if scale == "ci" else "small"
+levels = reference_levels(study_scale, results_dir)
+print(f"{len(run_dirs)} runs; the longest lasts {metrics.env_steps.max():,} environment steps")
+
+# %% [markdown]
+# ## Learning curves in each fixed phase
+#
+# One panel per phase: the seed mean of each method's coverage (band: min to max over seeds) against
+# environment steps, with the random policy and the k-means heuristic of that phase as horizontal
+# lines. A dot marks where the curve first reaches 85 % of its plateau. The last panel puts MLP's
+# two update settings side by side against compute seconds per member instead of steps.
+
+# %%
+step_col = f"steps_to_{round(PLATEAU_FRACTION * 100)}pct"
+phases = sorted(curves.phase.unique())
+fig, axes = plt.subplots(1, len(phases) + 1, figsize=(4.2 * (len(phases) + 1), 3.6))
+small = curves[curves.settings == "small"]
+for ax, phase in zip(axes, phases):
+    for method in method_order(small.method.unique()):
+        g = small[(small.method == method) & (small.phase == phase)]
+        stats = g.groupby("env_steps").coverage.agg(["mean", "min", "max"])
+        x = stats.index / 1e6
+        ax.plot(x, stats["mean"], color=method_colour(method), label=method_label(method))
+        ax.fill_between(x, stats["min"], stats["max"], color=method_colour(method), alpha=0.15, lw=0)
+        row = table[(table.method == method) & (table.settings == "small") & (table.phase == phase)]
+        if len(row) and np.isfinite(row[step_col].iloc[0]):
+            s = row[step_col].iloc[0]
+            ax.plot(s / 1e6, stats["mean"].loc[s], "o", color=method_colour(method), ms=5)
+    for policy, (label, style) in REFERENCE_POLICIES.items():
+        level = levels[(levels.policy == policy) & (levels.phase == phase)].coverage
+        ax.axhline(float(level.iloc[0]), color="grey", ls=style, lw=1, label=label)
+    ax.set(title=f"phase {phase} only", xlabel="environment steps (millions)", ylim=(0, 1))
+axes[0].set_ylabel("coverage")
+axes[0].legend(fontsize=7, loc="lower right")
+ax = axes[-1]
+mlp0 = curves[(curves.method == "mlp") & (curves.phase == 0)]
+for update, style in (("small", "-"), ("paper", "--")):
+    g = mlp0[mlp0.settings == update]
+    if len(g):
+        stats = g.groupby("env_steps")[["coverage", "compute_s"]].mean()
+        ax.plot(stats.compute_s / 60, stats.coverage, style, color=method_colour("mlp"), label=f"{update} update settings")
+ax.set(title="MLP, phase 0: per compute time", xlabel="compute minutes per member", ylim=(0, 1))
+ax.legend(fontsize=7, loc="lower right")
+fig.suptitle(f"Learning budget (study at {study_scale} preset; {table.seeds.min()} seed(s); "
+             f"band min-max over seeds; dot: 85 % of plateau)", fontsize=9)
+fig.tight_layout()
+save_figure(fig, "learning_budget", figures_dir)
+
+# %% [markdown]
+# ## What the curves say
+#
+# The table lists, per method and phase, the plateau, the first block at 85 % of it and the coverage
+# of the first block; then how long each update setting takes, in compute seconds per member, to
+# reach 85 % of the lower of the two MLP plateaus in phase 0.
+
+# %%
+levels_wide = levels.pivot(index="phase", columns="policy", values="coverage")
+table = table.join(levels_wide, on="phase")
+write_table(table.round(4), "learning_budget", figures_dir)
+table
+
+# %%
+mlp = table[(table.method == "mlp") & (table.phase == 0)]
+target = PLATEAU_FRACTION * float(mlp.plateau.min())
+speed = seconds_to_reach(curves[(curves.method == "mlp") & (curves.phase == 0)], target)
+speed
+
+# %% [markdown]
+# ## From the study to the `medium` preset
+#
+# The `medium` phase must be long enough for the slowest method in the slowest phase to reach 85 %
+# of its plateau. The cell below compares the preset's phase length (notebook 07) with the study's
+# largest "steps to 85 %" and says whether the preset honours the study. At the `ci` scale the
+# study is a few iterations long and the comparison means nothing.
+
+# %%
+need = float(table.loc[table.settings == "small", step_col].max())
+medium = TrainConfig.for_scale("medium")
+have = medium.phase_length_iters * medium.batch_env_steps
+print(f"largest steps to {PLATEAU_FRACTION:.0%} of plateau (small update settings): {need:,.0f}")
+print(f"medium preset: {medium.phase_length_iters} iterations x {medium.batch_env_steps} = {have:,} steps per phase"
+      f" -> {'covers' if have >= need else 'does NOT cover'} it")
