@@ -93,6 +93,7 @@
 scale = "small"
 figures_dir = "paper_figures"
 seed = 0
+results_dir = "results"
 
 # %%
 #| export
@@ -1600,11 +1601,14 @@ def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, 
 # ## Demonstration: one PE-MAMoE run and one MLP run
 #
 # At the notebook's scale we train PE-MAMoE and the MLP baseline with the same seed. Runs go to
-# `results/mappo/<scale>/<method>-s<seed>-<config hash>/` next to the figures folder; a finished
-# run is read back instead of retrained.
+# `results/<scale>/<method>-s<seed>-<config hash>/`, the folders the sweep of notebook 09 uses for
+# the same runs, so `make figures` (which trains the sweep first) finds them there; a finished run
+# is read back instead of retrained.
 
 # %%
-run_root = Path(figures_dir).resolve().parent / "results" / "mappo" / scale
+from pemamoe.core import repo_path
+
+run_root = repo_path(results_dir) / scale
 results = {}
 for method in ("pemamoe", "mlp"):
     cfg = TrainConfig.for_scale(scale, method=method, seed=seed)

@@ -404,11 +404,14 @@ def figure_notebooks(root=None) -> list:
 
 
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
-                 stream: bool = True, **extra) -> Path:
+                 stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
 
     figures_dir: default paper_figures/ (a relative path is under the repository root).
     stream:      print progress lines and the notebooks' own output (False: silent).
+    precompute:  first train every run of the scale's 39-run sweep (notebooks 09 and 10) as one
+                 sweep, so that compatible runs of different experiments share populations and the
+                 notebooks only read results (None: when all notebooks run).
     extra:       further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
     """
     import subprocess
@@ -416,9 +419,16 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     check_scale(scale)
     figures_dir = repo_path(figures_dir or "paper_figures")
     figures_dir.mkdir(parents=True, exist_ok=True)
-    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
     say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
     records, t0 = {}, time.perf_counter()
+    if precompute if precompute is not None else notebooks is None:
+        from pemamoe.sweep import experiment_specs, run_sweep  # the sweep imports core: import here
+
+        say(f"[figures] training the {scale} sweep first (cached runs are skipped)")
+        run_sweep(experiment_specs("all", scale), extra.get("backend", "local"), extra.get("workers", 2),
+                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"))
+        say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
+    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
     for i, nb in enumerate(notebooks, start=1):
         before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
         start = time.perf_counter()
@@ -467,7 +477,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 621)
+# %% notebooks/00b_core.py, cell 21 (line 631)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

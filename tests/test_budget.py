@@ -1,0 +1,99 @@
+"""The learning-budget study (notebook 09b): fixed-phase runs, the per-environment phase of the
+environment, the study's run list and its read-out (plateau, steps to 85 %)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from pemamoe.budget import plateau_table, seconds_to_reach
+from pemamoe.env import EnvConfig, UAVVectorEnv
+from pemamoe.mappo import TrainConfig, check_population, population_key, train, train_population
+from pemamoe.sweep import budget_specs, group_specs
+
+from test_population import _assert_same_run
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def fixed(method="mlp", seed=0, phase=0, **kw):
+    return TrainConfig.for_scale("ci", method=method, seed=seed, fixed_phase=phase, iterations=4,
+                                 phase_length_iters=4, **kw)
+
+
+def test_env_takes_one_phase_or_one_per_environment():
+    cfg = EnvConfig(phase_clock="external")
+    env = UAVVectorEnv(seeds=[0, 1, 2], cfg=cfg)
+    env.set_phase([2, 0, 1])
+    env.reset()
+    assert env.core.phase.tolist() == [2, 0, 1]
+    other = UAVVectorEnv(seeds=[0, 1, 2], cfg=cfg)
+    other.load_state_dict(env.state_dict())
+    for _ in range(3):
+        other.step(np.zeros((3, other.n_agents, other.act_dim), dtype=np.float32))
+    assert other.core.phase.tolist() == [2, 0, 1]  # the per-environment phase survives a save/restore and steps
+    env.set_phase(1)
+    env.reset()
+    assert env.core.phase.tolist() == [1, 1, 1]
+    for bad in ([0, 1], [0, 1, 9], -1, 1.5, [[0, 1, 2]]):
+        with pytest.raises(ValueError, match="phase must be an integer in"):
+            env.set_phase(bad)
+
+
+def test_fixed_phase_member_is_identical_alone_and_next_to_other_phases(tmp_path):
+    cfgs = [fixed(seed=0, phase=2), fixed(seed=1, phase=0), fixed(seed=2, phase=1)]
+    pop = train_population(cfgs, [tmp_path / f"p{i}" for i in range(3)])
+    alone = train(cfgs[0], tmp_path / "alone")
+    _assert_same_run(alone, pop[0], tmp_path / "alone", tmp_path / "p0")
+    for cfg, res in zip(cfgs, pop):
+        assert (res.metrics.phase == cfg.fixed_phase).all() and not res.metrics.switch.any()
+        assert (res.episodes.phase == cfg.fixed_phase).all()
+
+
+def test_fixed_phase_is_validated_and_cannot_mix_with_cycling_members():
+    with pytest.raises(ValueError, match=r"TrainConfig.fixed_phase must be an integer in \[0, 3\) or None.*got 3"):
+        TrainConfig(fixed_phase=3)
+    with pytest.raises(ValueError, match="fixed_phase"):
+        check_population([fixed(phase=0), TrainConfig.for_scale("ci", method="mlp", seed=1)])
+    # a cycling run's identity (its cache folder) does not mention the new field
+    assert "fixed_phase" not in TrainConfig.for_scale("ci").identity()
+    assert population_key(fixed(phase=0)) == population_key(fixed(seed=3, phase=2))
+    assert population_key(fixed(phase=0)) != population_key(TrainConfig.for_scale("ci", method="mlp", iterations=4,
+                                                                                   phase_length_iters=4))
+
+
+def test_budget_specs_cover_every_method_phase_and_seed_and_group_by_method():
+    specs = budget_specs("small", seeds=(0, 1, 2), methods=("mlp", "pemamoe"))
+    cfgs = [s.to_config() for s in specs]
+    small = [c for c in cfgs if c.num_envs == 16]
+    assert {(c.method, c.fixed_phase, c.seed) for c in small} == {
+        (m, p, s) for m in ("mlp", "pemamoe") for p in (0, 1, 2) for s in (0, 1, 2)}
+    assert all(c.total_env_steps >= 2_000_000 and c.phase_length_iters == c.iterations for c in cfgs)
+    paper = [c for c in cfgs if c.num_envs == 64]
+    assert [(c.method, c.fixed_phase, c.update_epochs, c.num_minibatches) for c in paper] == [("mlp", 0, 8, 32)] * 3
+    sizes = sorted(len(g) for g in group_specs(specs, 16, 2))
+    assert sizes == [3, 9, 9]  # one population per method and update setting
+    with pytest.raises(ValueError, match="steps must be an integer >= 1"):
+        budget_specs("small", steps=0)
+
+
+def test_plateau_and_steps_to_85_percent_from_hand_made_curves():
+    steps = np.arange(1, 11) * 100_000
+    rise = np.array([0.2, 0.4, 0.5, 0.6, 0.7, 0.75, 0.78, 0.8, 0.8, 0.8])
+    rows = [{"method": "mlp", "settings": "small", "phase": 0, "seed": s, "run": f"r{s}", "env_steps": x,
+             "coverage": y + d, "compute_s": x / 1000} for s, d in ((0, -0.01), (1, 0.01)) for x, y in zip(steps, rise)]
+    curves = pd.DataFrame(rows)
+    table = plateau_table(curves)
+    row = table.iloc[0]
+    assert row.plateau == pytest.approx(0.8)  # last 10 % of 1M steps: the final block only
+    assert row.steps_to_85pct == 500_000  # 0.7 >= 0.85 * 0.8 = 0.68, 0.6 is not
+    assert row.first_block == pytest.approx(0.2)
+    hit = seconds_to_reach(curves, 0.75).iloc[0]
+    assert hit.env_steps == 600_000 and hit.compute_s == pytest.approx(600.0)
+    assert np.isnan(seconds_to_reach(curves, 0.9).iloc[0].env_steps)
