@@ -17,10 +17,11 @@
 # measurement. The measurements need instruments, and this appendix holds them, in the module
 # `pemamoe.theory_tools`:
 #
+# * **the tracking task** of notebook 08 as code: `TrackingProblemConfig` and `TrackingProblem`;
 # * **the learner**: `TrackerConfig`, `run_tracker` and `run_many`, a compact PPO loop that trains
-#   the real actor of notebook 05 on the tracking task of notebook 08 with the real phase controller
-#   of notebook 06 (noise injection only), and `paired_distance`, which compares a noisy run with
-#   its noise-free twin;
+#   the real actor of notebook 05 on the tracking task with the real phase controller of notebook
+#   06 (noise injection only), and `paired_distance`, which compares a noisy run with its
+#   noise-free twin;
 # * **the exponent fit**: `fit_power_law`, a log-log least-squares fit with bootstrap intervals;
 # * **distances between action distributions**: `gaussian_l1` (closed form) and `mc_l1_distance`
 #   (Monte Carlo, for Gaussian mixtures);
@@ -30,9 +31,9 @@
 #
 # Read it after notebook 08 when a number there looks surprising and you want to know exactly how
 # it was measured, or before changing an instrument. Every instrument is checked here on a case
-# whose answer is known in advance. `pemamoe.theory_tools` imports `pemamoe.theory` (the tracking
-# task, the noise energy and dynamic regret); `pemamoe.theory` never imports it back, so notebook
-# 08's demonstration cells import the instruments from `pemamoe.theory_tools` directly.
+# whose answer is known in advance. `pemamoe.theory_tools` imports `pemamoe.theory` (the noise
+# energy and the dynamic regret); `pemamoe.theory` never imports it back, so notebook 08's
+# demonstration cells import the instruments from `pemamoe.theory_tools` directly.
 
 # %%
 #| default_exp theory_tools
@@ -604,9 +605,11 @@ print("true constants", L_true, "| envelope", L_env.round(6), "| least squares",
 #
 # `moe_components` reads, for a batch of states, the tempered router logits $z$, the gating-noise
 # scale $s = \mathrm{softplus}(n(s))$, every expert's mean $\mu_k$ and the common $\sigma$; the
-# three weightings of notebook 08 (A4 mixture, sampling marginal, evaluation top-1) follow from them. `perturb_actor` returns a copy with the router
-# (weights and bias of the routing layer; the noise gate is left alone) and/or every expert moved
-# by a random direction of *relative* size `scale` (a fraction of that part's norm).
+# three weightings of notebook 08 (A4 mixture, sampling marginal, evaluation top-1) follow from
+# them (`mixture_weights`; `top1_win_probs` integrates the sampling marginal's win probabilities
+# by Gauss-Hermite quadrature). `perturb_actor` returns a copy with the router (weights and bias
+# of the routing layer; the noise gate is left alone) and/or every expert moved by a random
+# direction of *relative* size `scale` (a fraction of that part's norm).
 # `tie_states` finds states exactly on a top-1 boundary, by bisecting between two states routed
 # to different experts until the two top gate probabilities agree to ~1e-9.
 
@@ -784,8 +787,9 @@ win = top1_win_probs(comp_probe["logits"], comp_probe["noise_scale"])
 assert np.abs(freq - win).max() < 6 * 0.5 / math.sqrt(n_rep)
 ties_probe = np.sort(moe_components(probe_actor, tie_states(probe_actor, 8, np.random.default_rng(seed)))["gate"], -1)
 assert np.all(ties_probe[:, -1] - ties_probe[:, -2] < 1e-6)
+tie_gap = np.max(ties_probe[:, -1] - ties_probe[:, -2])
 print(f"win probabilities vs routing frequencies: max |diff| {np.abs(freq - win).max():.4f} "
-      f"(sampling s.e. ~ {0.5 / math.sqrt(n_rep):.4f}); largest top-two gap at ties {np.max(ties_probe[:, -1] - ties_probe[:, -2]):.1e}")
+      f"(sampling s.e. ~ {0.5 / math.sqrt(n_rep):.4f}); largest top-two gap at ties {tie_gap:.1e}")
 
 # %%
 print(f"appendix ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
