@@ -35,6 +35,7 @@
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/diagnostics.py` | schedule figures |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
+# | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |

@@ -39,8 +39,9 @@
 # * **Randomness.** Every environment owns its random streams. A batch of B environments stepped at
 #   once draws, for environment b, exactly the numbers a single environment with the same seed would
 #   draw, so the batched environment the trainer uses and the PettingZoo environment are the same
-#   dynamics, bit for bit. The streams (`BatchRandom`) and the compiled engine live in the appendix
-#   notebook `04b_engine.py`; this notebook only calls them.
+#   dynamics, bit for bit. The streams (`BatchRandom`), the compiled engine and the wrappers that
+#   turn the batched core into the public environments live in the appendix notebook
+#   `04b_engine.py`; this notebook only calls them.
 
 # %%
 #| default_exp env
@@ -72,6 +73,18 @@ from pemamoe.channel import (
 )
 from pemamoe.core import config_error, require, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
+from pemamoe.env_wrappers import (  # the public environments, rendering, reference policies (appendix 04b)
+    HEURISTICS,
+    UAVParallelEnv,
+    UAVVectorEnv,
+    compile_step_kernels,
+    hover_policy,
+    kmeans_policy,
+    random_policy,
+    render_frame,
+    rollout_heuristic,
+    vector_seeds,
+)
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
 from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04b)
@@ -636,202 +649,25 @@ class UAVBatchCore:
 
 
 # %% [markdown]
-# ## The batched environment the trainer uses
+# ## The environments the trainer and outside code use
 #
-# `UAVVectorEnv` steps B environments in one process. Episodes of all environments have the same
-# length, and an environment whose episode ends (time limit, or an empty battery) starts a new
-# one within the same call, so that every call returns usable observations. The last observation of
-# the finished episode is returned in `info["final_obs"]` and `info["final_state"]`: the trainer
-# bootstraps a truncated episode from the value of that final observation, not from the first
-# observation of the next episode.
+# Two thin wrappers of the core are the public environments. Both live in appendix 04b (module
+# `pemamoe.env_wrappers`), with the renderer, `compile_step_kernels` and the reference policies
+# (`HEURISTICS`, `rollout_heuristic`); `pemamoe.env` re-exports them all and builds the two here:
+#
+# * `make_vector_env(num_envs, seed)` returns a `UAVVectorEnv`, the batched environment the trainer
+#   uses: B environments stepped in one process (obs `(B, U, obs_dim)`, state `(B, state_dim)`),
+#   environment i behaving as a lone environment with seed `seed + i`. An environment whose
+#   episode ends starts a new one within the same call; the last observation of the finished
+#   episode comes back in `info["final_obs"]` and `info["final_state"]`, to bootstrap from.
+# * `make_env(**overrides)` (also `parallel_env`) returns a PettingZoo `ParallelEnv` over the same
+#   core with B = 1: agents `uav_0 … uav_{U-1}`, Gymnasium `Box` spaces, `state()` for the
+#   centralised critic and, with `render_mode="rgb_array"`, an RGB `render()`. `aec_env(**overrides)`
+#   (alias `raw_env`) is the same environment as an AEC env, through PettingZoo's `parallel_to_aec`.
 
 # %%
 #| export
-class UAVVectorEnv:
-    """B environments stepped together. Arrays: obs (B, U, obs_dim), state (B, state_dim)."""
-
-    def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: EnvConfig | None = None, *, seeds=None,
-                 **overrides):
-        if cfg is not None and overrides:
-            raise ValueError("pass either cfg or keyword overrides, not both")
-        self.cfg = cfg or EnvConfig.from_overrides(**overrides)
-        if seeds is None:  # explicit per-environment seeds: a population's members side by side
-            seeds = vector_seeds(seed, num_envs)
-        num_envs = len(seeds)
-        self.core = UAVBatchCore(self.cfg, num_envs, seeds)
-        self.num_envs = int(num_envs)
-        self.n_agents = self.cfg.n_uavs
-        self.obs_dim = observation_dim(self.cfg)
-        self.state_dim = state_dim(self.cfg)
-        self.act_dim = 2
-
-    def reset(self):
-        obs, state, info = self.core.reset()
-        return obs, state, info
-
-    def set_phase(self, phase: int) -> None:
-        self.core.set_phase(phase)
-
-    def state_dict(self) -> dict:
-        return self.core.state_dict()
-
-    def load_state_dict(self, state: dict) -> None:
-        self.core.load_state_dict(state)
-
-    def step(self, actions):
-        obs, state, reward, terminated, truncated, info = self.core.step(actions)
-        done = terminated | truncated
-        if done.any():
-            rows = np.flatnonzero(done)
-            info["final_obs"], info["final_state"] = obs[rows].copy(), state[rows].copy()
-            info["final_rows"] = rows
-            new_obs, new_state, _ = self.core.reset(rows)
-            obs[rows], state[rows] = new_obs, new_state
-        return obs, state, reward, terminated, truncated, info
-
-
-def vector_seeds(seed, num_envs: int) -> list:
-    """Seeds of a vector env's members: environment i of seed s is the env made with seed s + i."""
-    if seed is None:
-        return [None] * num_envs
-    return [int(seed) + i for i in range(num_envs)]
-
-
-# %% [markdown]
-# ## The PettingZoo environment
-#
-# `make_env(**overrides)` (also `pemamoe.parallel_env`) returns a PettingZoo `ParallelEnv` over the
-# same core with B = 1: agents `uav_0 … uav_{U-1}`, Gymnasium `Box` spaces, `state()` for the
-# centralised critic and, with `render_mode="rgb_array"`, an RGB `render()` (the default,
-# `render_mode=None`, draws nothing). `aec_env(**overrides)` (alias `raw_env`) is the same
-# environment as an AEC env, through PettingZoo's own `parallel_to_aec` conversion.
-#
-# It follows the conventions outside code relies on. The infos of `reset()` carry the same keys,
-# with the same types, as those of `step()` (the per-step flags are all `False` at a reset), so a
-# library that builds its info spec from `reset()` can read every `step()`. `step()`, `state()` and
-# `render()` before the first `reset()` raise an error that says to call `reset()` first. Actions
-# outside [-1, 1] are clipped and flagged in `info["action_clipped"]`; a NaN or infinite action, and
-# an action for an agent that does not exist, raise an error naming the agent.
-
-# %%
-#| export
-from gymnasium import spaces
-from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
-
-# Info keys that only a step produces, and their value at a reset: (per agent?, value).
-_STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, False),
-                   "battery_depleted": (True, False), "phase_switch": (False, False)}
-
-
-class UAVParallelEnv(ParallelEnv):
-    metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
-
-    def __init__(self, cfg: EnvConfig | None = None, render_mode: str | None = None):
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.cfg = cfg or EnvConfig()
-        self.render_mode = render_mode
-        self.possible_agents = [f"uav_{u}" for u in range(self.cfg.n_uavs)]
-        self.agents = []
-        obs_dim = observation_dim(self.cfg)
-        self._obs_space = spaces.Box(-1.0, 1.0, (obs_dim,), np.float32)
-        self._act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self._state_space = spaces.Box(-1.0, 1.0, (state_dim(self.cfg),), np.float32)
-        self.core = UAVBatchCore(self.cfg, 1, [None])
-        self._seeded = False
-        self._state = None  # set by reset(); None means "never reset"
-
-    def observation_space(self, agent):
-        return self._obs_space
-
-    def action_space(self, agent):
-        return self._act_space
-
-    @property
-    def state_space(self):
-        return self._state_space
-
-    def _need_reset(self, method: str) -> None:
-        if self._state is None:
-            raise RuntimeError(f"{method}() called before reset(): call reset() first")
-
-    def reset(self, seed=None, options=None):
-        if seed is not None or not self._seeded:
-            self.core.rng.reseed(0, seed)
-            self._seeded = True
-        obs, state, info = self.core.reset()
-        self._state = state[0]
-        self.agents = list(self.possible_agents)
-        U = len(self.agents)
-        for key, (per_agent, value) in _STEP_ONLY_INFO.items():  # step()'s keys, with their types
-            info.setdefault(key, np.full((1, U) if per_agent else (1,), value))
-        infos = _agent_infos(info, 0, self.agents)
-        return {a: obs[0, i] for i, a in enumerate(self.agents)}, infos
-
-    def step(self, actions):
-        self._need_reset("step")
-        if not self.agents:
-            raise RuntimeError("step() called on a finished episode: call reset() first")
-        unknown = set(actions) - set(self.possible_agents)
-        if unknown:
-            raise ValueError(f"actions for unknown agent(s) {sorted(unknown, key=str)}; "
-                             f"the agents are {self.possible_agents}")
-        missing = set(self.agents) - set(actions)
-        if missing:
-            raise ValueError(f"actions missing for agents {sorted(missing)}")
-        try:  # the usual case, one array of 2 numbers per agent, in one call
-            stacked = np.array([actions[a] for a in self.possible_agents], dtype=float)
-        except (TypeError, ValueError):
-            stacked = None
-        if stacked is None or stacked.shape != (len(self.possible_agents), 2):
-            for a in self.possible_agents:
-                if np.size(actions[a]) != 2:
-                    raise ValueError(f"action of {a} must have 2 entries, got shape {np.shape(actions[a])}")
-            stacked = np.stack([np.asarray(actions[a], dtype=float).reshape(2) for a in self.possible_agents])
-        obs, state, reward, terminated, truncated, info = self.core.step(stacked[None])
-        self._state = state[0]
-        agents = self.agents
-        shared_reward, term, trunc = float(reward[0]), bool(terminated[0]), bool(truncated[0])
-        out = (
-            {a: obs[0, i] for i, a in enumerate(agents)},
-            {a: shared_reward for a in agents},
-            {a: term for a in agents},
-            {a: trunc for a in agents},
-            _agent_infos(info, 0, agents),
-        )
-        if term or trunc:
-            self.agents = []
-        return out
-
-    def state(self):
-        self._need_reset("state")
-        return self._state
-
-    def render(self):
-        if self.render_mode is None:
-            return None
-        self._need_reset("render")
-        return render_frame(self.core, 0)
-
-    def close(self):
-        pass
-
-
-def _agent_infos(info: dict, b: int, agents: list) -> dict:
-    """Environment b's info as each agent sees it: (B, U) arrays are indexed by agent, (B,) are shared."""
-    shared, per_agent = {}, {}
-    for key, value in info.items():
-        value = value if isinstance(value, np.ndarray) else np.asarray(value)
-        # value[b:b + 1].tolist()[0] gives Python numbers, several times faster than value[b].item()
-        if value.ndim == 2 and value.shape[1] == len(agents):
-            per_agent[key] = value[b:b + 1].tolist()[0]
-        else:
-            shared[key] = value[b:b + 1].tolist()[0] if value.ndim == 1 else value[b]
-    order = list(info)  # every agent's dict keeps info's key order
-    return {a: {key: per_agent[key][u] if key in per_agent else shared[key] for key in order}
-            for u, a in enumerate(agents)}
-
 
 def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
     """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
@@ -851,15 +687,6 @@ def aec_env(render_mode: str | None = None, **overrides):
 raw_env = aec_env  # PettingZoo's usual name for the AEC constructor
 
 
-def compile_step_kernels() -> None:
-    """Compile the compiled engine's kernels in this process, or load them from numba's on-disk
-    cache. Call it once before starting parallel workers: they then all load the cached machine
-    code instead of compiling it at the same time (about 9 s each, and a race on the cache files)."""
-    env = UAVVectorEnv(2, 0, step_engine="compiled")
-    env.reset()
-    env.step(np.zeros((2, env.n_agents, 2)))
-
-
 def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UAVVectorEnv:
     """B environments in one process; member i behaves as make_env(...) reset with seed + i.
 
@@ -867,105 +694,6 @@ def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UA
     num_envs = require("make_vector_env", "num_envs", num_envs, "int", ge=1)
     seed = require("make_vector_env", "seed", seed, "int", ge=0, optional=True)
     return UAVVectorEnv(num_envs, seed, **overrides)
-
-
-# %% [markdown]
-# ## Rendering
-#
-# `render()` draws the area from above: users coloured by demand class, UAVs with their service
-# circles, and a line from each admitted user to its UAV.
-
-# %%
-#| export
-CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
-
-
-def render_frame(core: UAVBatchCore, b: int = 0, size_px: int = 480) -> np.ndarray:
-    """An RGB frame (H, W, 3) uint8 of environment b."""
-    import matplotlib
-
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    cfg = core.cfg
-    fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes([0, 0, 1, 1])
-    S = cfg.area_m
-    ax.set_xlim(0, S)
-    ax.set_ylim(0, S)
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    users = core.mobility.user_xy[b]
-    uavs = core.uav_xy[b]
-    _, _, radius, _ = phase_values(cfg.phases, core.phase[b:b + 1])
-    for n, u in enumerate(core.serving[b]):
-        if u >= 0:
-            ax.plot([users[n, 0], uavs[u, 0]], [users[n, 1], uavs[u, 1]], color="0.6", lw=0.8, zorder=1)
-    for u, (x, y) in enumerate(uavs):
-        ax.add_patch(matplotlib.patches.Circle((x, y), radius[0], fill=False, ls="--", color="0.3", lw=1))
-        ax.plot(x, y, marker="^", ms=12, color="black", zorder=3)
-        ax.annotate(f"uav_{u}", (x, y), textcoords="offset points", xytext=(6, 6), fontsize=8)
-    ax.scatter(users[:, 0], users[:, 1], c=[CLASS_COLOURS[c] for c in core.demand[b]], s=22, zorder=2)
-    ax.set_title(f"phase {core.phase[b]}  step {core.t[b]}", fontsize=9, y=0.95)
-    fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-
-
-# %% [markdown]
-# ## Heuristic policies
-#
-# Three non-learning policies act on the batched observations' underlying state and serve as
-# references: `random` (uniform actions), `hover` (stay put) and `kmeans`, the placement a wireless
-# engineer would try first. Each slot it runs a few Lloyd iterations of k-means with k = U on the
-# user positions, starting from the UAVs' own positions so that each UAV keeps "its" cluster, and
-# flies each UAV toward its centroid (at most d_max per slot). It ignores demand classes, overlap and
-# separation, which is what makes it a fair classical baseline rather than a tuned one.
-
-# %%
-#| export
-def random_policy(core: UAVBatchCore, rng: np.random.Generator):
-    return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
-
-
-def hover_policy(core: UAVBatchCore, rng=None):
-    return np.zeros((core.B, core.cfg.n_uavs, 2))
-
-
-def kmeans_policy(core: UAVBatchCore, rng=None, iterations: int = 5):
-    """Fly each UAV toward the centroid of the user cluster it owns (k-means seeded at the UAVs)."""
-    users = core.mobility.user_xy  # (B, N, 2)
-    centroids = core.uav_xy.copy()  # (B, U, 2)
-    U = centroids.shape[1]
-    for _ in range(iterations):
-        d = ((users[:, :, None, :] - centroids[:, None, :, :]) ** 2).sum(-1)  # (B, N, U)
-        owner = (d.argmin(axis=-1)[..., None] == np.arange(U))  # (B, N, U)
-        count = owner.sum(axis=1)  # (B, U)
-        total = np.einsum("bnu,bnd->bud", owner.astype(float), users)
-        centroids = np.where(count[..., None] > 0, total / np.maximum(count, 1)[..., None], centroids)
-    return np.clip((centroids - core.uav_xy) / core.cfg.max_step_m, -1.0, 1.0)
-
-
-HEURISTICS = {"random": random_policy, "hover": hover_policy, "kmeans": kmeans_policy}
-
-
-def rollout_heuristic(policy: str, num_envs: int, steps: int, seed: int = 0, phase: int | None = None, **overrides):
-    """Run a heuristic in a vector env; return per-step info arrays stacked to (steps, B)."""
-    if policy not in HEURISTICS:
-        raise ValueError(f"unknown heuristic {policy!r}; choose from {sorted(HEURISTICS)}")
-    if phase is not None:
-        overrides = {**overrides, "phase_clock": "external"}
-    env = UAVVectorEnv(num_envs, seed, **overrides)
-    if phase is not None:
-        env.set_phase(phase)
-    env.reset()
-    act_rng = np.random.default_rng(seed)
-    rows = []
-    for _ in range(steps):
-        _, _, _, _, _, info = env.step(HEURISTICS[policy](env.core, act_rng))
-        rows.append({k: np.asarray(v) for k, v in info.items() if np.ndim(v) == 1 and k != "final_rows"})
-    return {k: np.stack([r[k] for r in rows]) for k in rows[0]}
 
 
 # %% [markdown]
@@ -1003,6 +731,9 @@ plt.show()
 # others by accident. The table gives the per-slot mean and standard deviation of each term and
 # metric under the random policy and the k-means heuristic, in each phase (the phase is held fixed
 # per row with `phase_clock="external"`).
+# The policies are the three non-learning references of appendix 04b: `random` (uniform
+# actions), `hover` (stay put) and `kmeans`, which flies each UAV toward the centroid of the
+# users nearest to it, as a wireless engineer would place them first.
 
 # %%
 anatomy_envs = by_scale(scale, ci=8, small=64, paper=256)

@@ -38,7 +38,12 @@
 #    closed form, learned by a compact PPO loop; the measured growth of the regret in $T$, in
 #    $V_T$ and in the noise energy, with fitted exponents and bootstrap intervals.
 #
-# Everything reusable goes to `pemamoe/theory.py`.
+# The quantities the claims are about, the noise schedule with its energy and the dynamic regret,
+# are defined here and exported to `pemamoe/theory.py`. The instruments that measure them (the
+# tracking task's code, the learner and its paired runs, the fits of exponents, the $L_1$ distances
+# between action distributions, the Lipschitz estimates and the probes of the actor) live in the
+# appendix notebook `08b_theory_tools.py` (module `pemamoe.theory_tools`), each checked there on a
+# case with a known answer; this notebook only calls them.
 
 # %%
 #| default_exp theory
@@ -50,33 +55,33 @@ seed = 0
 
 # %%
 #| export
-import copy
 import math
-import multiprocessing
-from dataclasses import dataclass, field
 
 import numpy as np
-import torch
-import torch.nn.functional as F
-
-from pemamoe.core import require_field
-from pemamoe.nets import NetConfig, make_actor, network_kind
-from pemamoe.phase_controller import (
-    BaseSchedule,
-    PhaseController,
-    PhaseControllerConfig,
-    build_param_groups,
-    expert_parameters,
-    n_experts_of,
-)
 
 # %%
 import time
 
 import matplotlib.pyplot as plt
 import pandas as pd
+import torch
 
 from pemamoe.core import by_scale, save_figure, write_table
+from pemamoe.theory_tools import (
+    DISTRIBUTIONS,
+    TrackerConfig,
+    TrackingProblemConfig,
+    fit_power_law,
+    lipschitz_envelope,
+    lipschitz_nnls,
+    lipschitz_ratio,
+    moe_components,
+    paired_distance,
+    routing_stability_samples,
+    run_many,
+    tie_states,
+    top1_win_probs,
+)
 
 torch.set_num_threads(1)
 T0 = time.perf_counter()
@@ -175,83 +180,12 @@ print("overlap + cut:     energy", noise_energy(sched), " = gamma^2 *", int(wind
 # We value the learner's *mean* action (deterministic gating, as at evaluation): exploration noise
 # of the Gaussian policy would add a constant $\sum_i \sigma_i^2$ per step that has nothing to do
 # with tracking.
+#
+# The task's code (`TrackingProblemConfig`, `TrackingProblem`) is in appendix 08b. The quantity
+# it serves is defined here: the cumulative dynamic regret of a run against the moving optimum.
 
 # %%
 #| export
-@dataclass(frozen=True)
-class TrackingProblemConfig:
-    """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
-
-    obs_dim: int = 4
-    act_dim: int = 2
-    n_phases: int = 4
-    shift: float = 0.6  # ||W_{k+1} - W_k||_F = RMS distance between successive optimal maps
-    init_scale: float = 0.5  # ||W_0||_F
-    action_bound: float = 1.0
-    probe_size: int = 512
-
-    def __post_init__(self):
-        for name in ("obs_dim", "act_dim", "n_phases", "probe_size"):
-            require_field(self, name, "int", ge=1)
-        require_field(self, "shift", "real", ge=0)
-        require_field(self, "init_scale", "real", ge=0)
-        require_field(self, "action_bound", "real", gt=0)
-
-
-class TrackingProblem:
-    """Phase maps W (P, m, d+1) = [A | b], a fixed probe set (probe_size, d), exact values on it."""
-
-    def __init__(self, cfg: TrackingProblemConfig, seed: int = 0):
-        self.cfg = cfg
-        rng = np.random.default_rng(seed)
-        d, m = cfg.obs_dim, cfg.act_dim
-        W = np.zeros((cfg.n_phases, m, d + 1))
-        g = rng.standard_normal((m, d + 1))
-        W[0] = cfg.init_scale * g / np.linalg.norm(g)
-        for k in range(1, cfg.n_phases):
-            g = rng.standard_normal((m, d + 1))
-            step = g / np.linalg.norm(g) - W[k - 1]  # random direction, pulled towards the origin
-            W[k] = W[k - 1] + cfg.shift * step / np.linalg.norm(step)
-        self.W = W
-        self.probe = rng.standard_normal((cfg.probe_size, d))
-        self._W_t = torch.tensor(W, dtype=torch.float32)
-        self._opt = np.array([self.value(self.optimal_action(self.probe, k), k) for k in range(cfg.n_phases)])
-
-    def target(self, x, phase: int):
-        """A_phi x + b_phi for contexts x (..., d), numpy or torch."""
-        if isinstance(x, torch.Tensor):
-            W = self._W_t[phase]
-            return x @ W[:, :-1].T + W[:, -1]
-        W = self.W[phase]
-        return np.asarray(x) @ W[:, :-1].T + W[:, -1]
-
-    def reward(self, x, a, phase: int):
-        """r(x, a) (...,) for contexts (..., d) and actions (..., m), numpy or torch."""
-        c = self.target(x, phase)
-        lim = self.cfg.action_bound
-        if isinstance(a, torch.Tensor):
-            return -((a.clamp(-lim, lim) - c) ** 2).sum(-1)
-        return -np.sum((np.clip(a, -lim, lim) - c) ** 2, axis=-1)
-
-    def optimal_action(self, x, phase: int):
-        """The maximiser clip(A_phi x + b_phi) of r(x, .)."""
-        lim = self.cfg.action_bound
-        c = self.target(x, phase)
-        return c.clamp(-lim, lim) if isinstance(c, torch.Tensor) else np.clip(c, -lim, lim)
-
-    def value(self, probe_actions, phase: int) -> float:
-        """Mean reward of the actions (probe_size, m) taken on the probe contexts."""
-        return float(np.mean(self.reward(self.probe, np.asarray(probe_actions, dtype=float), phase)))
-
-    def optimal_value(self, phase: int) -> float:
-        """V*_phi on the probe set."""
-        return float(self._opt[phase])
-
-    def shifts(self) -> np.ndarray:
-        """||W_{k+1} - W_k||_F for each switch (n_phases - 1,)."""
-        return np.linalg.norm(np.diff(self.W, axis=0).reshape(self.cfg.n_phases - 1, -1), axis=1)
-
-
 def dynamic_regret(optimal_values, values) -> np.ndarray:
     """Cumulative dynamic regret R_t = sum_{s <= t} (V*_{phi(s)} - V(pi_s)), shape (T,)."""
     opt = np.asarray(optimal_values, dtype=float)
@@ -281,261 +215,19 @@ def dynamic_regret(optimal_values, values) -> np.ndarray:
 # generator seeded by `seed`, while the noise has the controller's own generator. A noisy run
 # consumes exactly the same stream of context and sampling noise as its twin, so every
 # difference between them is caused by the perturbations.
-
-# %%
-#| export
-CONTROLLERS = ("off", "noise")
-
-
-@dataclass(frozen=True)
-class TrackerConfig:
-    """Learner of the tracking task: actor kind, PPO settings, switches and the noise window."""
-
-    kind: str = "pemamoe"
-    iterations: int = 300
-    n_switches: int = 3
-    batch: int = 64  # contexts per iteration (2 * batch actions, antithetic)
-    epochs: int = 2  # PPO epochs per iteration (the noise window counts these)
-    lr: float = 3e-3
-    clip: float = 0.2
-    controller: str = "noise"  # "off": no noise; "noise": only the expert-noise mechanism
-    noise_gamma: float = 0.005
-    noise_epochs: int = 30
-    hidden: int = 32
-    n_experts: int = 3
-    keep_means: bool = True  # store the probe-set mean actions of every iteration
-
-    def __post_init__(self):
-        own = "TrackerConfig"
-        try:
-            network_kind(self.kind)
-        except ValueError as err:
-            raise ValueError(f"{own}.kind: {err}") from None
-        require_field(self, "iterations", "int", ge=1)
-        require_field(self, "n_switches", "int", ge=0)
-        for name in ("batch", "epochs", "hidden", "n_experts"):
-            require_field(self, name, "int", ge=1)
-        require_field(self, "lr", "real", gt=0)
-        require_field(self, "clip", "real", gt=0)
-        require_field(self, "controller", "choice", CONTROLLERS)
-        require_field(self, "noise_gamma", "real", ge=0)
-        require_field(self, "noise_epochs", "int", ge=0)
-        require_field(self, "keep_means", "bool")
-
-
-def switch_times(iterations: int, n_switches: int) -> list:
-    """K switches evenly spaced in [0, T): round(k T / (K + 1)), k = 1..K (K + 1 equal phases)."""
-    return [int(round(k * iterations / (n_switches + 1))) for k in range(1, n_switches + 1)]
-
-
-@dataclass
-class TrackerRun:
-    """What run_tracker records. Arrays have one entry per iteration (T,) unless noted."""
-
-    cfg: TrackerConfig
-    seed: int
-    switches: list
-    phase: np.ndarray
-    values: np.ndarray  # V(pi_t) of the mean-action policy on the probe set
-    optimal: np.ndarray  # V*_phi(t)
-    regret: np.ndarray  # cumulative dynamic regret R_t
-    pulses: np.ndarray  # (n_pulses, 2): pulse slot (see noise_slots), noise std
-    means: np.ndarray | None  # (T, probe_size, m) probe mean actions, or None
-    log_std: np.ndarray  # (T, m)
-    actor: object = field(default=None, repr=False)
-
-    @property
-    def noise_energy(self) -> float:
-        return noise_energy(self.pulses[:, 1]) if len(self.pulses) else 0.0
-
-    @property
-    def total_regret(self) -> float:
-        return float(self.regret[-1])
-
-    def noise_slots(self) -> np.ndarray:
-        """Realised noise std per pulse slot (iterations * epochs + 1,): slot 0 of iteration t is its
-        start (where the switch pulse goes), slot e + 1 follows update epoch e."""
-        out = np.zeros(self.cfg.iterations * self.cfg.epochs + 1)
-        for slot, std in self.pulses:
-            if out[int(slot)] != 0:
-                raise ValueError(f"two pulses in slot {int(slot)}")
-            out[int(slot)] = std
-        return out
-
-
-def _controller_config(cfg: TrackerConfig) -> PhaseControllerConfig:
-    off = dict(
-        kl_anchor=False, adam_reset=False, log_std_reset=False, entropy_reset=False, lr_drop=False,
-        conservative_window=False, router_freeze=False, temperature_schedule=False,
-    )
-    return PhaseControllerConfig(
-        **off, noise_injection=cfg.controller == "noise", noise_gamma=float(cfg.noise_gamma),
-        noise_epochs=cfg.noise_epochs, noise_lr_factor=False,
-    )
-
-
-def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, keep_actor: bool = False) -> TrackerRun:
-    """Train cfg.kind on `problem` (n_phases must be >= n_switches + 1) and record values and noise."""
-    if problem.cfg.n_phases < cfg.n_switches + 1:
-        raise ValueError(f"run_tracker needs n_phases >= n_switches + 1, got {problem.cfg.n_phases} < {cfg.n_switches + 1}")
-    torch.manual_seed(seed)
-    d, m, T = problem.cfg.obs_dim, problem.cfg.act_dim, cfg.iterations
-    actor = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
-    opt = torch.optim.Adam(build_param_groups(actor, lr=cfg.lr), lr=cfg.lr)
-    base = BaseSchedule(
-        lr=cfg.lr, clip_coef=cfg.clip, target_kl=None, ent_start=0.0, ent_end=0.0,
-        total_iterations=T, phase_length=max(1, T // (cfg.n_switches + 1)),
-    )
-    ctrl = PhaseController(_controller_config(cfg), actor, opt, base, enabled=True, seed=seed + 7919)
-    gamma = float(cfg.noise_gamma)
-    switches = switch_times(T, cfg.n_switches)
-    switch_set = set(switches)
-    probe = torch.tensor(problem.probe, dtype=torch.float32)
-    phase_of = np.zeros(T, dtype=np.int64)
-    values, optimal = np.zeros(T), np.zeros(T)
-    means = np.zeros((T, problem.cfg.probe_size, m), np.float32) if cfg.keep_means else None
-    log_std = np.zeros((T, m))
-    pulses, epoch, phase = [], 0, 0
-    for t in range(T):
-        if t in switch_set:
-            phase += 1
-            ctrl.on_switch(t)
-            if ctrl.last_noised:
-                pulses.append((epoch, gamma))
-        s = ctrl.begin_iteration(t)
-        x = torch.randn(cfg.batch, d)
-        with torch.no_grad():
-            dist, routing = actor(x, s.policy_temperature)
-            eps = torch.randn(cfg.batch, m)
-            mu, std = dist.mean, dist.stddev
-            a_plus, a_minus = mu + std * eps, mu - std * eps
-            adv = 0.5 * (problem.reward(x, a_plus, phase) - problem.reward(x, a_minus, phase))
-            obs2, act2 = torch.cat([x, x]), torch.cat([a_plus, a_minus])
-            adv2 = torch.cat([adv, -adv])
-            adv2 = adv2 / (adv2.std() + 1e-8)
-            rout2 = None if routing is None else type(routing).cat([routing, routing])
-            logp_old = torch.cat([dist.log_prob(a_plus), dist.log_prob(a_minus)])
-        for _ in range(cfg.epochs):
-            logp, _, aux = actor.evaluate(obs2, act2, rout2)
-            ratio = (logp - logp_old).exp()
-            clipped = ratio.clamp(1.0 - s.clip_coef, 1.0 + s.clip_coef)
-            loss = -torch.min(ratio * adv2, clipped * adv2).mean() + aux["aux_loss"]
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if ctrl.after_epoch(None if rout2 is None else rout2.experts):
-                pulses.append((epoch + 1, gamma))
-            epoch += 1
-        with torch.no_grad():
-            mp = actor(probe, s.policy_temperature, deterministic_gate=True)[0].mean.numpy()
-        phase_of[t] = phase
-        values[t] = problem.value(mp, phase)
-        optimal[t] = problem.optimal_value(phase)
-        log_std[t] = actor.log_std.detach().numpy()
-        if means is not None:
-            means[t] = mp
-    return TrackerRun(
-        cfg=cfg, seed=seed, switches=switches, phase=phase_of, values=values, optimal=optimal,
-        regret=dynamic_regret(optimal, values), pulses=np.asarray(pulses, dtype=float).reshape(-1, 2),
-        means=means, log_std=log_std, actor=actor if keep_actor else None,
-    )
-
-
-def _run_job(job):
-    torch.set_num_threads(1)
-    problem_cfg, tracker_cfg, problem_seed, seed, keep_actor = job
-    return run_tracker(TrackingProblem(problem_cfg, problem_seed), tracker_cfg, seed, keep_actor)
-
-
-def run_many(jobs, workers: int = 1) -> list:
-    """run_tracker over jobs (problem_cfg, tracker_cfg, problem_seed, seed, keep_actor), in order.
-
-    workers > 1 forks that many processes (one torch thread each)."""
-    jobs = list(jobs)
-    if workers <= 1 or len(jobs) <= 1:
-        return [_run_job(j) for j in jobs]
-    with multiprocessing.get_context("fork").Pool(workers) as pool:
-        return pool.map(_run_job, jobs, chunksize=1)
-
-
-def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
-    """How far a noisy run moved from its noise-free twin (same problem and seed).
-
-    policy_mean / policy_final: mean over iterations / at the end of the probe-mean L2 distance
-    E_x ||mu_noisy(x) - mu_clean(x)||; return_gap: |sum_t (J_noisy - J_clean)| (the lemma's
-    martingale sum); return_abs: sum_t |J_noisy - J_clean|; excess_regret: R_T(noisy) - R_T(clean).
-    """
-    if clean.means is None or noisy.means is None:
-        raise ValueError("paired_distance needs runs made with keep_means=True")
-    if clean.means.shape != noisy.means.shape:
-        raise ValueError(f"paired_distance: runs differ in shape, {clean.means.shape} vs {noisy.means.shape}")
-    dist_t = np.linalg.norm(noisy.means.astype(float) - clean.means.astype(float), axis=-1).mean(-1)
-    dj = noisy.values - clean.values
-    return {
-        "policy_mean": float(dist_t.mean()),
-        "policy_final": float(dist_t[-1]),
-        "return_gap": float(abs(dj.sum())),
-        "return_abs": float(np.abs(dj).sum()),
-        "excess_regret": float(noisy.total_regret - clean.total_regret),
-        "energy": noisy.noise_energy - clean.noise_energy,
-    }
+#
+# `run_tracker` (one run), `run_many` (a list of runs, in worker processes when asked) and
+# `paired_distance` (a noisy run against its twin) are in appendix 08b.
 
 # %% [markdown]
 # ### Fitting exponents
 #
-# Every scaling below is read off a log-log regression, $\log y = c + \sum_j \alpha_j \log x_j$.
+# Every scaling below is read off a log-log regression, $\log y = c + \sum_j \alpha_j \log x_j$
+# (`fit_power_law`, appendix 08b).
 # The intervals are percentile bootstrap intervals: the rows (runs) are resampled with
 # replacement, or whole groups (e.g. all runs of one seed) when `groups` is given, and the fit is
 # repeated. They quantify the sampling spread of the slope on *these* runs; they say nothing
 # about the asymptotic regime a bound refers to.
-
-# %%
-#| export
-def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
-    """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
-
-    x (n,) or (n, p) positive; y (n,) positive. Returns {"slope": (p,) or float, "intercept",
-    "ci_low", "ci_high", "r2", "n"} (floats when x is 1-D).
-    """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float).reshape(-1)
-    one_d = x.ndim == 1
-    X = x.reshape(len(y), -1)
-    if X.shape[0] != y.shape[0]:
-        raise ValueError(f"fit_power_law: x has {X.shape[0]} rows, y has {y.shape[0]}")
-    if not (np.all(X > 0) and np.all(y > 0)):
-        raise ValueError("fit_power_law: x and y must be > 0 (log-log fit)")
-    if not 0 < level < 1:
-        raise ValueError(f"fit_power_law: level must be in (0, 1), got {level!r}")
-    A = np.column_stack([np.ones(len(y)), np.log(X)])
-    ly = np.log(y)
-
-    def solve(idx):
-        coef, *_ = np.linalg.lstsq(A[idx], ly[idx], rcond=None)
-        return coef
-
-    coef = solve(np.arange(len(y)))
-    resid = ly - A @ coef
-    r2 = 1.0 - resid.var() / ly.var() if ly.var() > 0 else 1.0
-    if groups is None:
-        units = [np.array([i]) for i in range(len(y))]
-    else:
-        g = np.asarray(groups)
-        units = [np.flatnonzero(g == u) for u in np.unique(g)]
-    boots = []
-    for _ in range(n_boot):
-        pick = rng.integers(0, len(units), len(units))
-        idx = np.concatenate([units[i] for i in pick])
-        if np.linalg.matrix_rank(A[idx]) < A.shape[1]:
-            continue
-        boots.append(solve(idx)[1:])
-    boots = np.array(boots).reshape(-1, X.shape[1])
-    lo, hi = np.quantile(boots, [(1 - level) / 2, (1 + level) / 2], axis=0) if len(boots) else (np.nan * coef[1:],) * 2
-    slope = coef[1:]
-    out = {"slope": slope, "intercept": float(coef[0]), "ci_low": lo, "ci_high": hi, "r2": float(r2), "n": int(len(y))}
-    if one_d:
-        out.update(slope=float(slope[0]), ci_low=float(lo[0]), ci_high=float(hi[0]))
-    return out
 
 # %% [markdown]
 # ### Noise energy against drift, on paired runs
@@ -711,278 +403,11 @@ plt.show()
 # they are a one-hot vector, which can jump by 2 while $g$ barely moves. The interesting question is
 # thus A4 as written, with $\|\Delta G\| = \|\Delta g\|_1$, the change of the router's softmax.
 #
-# ### Measuring $L_1$ between mixtures
-#
-# With $m = (p + q)/2$, $\|p - q\|_1 = 2\,\mathbb E_{a \sim m}\big[|p(a) - q(a)|/(p(a) + q(a))\big]
-# = 2\,\mathbb E_{a\sim m}\big|\tanh\big(\tfrac12(\log p(a) - \log q(a))\big)\big|$: the integrand lies in $[0, 1]$ and is
-# small wherever the densities are close, so the Monte-Carlo error is small *relative* to the
-# distance itself, even for tiny perturbations. The closed form for two Gaussians with equal
-# spread, $\|\mathcal N(\mu_1, \sigma^2 I) - \mathcal N(\mu_2, \sigma^2 I)\|_1 = 2\,(2\Phi(\delta/2) - 1)$ with
-# $\delta = \|\mu_1 - \mu_2\|/\sigma$, is the test case.
-
-# %%
-#| export
-def gaussian_l1(mu1, mu2, std) -> np.ndarray:
-    """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
-    Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
-    from scipy.special import ndtr
-
-    delta = np.linalg.norm((np.asarray(mu1, float) - np.asarray(mu2, float)) / np.asarray(std, float), axis=-1)
-    return 2.0 * (2.0 * ndtr(delta / 2.0) - 1.0)
-
-
-def mixture_log_prob(a, weights, means, std) -> np.ndarray:
-    """log sum_k w_k N(a; mu_k, diag std^2). a (S, B, D); weights (B, K); means (B, K, D);
-    std (D,) or (B, D) -> (S, B). Zero weights are allowed."""
-    from scipy.special import logsumexp
-
-    a, w, mu = np.asarray(a, float), np.asarray(weights, float), np.asarray(means, float)
-    sd = np.broadcast_to(np.asarray(std, float), (mu.shape[0], mu.shape[-1]))
-    z = (a[:, :, None, :] - mu[None]) / sd[None, :, None, :]
-    log_norm = -0.5 * mu.shape[-1] * math.log(2 * math.pi) - np.log(sd).sum(-1)  # (B,)
-    comp = -0.5 * (z * z).sum(-1) + log_norm[None, :, None]
-    with np.errstate(divide="ignore"):
-        logw = np.log(w)
-    return logsumexp(comp + logw[None], axis=-1)
-
-
-def _sample_mixture(rng, n, weights, means, std):
-    # n samples per row of a mixture: (n, B, D)
-    B, K, D = means.shape
-    cw = np.cumsum(weights, axis=-1)
-    u = rng.random((n, B, 1)) * cw[None, :, -1:]
-    k = np.minimum((u > cw[None]).sum(-1), K - 1)  # (n, B)
-    mu = np.take_along_axis(means[None].repeat(n, 0), k[..., None, None].repeat(D, -1), axis=2)[:, :, 0]
-    sd = np.broadcast_to(np.asarray(std, float), (B, D))
-    return mu + sd[None] * rng.standard_normal((n, B, D))
-
-
-def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
-    """Monte-Carlo ||p - q||_1 per row between Gaussian mixtures p, q = (weights (B, K), means (B, K, D),
-    std (D,) or (B, D)). Returns (l1 (B,), standard error (B,))."""
-    wp, mp, sp = (np.asarray(v, float) for v in p)
-    wq, mq, sq = (np.asarray(v, float) for v in q)
-    half = n_samples // 2
-    a = np.concatenate([_sample_mixture(rng, half, wp, mp, sp), _sample_mixture(rng, n_samples - half, wq, mq, sq)])
-    lp, lq = mixture_log_prob(a, wp, mp, sp), mixture_log_prob(a, wq, mq, sq)
-    diff = np.where(np.isfinite(lp) | np.isfinite(lq), lp - lq, 0.0)
-    f = np.abs(np.tanh(0.5 * diff))  # |p - q| / (p + q), in [0, 1]
-    return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
-
-# %%
-rng_l1 = np.random.default_rng(seed)
-checks = []
-for dmu in (0.01, 0.3, 1.0, 3.0):
-    p = (np.ones((1, 1)), np.zeros((1, 1, 1)), np.array([0.5]))
-    q = (np.ones((1, 1)), np.full((1, 1, 1), dmu), np.array([0.5]))
-    est, se = mc_l1_distance(p, q, rng_l1, 20000)
-    checks.append({"delta_mu": dmu, "sigma": 0.5, "closed_form": float(gaussian_l1([0.0], [dmu], [0.5])),
-                   "monte_carlo": float(est[0]), "mc_se": float(se[0])})
-pd.DataFrame(checks)
-
-# %% [markdown]
-# ### Lipschitz constants from samples
-#
-# Given samples $(y_i, U_i)$ with $y_i$ the measured $L_1$ change and $U_i$ the bound terms
-# ($\|\Delta g\|_1$ and $w_k\|\Delta\theta_k\|$ for each expert $k$), three estimates:
-#
-# * **ratios**: $\max_i y_i / u_i$ (and a high quantile) over samples where only one term moves;
-# * **least squares** (non-negative): the constants that explain the *typical* sample;
-# * **envelope**: the smallest constants (in mean bound) with $y_i \le U_i L$ for *every* sample,
-#   a linear programme. This is the empirical version of A4: if it exists with moderate
-#   constants, the samples are consistent with the assumption; if one tie sample forces $L_G$ up
-#   by orders of magnitude, they are not.
-
-# %%
-#| export
-def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
-    """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
-    dy (n,) or (n, p); dx (n,) or (n, r)."""
-    dy = np.asarray(dy, float).reshape(len(dy), -1)
-    dx = np.asarray(dx, float).reshape(len(dx), -1)
-    ny, nx = np.linalg.norm(dy, axis=1), np.linalg.norm(dx, axis=1)
-    ok = nx > 0
-    if not ok.any():
-        raise ValueError("lipschitz_ratio: every dx is zero")
-    return float(np.quantile(ny[ok] / nx[ok], q))
-
-
-def lipschitz_nnls(y, U) -> np.ndarray:
-    """Non-negative least-squares constants L (p,) with y ~ U @ L (U (n, p) >= 0)."""
-    from scipy.optimize import nnls
-
-    return nnls(np.asarray(U, float), np.asarray(y, float))[0]
-
-
-def lipschitz_envelope(y, U) -> np.ndarray:
-    """Smallest L >= 0 (minimising the mean bound mean(U @ L)) with U @ L >= y on every sample."""
-    from scipy.optimize import linprog
-
-    U, y = np.asarray(U, float), np.asarray(y, float)
-    scale = np.maximum(U.mean(0), 1e-300)
-    res = linprog(U.mean(0) / scale, A_ub=-(U / scale), b_ub=-y, bounds=[(0, None)] * U.shape[1], method="highs")
-    if res.status != 0:
-        raise ValueError(f"lipschitz_envelope: no finite envelope ({res.message})")
-    return res.x / scale
-
-# %% [markdown]
-# ### The actor's components, perturbations, and routing ties
-#
-# `moe_components` reads, for a batch of states, the tempered router logits $z$, the gating-noise
-# scale $s = \mathrm{softplus}(n(s))$, every expert's mean $\mu_k$ and the common $\sigma$; the
-# three weightings above follow from them. `perturb_actor` returns a copy with the router
-# (weights and bias of the routing layer; the noise gate is left alone) and/or every expert moved
-# by a random direction of *relative* size `scale` (a fraction of that part's norm).
-# `tie_states` finds states exactly on a top-1 boundary, by bisecting between two states routed
-# to different experts until the two top gate probabilities agree to ~1e-9.
-
-# %%
-#| export
-DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
-
-
-@torch.no_grad()
-def moe_components(actor, obs, temperature: float = 1.0) -> dict:
-    """{"logits" (B, E), "noise_scale" (B, E), "gate" (B, E) softmax, "means" (B, E, A), "std" (A,)}."""
-    gate = actor.gate
-    x = torch.as_tensor(obs, dtype=torch.float32).reshape(-1, actor.obs_dim)
-    logits = gate.router(x) / temperature
-    scale = F.softplus(gate.noise_gate(x)) if gate.noisy else torch.zeros_like(logits)
-    h = gate.experts.all_experts(x, "stacked")  # (E, B, H)
-    means = actor.head(h).transpose(0, 1)  # (B, E, A)
-    return {
-        "logits": logits.double().numpy(),
-        "noise_scale": scale.double().numpy(),
-        "gate": torch.softmax(logits.double(), -1).numpy(),
-        "means": means.double().numpy(),
-        "std": actor.log_std.exp().double().numpy(),
-    }
-
-
-def top1_win_probs(logits, noise_scale, n_nodes: int = 96) -> np.ndarray:
-    """P(k = argmax_j logits_j + noise_scale_j * eps_j), eps ~ N(0, I), by Gauss-Hermite quadrature.
-    logits, noise_scale (B, E) -> (B, E); rows with a zero noise scale fall back to the hard argmax."""
-    from scipy.special import log_ndtr
-
-    z, s = np.asarray(logits, float), np.asarray(noise_scale, float)
-    B, E = z.shape
-    out = np.zeros((B, E))
-    hard = (s <= 0).any(-1)
-    out[hard, z[hard].argmax(-1)] = 1.0
-    if (~hard).any():
-        zz, ss = z[~hard], s[~hard]
-        u, w = np.polynomial.hermite_e.hermegauss(n_nodes)
-        w = w / w.sum()
-        arg = (zz[None, :, :, None] + ss[None, :, :, None] * u[:, None, None, None] - zz[None, :, None, :]) / ss[None, :, None, :]
-        logphi = log_ndtr(arg)  # (n, B', k, j)
-        logphi[..., np.arange(E), np.arange(E)] = 0.0
-        pk = np.einsum("n,nbk->bk", w, np.exp(logphi.sum(-1)))
-        out[~hard] = pk / pk.sum(-1, keepdims=True)
-    return out
-
-
-def mixture_weights(comp: dict, distribution: str) -> np.ndarray:
-    """Mixture weights (B, E) of one of DISTRIBUTIONS, from moe_components output."""
-    if distribution == "a4_mixture":
-        return comp["gate"]
-    if distribution == "sampling_marginal":
-        return top1_win_probs(comp["logits"], comp["noise_scale"])
-    if distribution == "eval_top1":
-        g = comp["gate"]
-        return np.eye(g.shape[1])[g.argmax(-1)]
-    raise ValueError(f"distribution must be one of {', '.join(DISTRIBUTIONS)}, got {distribution!r}")
-
-
-def _flat(params):
-    return torch.cat([p.detach().reshape(-1) for p in params])
-
-
-@torch.no_grad()
-def perturb_actor(actor, router_scale: float, expert_scale: float, rng: np.random.Generator, experts=None):
-    """Copy of `actor` with the router and the experts in `experts` (None: all) moved by random directions
-    of relative size router_scale / expert_scale. Returns (copy, ||delta router||, ||delta theta_k|| (E,))."""
-    new = copy.deepcopy(actor)
-    router = list(new.gate.router.parameters())
-    d_router = 0.0
-    if router_scale > 0:
-        norm = float(_flat(router).norm())
-        u = [rng.standard_normal(tuple(p.shape)) for p in router]
-        un = math.sqrt(sum(float((v * v).sum()) for v in u))
-        for p, v in zip(router, u):
-            p.add_(torch.as_tensor(v * router_scale * norm / un, dtype=p.dtype))
-        d_router = router_scale * norm
-    E = n_experts_of(new)
-    d_theta = np.zeros(E)
-    if expert_scale > 0:
-        for k in range(E) if experts is None else experts:
-            params = expert_parameters(new, k)
-            norm = float(_flat(params).norm())
-            u = [rng.standard_normal(tuple(p.shape)) for p in params]
-            un = math.sqrt(sum(float((v * v).sum()) for v in u))
-            for p, v in zip(params, u):
-                p.add_(torch.as_tensor(v * expert_scale * norm / un, dtype=p.dtype))
-            d_theta[k] = expert_scale * norm
-    return new, d_router, d_theta
-
-
-@torch.no_grad()
-def tie_states(actor, n: int, rng: np.random.Generator, temperature: float = 1.0, steps: int = 50) -> np.ndarray:
-    """n states (n, obs_dim) on a top-1 boundary of the noiseless router (top-two probabilities equal)."""
-    d = actor.obs_dim
-    found = []
-    for _ in range(50):
-        x0, x1 = rng.standard_normal((4 * n, d)), rng.standard_normal((4 * n, d))
-        arg = lambda x: moe_components(actor, x, temperature)["gate"].argmax(-1)
-        k0 = arg(x0)
-        ok = k0 != arg(x1)
-        x0, x1, k0 = x0[ok], x1[ok], k0[ok]
-        lo, hi = np.zeros(len(x0)), np.ones(len(x0))
-        for _ in range(steps):
-            mid = 0.5 * (lo + hi)
-            same = arg(x0 + mid[:, None] * (x1 - x0)) == k0
-            lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
-        found.append(x0 + (0.5 * (lo + hi))[:, None] * (x1 - x0))
-        if sum(len(f) for f in found) >= n:
-            break
-    return np.concatenate(found)[:n]
-
-
-def routing_stability_samples(actor, states, perturbations, rng: np.random.Generator, n_samples: int = 256,
-                              temperature: float = 1.0, tie=None):
-    """For each (part, scale) in `perturbations`, perturb `actor` once and measure, per state and per
-    distribution in DISTRIBUTIONS, the Monte-Carlo L1 distance between the action distributions and
-    the bound terms. part: "router", "expert<k>" (one expert), "experts" (all) or "joint" (router and
-    all experts). Returns a pandas DataFrame."""
-    import pandas as pd
-
-    states = np.asarray(states, float)
-    tie = np.zeros(len(states), bool) if tie is None else np.asarray(tie, bool)
-    before = moe_components(actor, states, temperature)
-    w_before = {d: mixture_weights(before, d) for d in DISTRIBUTIONS}
-    top2 = np.sort(before["gate"], -1)[:, -2:]
-    gap = top2[:, 1] - top2[:, 0]
-    frames = []
-    for i, (part, sc) in enumerate(perturbations):
-        one = part.startswith("expert") and part[6:].isdigit()
-        if not (part in ("router", "experts", "joint") or one):
-            raise ValueError(f"perturbation part must be router, expert<k>, experts or joint, got {part!r}")
-        rs = sc if part in ("router", "joint") else 0.0
-        es = sc if part in ("experts", "joint") or one else 0.0
-        new, d_router, d_theta = perturb_actor(actor, rs, es, rng, [int(part[6:])] if one else None)
-        after = moe_components(new, states, temperature)
-        dg = np.abs(after["gate"] - before["gate"]).sum(-1)
-        flipped = after["gate"].argmax(-1) != before["gate"].argmax(-1)
-        for dist in DISTRIBUTIONS:
-            wa = mixture_weights(after, dist)
-            l1, se = mc_l1_distance((w_before[dist], before["means"], before["std"]),
-                                    (wa, after["means"], after["std"]), rng, n_samples)
-            row = {"draw": i, "part": part, "scale": sc, "distribution": dist, "state": np.arange(len(states)),
-                   "tie": tie, "gap": gap, "flipped": flipped, "l1": l1, "l1_se": se, "dG": dg,
-                   "dW": np.abs(wa - w_before[dist]).sum(-1), "d_router": d_router}
-            for k in range(len(d_theta)):
-                row[f"wdtheta_{k}"] = w_before[dist][:, k] * d_theta[k]
-            frames.append(pd.DataFrame(row))
-    return pd.concat(frames, ignore_index=True)
+# Every $L_1$ distance below is a Monte-Carlo estimate between Gaussian mixtures, with an error
+# small relative to the distance itself (`mc_l1_distance`, checked against the closed form for two
+# Gaussians in appendix 08b). `moe_components` reads the router logits, gating-noise scales and
+# expert means off the actor; `perturb_actor` moves the router and/or the experts by random
+# directions of a given relative size; `tie_states` finds states exactly on a top-1 boundary.
 
 # %% [markdown]
 # ### The actor under test

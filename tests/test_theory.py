@@ -1,4 +1,4 @@
-"""Theory checks (notebook 08): noise energy, L1 between mixtures, the tracking task, fits, Lipschitz."""
+"""Theory checks (notebooks 08 and 08b): noise energy, L1 between mixtures, the tracking task, fits, Lipschitz."""
 
 import math
 
@@ -10,12 +10,12 @@ from hypothesis import strategies as st
 from scipy.stats import norm
 
 from pemamoe.nets import make_actor
-from pemamoe.theory import (
+from pemamoe.theory import dynamic_regret, noise_energy, noise_schedule, window_coverage
+from pemamoe.theory_tools import (
     DISTRIBUTIONS,
     TrackerConfig,
     TrackingProblem,
     TrackingProblemConfig,
-    dynamic_regret,
     fit_power_law,
     gaussian_l1,
     lipschitz_envelope,
@@ -24,15 +24,12 @@ from pemamoe.theory import (
     mc_l1_distance,
     mixture_weights,
     moe_components,
-    noise_energy,
-    noise_schedule,
     paired_distance,
     perturb_actor,
     run_tracker,
     switch_times,
     tie_states,
     top1_win_probs,
-    window_coverage,
 )
 
 # --- noise schedule and energy --------------------------------------------------------------------
