@@ -10,7 +10,6 @@
 #     name: python3
 # ---
 
-
 # %% [markdown]
 # # 05b · Appendix: the machinery behind the networks
 #
@@ -508,11 +507,11 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
 #
 # `time_forward` measures an agent step (`act`, sampling, no gradient) and reports the median
 # over repeats in microseconds; `time_train_step` measures a forward and backward pass of a
-# surrogate loss. `cost_table` assembles, for each actor kind and each named observation
-# dimension, the counts above and the measured latency at batch 1 and batch 2048.
-#
-# The counts come from notebook 05 (`count_parameters`, `active_parameters`, `macs_per_step`); the
-# timing is machinery, so it lives here, in module `pemamoe.netcost`.
+# surrogate loss. `cost_table` assembles, for each method and each named observation dimension,
+# the counts of notebook 05 (`count_parameters`, `active_parameters` in its three conventions,
+# `macs_per_step`) and the measured latency at batch 1 and batch 2048. The counting functions stay
+# in notebook 05 beside the conventions they implement; the timing is machinery, so it lives here,
+# in module `pemamoe.netcost`, which imports `pemamoe.nets`.
 
 # %%
 #| export netcost

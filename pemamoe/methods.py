@@ -3,7 +3,7 @@
 
 __all__ = ['MethodSpec', 'METHOD_REGISTRY', 'register_method', 'load_plugins', 'method_spec', 'method_names', 'method_label', 'method_colour', 'proposed_method']
 
-# %% notebooks/05b_population_nets.py, cell 5 (line 58)
+# %% notebooks/05b_population_nets.py, cell 5 (line 57)
 from dataclasses import dataclass
 
 

@@ -3,7 +3,7 @@
 
 __all__ = ['time_forward', 'time_train_step', 'cost_table']
 
-# %% notebooks/05b_population_nets.py, cell 11 (line 517)
+# %% notebooks/05b_population_nets.py, cell 11 (line 516)
 import statistics
 import time
 

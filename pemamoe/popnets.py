@@ -3,7 +3,7 @@
 
 __all__ = ['loop_experts', 'masked_mixed', 'ParamLayout', 'run_linear', 'run_experts', 'run_load_balance', 'run_gate', 'PopulationActor', 'PopulationCritic', 'gaussian_log_prob', 'gaussian_entropy', 'gaussian_kl']
 
-# %% notebooks/05b_population_nets.py, cell 7 (line 171)
+# %% notebooks/05b_population_nets.py, cell 7 (line 170)
 import copy
 import math
 
@@ -43,7 +43,7 @@ def masked_mixed(bank, x, experts, weights):
     return out
 
 
-# %% notebooks/05b_population_nets.py, cell 9 (line 245)
+# %% notebooks/05b_population_nets.py, cell 9 (line 244)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
