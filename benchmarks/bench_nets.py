@@ -24,9 +24,9 @@ from pemamoe.nets import (  # noqa: E402
     ACTOR_KINDS,
     PAPER_OBS_DIM,
     NetConfig,
-    cost_table,
     make_actor,
 )
+from pemamoe.netcost import cost_table  # noqa: E402
 
 BATCHES = (1, 256, 2048)
 EXPERT_IMPLS = ("stacked", "masked", "loop")  # the concrete strategies; "auto" picks among them

@@ -32,6 +32,7 @@
 # | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
 # | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py`, `pemamoe/env_kernel.py` | reward anatomy table |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
+# | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/diagnostics.py` | schedule figures |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |

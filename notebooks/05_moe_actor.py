@@ -30,8 +30,10 @@
 #
 # The sections below derive the architecture from the paper's parameter counts, define the
 # gating (temperature, top-k, noise, the gradient for k = 1, load balancing), make PPO's
-# importance ratio exact under random routing, compare three ways of executing the experts on a
-# CPU, and regenerate the cost table.
+# importance ratio exact under random routing, draw the four architectures and regenerate the
+# cost table. The machinery the experiments add on top (the method registry, the faster ways of
+# executing the experts, the population of networks trained as one set of tensors, and the
+# latency measurements) is in the appendix notebook `05b_population_nets.py`.
 
 # %%
 #| default_exp nets
@@ -44,10 +46,7 @@ our_obs_dim = None  # None: ask pemamoe.env for the observation dimension of Env
 
 # %%
 #| export
-import copy
 import math
-import statistics
-import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -58,6 +57,11 @@ from torch.distributions import Independent, Normal
 
 from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
+
+# The batched machinery of appendix 05b, used by the classes below and re-exported from here:
+from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gaussian_entropy,  # noqa: F401
+                             gaussian_kl, gaussian_log_prob, loop_experts, masked_mixed, run_experts, run_gate,
+                             run_linear, run_load_balance)
 
 # %% [markdown]
 # ## Reading the architecture off the paper's parameter counts
@@ -104,98 +108,12 @@ from pemamoe.methods import METHOD_REGISTRY, load_plugins
 # %% [markdown]
 # ## The methods: a network kind plus a plasticity method
 #
-# A *method* in the experiments is a pair: the network kind that computes the policy (notebook 05)
-# and the plasticity method that acts at phase switches (notebook 06). The registry below is the one
-# place that names the methods; the trainer, the sweeps, the figures and the tests read names,
-# labels, colours and dispatch from it. PE-MAMoE is the SMoE network with the Phase Controller;
-# any other pairing (an MLP with the controller's switch-time mechanisms, say) is one more entry
-# with its own label.
-
-# %%
-#| export methods
-from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class MethodSpec:
-    """One comparable method: what it trains (network kind) and how it treats plasticity."""
-
-    name: str
-    network: str  # a kind of pemamoe.nets.make_actor / make_critic
-    plasticity: str = "none"  # a name in pemamoe.phase_controller.PLASTICITY_METHODS
-    label: str = ""  # display label in figures and tables
-    colour: str = "#333333"
-    proposed: bool = False  # the paper's method (the headline comparisons are against it)
-    paper_actor_params: int | None = None  # the paper's cost table, for comparison only
-    paper_active_params: int | None = None
-    # the plasticity method's preset: (field, value) pairs applied to the run's PhaseControllerConfig
-    # before the scale's rescaling and any override (empty: the defaults of notebook 06)
-    plasticity_preset: tuple = ()
-
-
-METHOD_REGISTRY: dict = {}
-
-
-def register_method(spec: MethodSpec) -> MethodSpec:
-    """Add a method (or replace one of the same name); returns it."""
-    if not isinstance(spec, MethodSpec):
-        raise ValueError(f"register_method needs a MethodSpec, got {type(spec).__name__}")
-    if not spec.name or not isinstance(spec.name, str):
-        raise ValueError(f"MethodSpec.name must be a non-empty string, got {spec.name!r}")
-    METHOD_REGISTRY[spec.name] = spec if spec.label else MethodSpec(**{**spec.__dict__, "label": spec.name})
-    return METHOD_REGISTRY[spec.name]
-
-
-def load_plugins() -> None:
-    """Import the modules named in $PEMAMOE_PLUGINS (comma-separated), once: how methods, network
-    kinds and plasticity methods defined outside the package reach every process of a sweep."""
-    import importlib
-    import os
-
-    for module in filter(None, (m.strip() for m in os.environ.get("PEMAMOE_PLUGINS", "").split(","))):
-        if module not in _LOADED_PLUGINS:
-            _LOADED_PLUGINS.add(module)
-            importlib.import_module(module)
-
-
-_LOADED_PLUGINS: set = set()
-
-
-def method_spec(name: str) -> MethodSpec:
-    if name not in METHOD_REGISTRY:
-        load_plugins()
-    if name not in METHOD_REGISTRY:
-        raise ValueError(f"method must be one of {', '.join(METHOD_REGISTRY)}, got {name!r}")
-    return METHOD_REGISTRY[name]
-
-
-def method_names(proposed_last: bool = True) -> tuple:
-    """Registered method names in registration order (the figures' order)."""
-    return tuple(METHOD_REGISTRY)
-
-
-def method_label(name: str) -> str:
-    return METHOD_REGISTRY[name].label if name in METHOD_REGISTRY else name
-
-
-def method_colour(name: str) -> str:
-    return METHOD_REGISTRY[name].colour if name in METHOD_REGISTRY else "#333333"
-
-
-def proposed_method() -> str:
-    return next(name for name, spec in METHOD_REGISTRY.items() if spec.proposed)
-
-
-# The paper's four methods, in the order the figures use.
-register_method(MethodSpec("mlp", network="mlp", label="MLP", colour="#7f7f7f",
-                           paper_actor_params=6820, paper_active_params=6820))
-register_method(MethodSpec("moe", network="moe", label="MoE", colour="#1f77b4",
-                           paper_actor_params=20858, paper_active_params=20858))
-register_method(MethodSpec("smoe", network="smoe", label="SMoE", colour="#ff7f0e",
-                           paper_actor_params=21392, paper_active_params=7820))
-register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controller", label="PE-MAMoE",
-                           colour="#d62728", proposed=True, paper_actor_params=21392, paper_active_params=7820))
-
+# A *method* in the experiments pairs a network kind of this notebook with a plasticity method of
+# notebook 06: the paper's `mlp`, `moe` and `smoe` train the network of that name with no
+# plasticity tricks, and `pemamoe` is the SMoE network with the Phase Controller. The registry
+# that names the methods (with their labels, colours and the paper's cost-table numbers) is module
+# `pemamoe.methods`, explained in appendix 05b; this notebook reads it for the paper's numbers and
+# to build one actor per method.
 
 # %% [markdown]
 # ## Configuration
@@ -273,26 +191,19 @@ class NetConfig:
 # This storage is the same whichever way we execute the experts, so parameter counts, state
 # dicts, optimiser groups and the phase controller's noise injection never depend on the choice:
 #
-# * `stacked`: run every expert on every sample with two batched matrix products
-#   (`torch.baddbmm`), then pick the selected experts' rows. It wastes $E-1$ of $E$ experts'
-#   arithmetic under top-1 routing, but makes only a handful of kernel calls.
-# * `masked`: for each expert, gather only the rows routed to it (`index_select`), run the two
-#   layers on those rows, and add the weighted result back into place (`index_add_`). This is
-#   the genuine conditional computation the paper describes; it pays for it with more, smaller
-#   kernel calls and indexing.
-# * `loop`: the textbook version, a Python loop that runs each expert as a pair of ordinary
-#   linear layers (`torch.addmm`, what `nn.Linear` does) on the whole batch, then selects.
+# * `stacked` (the code below): run every expert on every sample with two batched matrix
+#   products (`torch.baddbmm`), then pick the selected experts' rows. It wastes $E-1$ of $E$
+#   experts' arithmetic under top-1 routing, but makes only a handful of kernel calls.
+# * `masked`: run each expert only on the rows routed to it, the genuine conditional computation
+#   the paper describes, paid for with more, smaller kernel calls and indexing.
+# * `loop`: the textbook version, each expert as a pair of ordinary linear layers on the whole
+#   batch, then select.
 #
-# `benchmarks/bench_nets.py` times the three at batch 1 (an agent step), 256 (a typical PPO
-# minibatch) and 2048 (a rollout). On our 2-core CPU, `stacked` wins up to a few hundred rows,
-# where kernel-call overhead dominates the tiny matrices, and `masked` wins from roughly 512 rows
-# on, where doing a third of the arithmetic pays for the indexing (forward and backward of the
-# top-1 actor at 2048 rows, one thread: 4.6 to 6.7 ms masked against 6.0 to 8.8 ms stacked and
-# 7.0 to 10.3 ms loop over our runs). No single strategy is fastest
-# everywhere, so the default `"auto"` takes `masked` for sparse mixing at batches of at least
-# `NetConfig.masked_min_batch` rows and `stacked` otherwise (dense mixing always runs every
-# expert, so it uses `stacked`). Each strategy stays selectable with `NetConfig(expert_impl=...)`
-# or by setting `bank.impl`.
+# `masked` and `loop` are written out in appendix 05b (`masked_mixed`, `loop_experts`), with the
+# timings behind the default: `"auto"` takes `masked` for sparse mixing at batches of at least
+# `NetConfig.masked_min_batch` rows, where doing a third of the arithmetic pays for the indexing,
+# and `stacked` otherwise. Each strategy stays selectable with `NetConfig(expert_impl=...)` or by
+# setting `bank.impl`.
 #
 # `ExpertBank.all_experts` also returns each layer's pre-activations and activations for every
 # expert; the plasticity diagnostics (feature rank, dormant neurons) read them through
@@ -359,13 +270,7 @@ class ExpertBank(nn.Module):
             p2 = torch.baddbmm(self.b2.unsqueeze(1), a1, self.w2)
             a2 = F.relu(p2)
         else:  # "loop" (and "masked", which degenerates to a loop when every expert sees every row)
-            p1s, a1s, p2s, a2s = [], [], [], []
-            for e in range(self.n_experts):
-                p1 = torch.addmm(self.b1[e], x, self.w1[e])
-                a1 = F.relu(p1)
-                p2 = torch.addmm(self.b2[e], a1, self.w2[e])
-                p1s.append(p1), a1s.append(a1), p2s.append(p2), a2s.append(F.relu(p2))
-            p1, a1, p2, a2 = (torch.stack(t) for t in (p1s, a1s, p2s, a2s))
+            p1, a1, p2, a2 = loop_experts(self, x)
         if return_layers:
             return a2, [p1, p2], [a1, a2]
         return a2
@@ -378,21 +283,8 @@ class ExpertBank(nn.Module):
         impl = impl or self.impl
         if impl == "auto":
             impl = "masked" if x.shape[0] >= self.masked_min_batch else "stacked"
-        if impl == "masked":
-            batch, k = experts.shape
-            out = x.new_zeros(batch, self.hidden)
-            flat_e = experts.reshape(-1)
-            flat_w = weights.reshape(-1, 1)
-            rows = torch.arange(batch, device=x.device).repeat_interleave(k)
-            for e in range(self.n_experts):
-                slot = (flat_e == e).nonzero(as_tuple=True)[0]
-                if slot.numel() == 0:
-                    continue
-                r = rows.index_select(0, slot)
-                h = F.relu(torch.addmm(self.b1[e], x.index_select(0, r), self.w1[e]))
-                h = F.relu(torch.addmm(self.b2[e], h, self.w2[e]))
-                out = out.index_add(0, r, h * flat_w.index_select(0, slot))
-            return out
+        if impl == "masked":  # each expert on its own rows only (appendix 05b)
+            return masked_mixed(self, x, experts, weights)
         h = self.all_experts(x, impl).transpose(0, 1)  # (B, E, hidden)
         picked = h.gather(1, experts.unsqueeze(-1).expand(-1, -1, self.hidden))  # (B, k, hidden)
         return (picked * weights.unsqueeze(-1)).sum(1)
@@ -643,7 +535,7 @@ class GaussianActor(nn.Module):
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         raise NotImplementedError
 
-    # The run axis (see "A population of networks" below): the same features for R members at
+    # The run axis (appendix 05b): the same features for R members at
     # once, from parameter views p {name: (R, *shape)} and x (R, n, obs_dim) -> ((R, n, hidden),
     # (probs, experts, weights) or None). tau (R, n), noise (R, n, E) and experts (R, n, k)
     # are the routing inputs of gated kinds (ignored by ungated ones).
@@ -911,287 +803,14 @@ class SMoECritic(MoECritic):
 
 
 # %% [markdown]
-# ## A population of networks: the run axis
+# ## Many networks at once
 #
-# Training one small network at a time wastes the CPU: a PPO minibatch step on 192 rows costs
-# mostly fixed per-call overhead (Python, dispatch, allocation), not arithmetic. So the trainer
-# trains R independent runs ("members": different seeds, ablation switches or noise levels) in
-# one process, as one set of tensors with a leading run axis, the way PureJaxRL vectorises seeds.
-#
-# * Each member's parameters are one row of a flat `(R, P)` tensor. `ParamLayout` knows where
-#   every named parameter of the single-run module lives in that row, and `views` hands out
-#   `(R, *shape)` views, so gradients, the optimizer, gradient clipping and noise injection are
-#   a handful of tensor operations for all members together.
-# * Each network kind computes its features for all members with batched matrix products
-#   (`run_features`, built from `run_linear`, `run_experts` and `run_gate` below); member r only
-#   ever reads row r of the parameters and its own rows of the input.
-# * Members are built as single-run modules (same constructor, same seed, so the same
-#   initialisation as a run trained alone) and stacked; `member(r)` copies row r back into a
-#   single-run module for diagnostics, evaluation and checkpoints. A checkpoint of a member is
-#   therefore the same file whether it trained alone or in a population.
-#
-# Why a member's numbers do not depend on its neighbours: every operation is either
-# elementwise, a reduction within one member's slice, or a batched matrix product whose batch
-# entries are computed independently (checked bit for bit in the tests, and by training the same
-# member alone and in populations of different sizes).
-
-# %%
-#| export
-class ParamLayout:
-    """Where each parameter of one member lives in a flat vector of length P.
-
-    A population of R members stores its parameters as one (R, P) tensor; `views(flat)` gives
-    each named parameter as an (R, *shape) view of it, so one optimizer step, one gradient-norm
-    and one noise draw act on all members at once, and member r's numbers are row r.
-    """
-
-    def __init__(self, module: nn.Module):
-        self.names, self.shapes, self.offsets = [], [], []
-        offset = 0
-        for name, p in module.named_parameters():
-            self.names.append(name)
-            self.shapes.append(tuple(p.shape))
-            self.offsets.append(offset)
-            offset += p.numel()
-        self.size = offset
-        self.index = {n: i for i, n in enumerate(self.names)}
-
-    def span(self, name: str) -> tuple:
-        i = self.index[name]
-        return self.offsets[i], self.offsets[i] + math.prod(self.shapes[i])
-
-    def flatten(self, modules) -> torch.Tensor:
-        """(R, P) from R modules of the same architecture (parameters copied)."""
-        rows = []
-        for m in modules:
-            params = dict(m.named_parameters())
-            rows.append(torch.cat([params[n].detach().reshape(-1) for n in self.names]))
-        return torch.stack(rows)
-
-    def views(self, flat: torch.Tensor) -> dict:
-        """{name: (R, *shape) view of flat (R, P)} (gradients flow back into flat).
-
-        One `split` rather than a slice per parameter: its backward is a single concatenation,
-        where slices would each allocate a full (R, P) gradient."""
-        R = flat.shape[0]
-        sizes = [math.prod(s) for s in self.shapes]
-        parts = flat.split(sizes, dim=1)
-        return {n: part.reshape(R, *s) for n, s, part in zip(self.names, self.shapes, parts)}
-
-    def load_member(self, row: torch.Tensor, module: nn.Module) -> nn.Module:
-        """Copy one member's flat parameters (P,) into a single-run module; returns it."""
-        params = dict(module.named_parameters())
-        with torch.no_grad():
-            for n, s, o in zip(self.names, self.shapes, self.offsets):
-                params[n].copy_(row[o:o + math.prod(s)].reshape(s))
-        return module
-
-    def mask(self, names) -> torch.Tensor:
-        """(P,) bool: True on the parameters named."""
-        m = torch.zeros(self.size, dtype=torch.bool)
-        for n in names:
-            a, b = self.span(n)
-            m[a:b] = True
-        return m
-
-    def expert_index(self, name: str, expert: int) -> torch.Tensor:
-        """Flat indices of slice `expert` along the leading axis of parameter `name` (E, ...)."""
-        a, b = self.span(name)
-        shape = self.shapes[self.index[name]]
-        per = math.prod(shape[1:])
-        return torch.arange(a + expert * per, a + (expert + 1) * per)
-
-
-def run_linear(x, weight, bias):
-    """Member-wise linear layer: x (R, n, in), weight (R, out, in), bias (R, out) -> (R, n, out)."""
-    if weight.shape[1] == 1:
-        # A single output (the value head): torch takes a different matrix-vector path for one
-        # batch entry than for several, and the results differ in the last bit, which would make
-        # a member's values depend on the population size. A product and a row sum do not.
-        return (x * weight[:, :, :].transpose(1, 2).reshape(x.shape[0], 1, -1)).sum(-1, keepdim=True) + bias.unsqueeze(1)
-    return torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
-
-
-def run_experts(x, w1, b1, w2, b2):
-    """Every expert of every member on that member's rows: x (R, n, in), w1 (R, E, in, h) ->
-    (R, E, n, h), the ReLU trunk in -> h -> h (one batched matmul per layer over R*E)."""
-    R, E, d, h = w1.shape
-    n = x.shape[1]
-    if R > 1:
-        # Layer 1 as one product over R per expert, on x itself: no E-fold copy of x (about 2x
-        # faster at R = 16 on the CPU, forward and backward). Each batch entry is the same
-        # (n, in) @ (in, h) product as below, so outputs and gradients are the same bits (checked
-        # over many shapes, sign of zero included); `unbind` backward stacks, it adds nothing.
-        a1 = torch.stack([torch.baddbmm(b1e.unsqueeze(1), x, w1e) for b1e, w1e in zip(b1.unbind(1), w1.unbind(1))], 1)
-        a1 = F.relu(a1).reshape(R * E, n, h)
-    else:  # one member: a single call on E copies of x is cheaper than E calls
-        xe = x.unsqueeze(1).expand(R, E, n, d).reshape(R * E, n, d)
-        a1 = F.relu(torch.baddbmm(b1.reshape(R * E, 1, h), xe, w1.reshape(R * E, d, h)))
-    a2 = F.relu(torch.baddbmm(b2.reshape(R * E, 1, h), a1, w2.reshape(R * E, h, h)))
-    return a2.reshape(R, E, n, h)
-
-
-def run_load_balance(probs, experts, n_experts):
-    """Switch balance loss per member: probs (R, n, E), experts (R, n, k) -> (R,)."""
-    onehot = F.one_hot(experts.reshape(experts.shape[0], -1), n_experts).to(probs.dtype)
-    counts = onehot.sum(1)
-    f = counts / counts.sum(-1, keepdim=True)
-    return n_experts * (f * probs.mean(1)).sum(-1)
-
-
-def run_gate(p, prefix, x, tau, noise, experts, gate):
-    """Gated trunk of every member (the batched GatedExperts): x (R, n, in), tau (R, n),
-    noise (R, n, E) or None (noiseless), experts (R, n, k) to replay or None ->
-    (features (R, n, hidden), (probs (R, n, E), experts (R, n, k) or None, weights))."""
-    sparse, k = gate.sparse, gate.k
-    noisy = gate.noisy and noise is not None
-    logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
-    if noisy:
-        gate_scale = F.softplus(run_linear(x, p[prefix + "noise_gate.weight"], p[prefix + "noise_gate.bias"]))
-        logits = logits + noise * gate_scale
-    probs = torch.softmax(logits, dim=-1)
-    h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
-                    p[prefix + "experts.b2"])  # (R, E, n, hidden)
-    if not sparse:
-        features = torch.einsum("rne,renh->rnh", probs, h)
-        return features, (probs, None, probs)
-    if experts is None:
-        experts = probs.topk(k, dim=-1).indices
-    kept = probs.gather(2, experts)
-    weights = kept / kept.sum(-1, keepdim=True)
-    if k == 1:  # value exactly 1, gradient of the kept probability (Switch-style), as notebook 05's GatedExperts
-        weights = weights.detach() + (kept - kept.detach())
-    R, E, n, hid = h.shape
-    picked = h.permute(0, 2, 1, 3).gather(2, experts.unsqueeze(-1).expand(R, n, k, hid))  # (R, n, k, hidden)
-    features = (picked * weights.unsqueeze(-1)).sum(2)
-    return features, (probs, experts, weights)
-
-
-class _Population:
-    """R networks of one kind (built as single-run modules) as one flat parameter tensor (R, P)."""
-
-    def __init__(self, members: list):
-        if not members:
-            raise ValueError("a population needs at least one member")
-        self.template = members[0]
-        self.layout = ParamLayout(self.template)
-        self.R = len(members)
-        self.flat = self.layout.flatten(members).requires_grad_(True)
-        gate = getattr(self.template, "gate", None)
-        self.n_experts = 1 if gate is None else gate.n_experts
-        self.k = 0 if gate is None else gate.k
-        self.noisy = gate is not None and gate.noisy
-        self.gated = gate is not None
-        self.lb_coef = self.template.cfg.load_balance_coef
-
-    def to(self, device):
-        self.flat = self.flat.detach().to(device).requires_grad_(True)
-        return self
-
-    def params(self, flat=None) -> dict:
-        return self.layout.views(self.flat if flat is None else flat)
-
-    def member(self, r: int, module=None):
-        """Member r as a single-run module (a copy; `module` is filled in place if given)."""
-        module = module if module is not None else copy.deepcopy(self.template)
-        return self.layout.load_member(self.flat[r].detach().cpu(), module)
-
-
-class PopulationActor(_Population):
-    """R actors of one kind with batched forward passes."""
-
-    def __init__(self, members: list):
-        super().__init__(members)
-        self.act_dim = self.template.act_dim
-        self.obs_dim = self.template.obs_dim
-
-    def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None):
-        """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None)."""
-        p = self.params(flat)
-        feat, gate = self.template.run_features(p, obs, tau, noise, experts)
-        return run_linear(feat, p["head.weight"], p["head.bias"]), p["log_std"], gate
-
-    @torch.no_grad()
-    def act(self, obs, tau, generators, deterministic: bool = False):
-        """Sample actions for every member. obs (R, n, obs_dim), tau (R,) router temperature,
-        generators: one torch.Generator per member (its gate noise, then its action noise).
-        Returns (action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None)."""
-        R, n, _ = obs.shape
-        tau_rows = tau.reshape(R, 1).expand(R, n).contiguous()
-        noise = None
-        if self.noisy and not deterministic:
-            noise = torch.stack([torch.randn(n, self.n_experts, generator=g, device=obs.device) for g in generators])
-        mean, log_std, gate = self.mean_and_gate(obs, tau_rows, noise)
-        if deterministic:
-            action = mean
-        else:
-            eps = torch.stack([torch.randn(n, self.act_dim, generator=g, device=obs.device) for g in generators])
-            action = mean + log_std.exp().unsqueeze(1) * eps
-        logp = gaussian_log_prob(action, mean, log_std)
-        routing = None
-        if gate is not None:
-            if noise is None:
-                noise = obs.new_zeros(R, n, self.n_experts)
-            experts = gate[1] if gate[1] is not None else torch.arange(self.n_experts, device=obs.device).expand(R, n, -1)
-            routing = RoutingSample(noise, experts, tau_rows)
-        return action, logp, routing
-
-    def evaluate(self, obs, action, routing=None, flat=None):
-        """PPO update pass with the stored routing replayed: (log_prob (R, n), entropy (R,),
-        load-balance loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None)."""
-        R, n, _ = obs.shape
-        if routing is None:
-            tau, noise, experts = obs.new_ones(R, n), None, None
-        else:
-            tau, noise = routing.temperature, (routing.noise if self.noisy else None)
-            experts = routing.experts if self.k and self.k < self.n_experts else None
-        mean, log_std, gate = self.mean_and_gate(obs, tau, noise, experts, flat)
-        logp = gaussian_log_prob(action, mean, log_std)
-        entropy = gaussian_entropy(log_std)
-        if gate is None:
-            return logp, entropy, obs.new_zeros(R), mean, log_std, None
-        probs, chosen, _ = gate
-        if chosen is None:  # dense mixing: the balance loss counts each row's top expert
-            chosen = probs.argmax(-1, keepdim=True)
-        return logp, entropy, run_load_balance(probs, chosen, self.n_experts), mean, log_std, chosen
-
-class PopulationCritic(_Population):
-    """R centralised critics of one kind; noiseless gating (see notebook 07 on why)."""
-
-    def __call__(self, state, tau):
-        """state (R, n, state_dim), tau (R,) -> (value (R, n), load balance (R,), probs or None)."""
-        R, n, _ = state.shape
-        p = self.layout.views(self.flat)
-        feat, gate = self.template.run_features(p, state, tau.reshape(R, 1).expand(R, n), None, None)
-        value = run_linear(feat, p["head.weight"], p["head.bias"]).squeeze(-1)
-        if gate is None:
-            return value, state.new_zeros(R), None
-        probs, chosen, _ = gate
-        if chosen is None:
-            chosen = probs.argmax(-1, keepdim=True)
-        return value, run_load_balance(probs, chosen, self.n_experts), probs
-
-
-
-_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
-
-
-def gaussian_log_prob(action, mean, log_std):
-    """Diagonal Gaussian log-density summed over the action axis: (R, n, A) -> (R, n)."""
-    log_std = log_std.unsqueeze(1)
-    return (-((action - mean) ** 2) / (2 * torch.exp(2 * log_std)) - log_std - _HALF_LOG_2PI).sum(-1)
-
-
-def gaussian_entropy(log_std):
-    """Entropy of a diagonal Gaussian per member: log_std (R, A) -> (R,)."""
-    return (0.5 + _HALF_LOG_2PI + log_std).sum(-1)
-
-
-def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
-    """KL(N(mean, std) || N(ref_mean, ref_std)) per row, summed over actions -> (R, n)."""
-    ls, rls = log_std.unsqueeze(1), ref_log_std.unsqueeze(1)
-    var, rvar = torch.exp(2 * ls), torch.exp(2 * rls)
-    return (rls - ls + (var + (mean - ref_mean) ** 2) / (2 * rvar) - 0.5).sum(-1)
+# The trainer of notebook 07 trains R independent runs of one kind in one process, their
+# parameters stacked on a leading run axis. Each class above therefore has a `run_features`
+# method besides `features`: the same features for all R members at once, from per-member
+# parameter views, built from batched matrix products (`run_linear`, `run_gate`). Appendix 05b
+# explains the run axis (`ParamLayout`, `PopulationActor`, `PopulationCritic`) and checks that a
+# member's numbers do not depend on its neighbours.
 
 # %% [markdown]
 # ## Factories and cost accounting
@@ -1207,6 +826,9 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
 #   evaluation, where the noise gate is skipped;
 # * `macs_per_step(actor, mode)`: multiply-accumulates of the linear layers for one agent step
 #   (`"sampling"` or `"eval"`); elementwise work (ReLU, softmax, bias adds) is left out.
+#
+# The latency measurements and `cost_table`, which puts the counts and the timings together, are
+# in appendix 05b (module `pemamoe.netcost`).
 
 # %%
 #| export
@@ -1292,101 +914,6 @@ def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
         raise ValueError(f"macs_per_step mode must be one of {', '.join(MAC_MODES)}, got {mode!r}")
     parts, used = actor.cost_parts(), _executed(actor, mode)
     return sum(parts[name][1] * n for name, n in used.items())
-
-
-# %% [markdown]
-# ### Latency and the cost table
-#
-# `time_forward` measures an agent step (`act`, sampling, no gradient) and reports the median
-# over repeats in microseconds; `time_train_step` measures a forward and backward pass of a
-# surrogate loss. `cost_table` assembles, for each actor kind and each named observation
-# dimension, the counts above and the measured latency at batch 1 and batch 2048.
-
-# %%
-#| export
-def _median_us(fn, repeats: int, warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter_ns()
-        fn()
-        times.append(time.perf_counter_ns() - t0)
-    return statistics.median(times) / 1e3
-
-
-def time_forward(actor: GaussianActor, batch: int, repeats: int = 50, warmup: int = 5, seed: int = 0) -> float:
-    """Median microseconds of actor.act(obs) (sampling, no gradient) on a (batch, obs_dim) input."""
-    obs = torch.randn(batch, actor.obs_dim, generator=torch.Generator().manual_seed(seed))
-    return _median_us(lambda: actor.act(obs), repeats, warmup)
-
-
-def time_train_step(actor: GaussianActor, batch: int, repeats: int = 20, warmup: int = 3, seed: int = 0) -> float:
-    """Median microseconds of evaluate(obs, action, routing) + backward of a PPO-like loss."""
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(batch, actor.obs_dim, generator=g)
-    action, _, routing = actor.act(obs)
-
-    def step():
-        logp, ent, aux = actor.evaluate(obs, action, routing)
-        loss = -(logp.mean() + 0.01 * ent.mean()) + aux["aux_loss"]
-        actor.zero_grad(set_to_none=True)
-        loss.backward()
-
-    return _median_us(step, repeats, warmup)
-
-
-def cost_table(
-    obs_dims: dict,
-    cfg: NetConfig | None = None,
-    act_dim: int = 2,
-    repeats: int = 50,
-    batch_sizes: tuple = (1, 2048),
-    seed: int = 0,
-    threads: int | None = 1,
-):
-    """Per actor kind and per named observation dimension: parameters, ratio to the MLP, active
-    parameters (paper / sampling / eval conventions), MACs per agent step, and measured `act`
-    latency (median microseconds) at each batch size, timed with `threads` torch threads
-    (None: leave the current setting). Returns a pandas DataFrame."""
-    import pandas as pd
-
-    cfg = cfg or NetConfig()
-    old_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        return pd.DataFrame(_cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed))
-    finally:
-        torch.set_num_threads(old_threads)
-
-
-def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
-    rows = []
-    for label, obs_dim in obs_dims.items():
-        torch.manual_seed(seed)
-        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()}
-        mlp_params = count_parameters(actors["mlp"])
-        mlp_macs = macs_per_step(actors["mlp"])
-        for kind, actor in actors.items():
-            row = {
-                "obs": label,
-                "obs_dim": obs_dim,
-                "actor": kind,  # the method's name
-                "params": count_parameters(actor),
-                "params_vs_mlp": round(count_parameters(actor) / mlp_params, 2),
-                "active_params": active_parameters(actor, "paper"),
-                "active_sampling": active_parameters(actor, "sampling"),
-                "active_eval": active_parameters(actor, "eval"),
-                "macs_per_step": macs_per_step(actor, "sampling"),
-                "macs_vs_mlp": round(macs_per_step(actor, "sampling") / mlp_macs, 3),
-                "macs_eval": macs_per_step(actor, "eval"),
-            }
-            for b in batch_sizes:
-                row[f"latency_us_b{b}"] = round(time_forward(actor, b, repeats=repeats, seed=seed), 1)
-            row["torch_threads"] = torch.get_num_threads()
-            rows.append(row)
-    return rows
 
 
 # %% [markdown]
@@ -1581,32 +1108,15 @@ save_figure(fig, "architecture_router_temperature", figures_dir)
 plt.show()
 
 # %% [markdown]
-# ### Three expert implementations, one function
-#
-# The same weights give the same outputs under the three execution strategies; the timing
-# comparison is in `benchmarks/bench_nets.py` (`make bench`), summarised at the end.
-
-# %%
-x = torch.randn(64, PAPER_OBS_DIM)
-for kind in [m for m, spec in METHOD_REGISTRY.items() if spec.network != "mlp" and spec.plasticity == "none"]:
-    net = paper_actors[kind]
-    _, _, r = net.act(x)
-    means = {}
-    for impl in EXPERT_IMPLS:
-        net.gate.experts.impl = impl
-        d, _ = net(x, routing=r)
-        means[impl] = d.mean
-    net.gate.experts.impl = cfg.expert_impl
-    print(kind, {impl: bool(torch.allclose(m, means["stacked"], atol=1e-6)) for impl, m in means.items()})
-
-# %% [markdown]
 # ### The cost table
 #
 # Counts at the paper's dimension and at ours, with the measured agent-step latency (median of
-# repeated `act` calls on one torch thread, so that runs on different machines compare).
-# Latencies depend on the machine and its load; the counts do not.
+# repeated `act` calls on one torch thread, so that runs on different machines compare; the timing
+# code is in appendix 05b). Latencies depend on the machine and its load; the counts do not.
 
 # %%
+from pemamoe.netcost import cost_table
+
 repeats = by_scale(scale, ci=5, small=50, paper=100)
 table = cost_table({"paper": PAPER_OBS_DIM, "ours": our_obs_dim}, cfg, repeats=repeats, seed=seed)
 write_table(table, "cost_table", figures_dir)

@@ -15,7 +15,6 @@ from pemamoe.nets import (
     NetConfig,
     RoutingSample,
     active_parameters,
-    cost_table,
     count_parameters,
     load_balance_loss,
     macs_per_step,
@@ -24,6 +23,7 @@ from pemamoe.nets import (
 )
 
 from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.netcost import cost_table
 
 ACTOR_KINDS = tuple(METHOD_REGISTRY)  # every registered method (make_actor resolves its network)
 MOE_KINDS = tuple(name for name, spec in METHOD_REGISTRY.items() if spec.network != "mlp")
