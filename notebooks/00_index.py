@@ -33,7 +33,8 @@
 # | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py`, `pemamoe/env_kernel.py` | reward anatomy table |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
-# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/diagnostics.py` | schedule figures |
+# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
+# | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
@@ -74,7 +75,7 @@
 # * **Switch Transformer** (Fedus, Zoph and Shazeer, 2022): top-1 routing and the load-balancing
 #   loss that keeps experts in use, the gating of the SMoE and PE-MAMoE actors.
 # * **Dormant neurons** (Sokar et al., 2023, "The Dormant Neuron Phenomenon in Deep RL"): the
-#   τ-dormant score that notebook 06 measures as the plasticity indicator.
+#   τ-dormant score that appendix 06b measures as the plasticity indicator.
 # * **rliable** (Agarwal et al., 2021, "Deep RL at the Edge of the Statistical Precipice"): IQM
 #   with stratified-bootstrap intervals, how notebooks 09 and 10 compare methods across seeds.
 

@@ -11,7 +11,7 @@
 # ---
 
 # %% [markdown]
-# # 06 · Plasticity: the phase controller and its diagnostics (paper section IV-B)
+# # 06 · Plasticity: the phase controller (paper section IV-B)
 #
 # PE-MAMoE is the sparse MoE actor of notebook 05 plus a **phase controller**: a piece of
 # bookkeeping, with no parameters and no gradient, that reacts to a regime switch. When the
@@ -33,9 +33,12 @@
 # exactly one of them and nothing else. With every switch off (or with `enabled=False`, the way the
 # MLP, MoE and SMoE baselines run) the controller only reports the baselines' plain schedules.
 #
-# The second half of the notebook builds the **plasticity diagnostics** the paper plots: the rank
-# of each expert's features, the fraction of dormant units per layer, the router probabilities of
-# the policy and value networks, and the mean action. They go to `pemamoe/diagnostics.py`.
+# This notebook gives the mechanisms, their equations and the reference controller for one
+# network, with pictures. The appendix `06b_population_plasticity.py` holds the machinery around
+# them: the same controller acting on each member of a population of runs (what the trainer of
+# notebook 07 calls), AdamW over a population's stacked parameters, the registry of plasticity
+# methods, and the **plasticity diagnostics** the paper plots (feature rank, dormant units, router
+# probabilities, mean action; `pemamoe/diagnostics.py`).
 
 # %%
 #| default_exp phase_controller
@@ -49,17 +52,13 @@ seed = 0
 #| export
 import copy
 import math
-from collections import defaultdict
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch.distributions import kl_divergence
 
 from pemamoe.core import require_field
-from pemamoe.methods import load_plugins
-from pemamoe.nets import gaussian_kl
 
 # %% [markdown]
 # ## What the paper fixes, and what it leaves open
@@ -449,28 +448,31 @@ def reset_adam_state(optimizer) -> None:
 # %% [markdown]
 # ## The controller
 #
-# How the trainer of notebook 07 uses it, per iteration $t$:
+# How one network is trained with it, per iteration $t$ (every call below exists; the comments
+# stand for the PPO code of notebook 07). The trainer of notebook 07 runs the population version of
+# appendix 06b with the same clock and hooks of the same names.
 #
 # ```python
-# groups = build_param_groups(actor, critic, base.lr)          # named groups
+# groups = build_param_groups(actor, critic, base.lr)           # named groups
 # opt = torch.optim.AdamW(groups, lr=base.lr, betas=(0.9, 0.999), weight_decay=1e-4)
-# ctl = PhaseController(cfg, actor, opt, base, enabled=(kind == "pemamoe"))
-# clock = PhaseSchedule(period=base.phase_length, n_phases=3)  # the trainer owns the phase
+# ctl = PhaseController(cfg, actor, opt, base, enabled=True)    # enabled=False: a baseline
+# clock = PhaseSchedule(period=base.phase_length, n_phases=3)   # pemamoe.phases (notebook 03)
 # for t in range(base.total_iterations):
 #     venv.set_phase(clock.phase_at(t))   # first, so the whole rollout runs in this phase
-#     if clock.is_switch(t):              # t > 0 and t % L == 0
+#     if clock.is_switch(t):              # the phase differs from iteration t - 1's
 #         ctl.on_switch(t)
-#     s = ctl.begin_iteration(t)          # sets LRs and the router freeze
-#     rollout with actor.act(obs, temperature=s.policy_temperature),
-#                  critic(state, temperature=s.value_temperature)
+#     s = ctl.begin_iteration(t)          # writes the LRs into opt, applies the router freeze
+#     # rollout: action, logp_old, routing = actor.act(obs, temperature=s.policy_temperature);
+#     #          values from critic(state, s.value_temperature, deterministic_gate=True); advantages adv
 #     for epoch in range(8):
-#         for mb in minibatches:
+#         for obs, act, logp_old, adv, routing in minibatches:   # routing: the rollout's, replayed
 #             logp, ent, aux = actor.evaluate(obs, act, routing)
-#             loss = ppo(logp, clip=s.clip_coef) - s.ent_coef * ent.mean() + aux["aux_loss"] + value loss
-#             loss = loss + ctl.kl_penalty(obs, routing)     # 0 when released / off
-#             opt.zero_grad(set_to_none=True); loss.backward(); clip grads; opt.step()
-#         early stop on s.target_kl
-#         ctl.after_epoch(routing.experts)   # noise on the experts used in this epoch's data
+#             ratio = (logp - logp_old).exp()
+#             pg = -torch.min(ratio * adv, ratio.clamp(1 - s.clip_coef, 1 + s.clip_coef) * adv).mean()
+#             loss = pg - s.ent_coef * ent.mean() + aux["aux_loss"] + ctl.kl_penalty(obs, routing)  # + value loss
+#             opt.zero_grad(set_to_none=True); loss.backward(); opt.step()
+#         # (stop the epochs early once the approximate KL exceeds s.target_kl)
+#         ctl.after_epoch(rollout_routing.experts)   # noise on the experts the epoch's data used
 # ```
 #
 # `on_switch` runs the switch-time actions in Algorithm 1's order: snapshot (before any
@@ -676,30 +678,16 @@ class PhaseController:
 
 
 # %% [markdown]
-# ## Plasticity methods for a population of runs
+# ## What the trainer runs
 #
-# The trainer (notebook 07) trains R runs at once, their parameters stacked on a leading run
-# axis (notebook 05, "A population of networks"). Everything that changes the optimisation at a
-# phase switch is a **plasticity method**: a small object with a fixed set of hooks that the
-# trainer calls, which acts on each member separately and only ever touches that member's row of
-# the parameters and of the optimizer state.
+# The trainer (notebook 07) trains R runs at once, their parameters stacked on a leading run axis
+# (notebook 05), so it calls the population twin of this controller, `PhaseControllerMethod`
+# (appendix 06b): the same config, the same schedule functions and one `IterationSettings` per
+# member, acting on each member's row of the parameters and of the optimizer state. The baselines
+# run `NoPlasticity` there, the shared PPO schedule and nothing else.
 #
-# | hook | when | returns |
-# |---|---|---|
-# | `on_switch(iteration)` | before the first rollout of a new phase | nothing |
-# | `begin_iteration(iteration)` | every iteration, before the rollout | `Schedules`: per-member learning rates, clip, target KL, entropy weight, temperatures, router freeze |
-# | `extra_loss(batch)` | every minibatch | an (R,) loss added to PPO's (0 for none) |
-# | `after_minibatch(stepped)` | after each optimizer step | nothing |
-# | `after_epoch(expert_counts, stepped)` | after each update epoch | number of experts perturbed per member |
-# | `state_dict(r)` / `load_state_dict(r, state)` | checkpoints | member r's state |
-#
-# `NoPlasticity` is what the baselines use: the shared PPO schedule and nothing else.
-# `PhaseControllerMethod` is PE-MAMoE's Phase Controller (the nine mechanisms above, each still
-# switchable for the ablations). A new method subclasses `NoPlasticity`, overrides the hooks it
-# needs and registers itself with `register_plasticity`; CONTRIBUTING.md shows shrink-and-perturb
-# in a dozen lines.
-#
-# Three decisions differ from a literal reading of Algorithm 1; each is a documented choice:
+# Three of its choices differ from a literal reading of Algorithm 1, which this notebook's
+# reference controller follows; each is a documented choice:
 #
 # * **The critic keeps learning.** The learning-rate drop and the Adam reset act on the actor's
 #   parameter groups only. The text above says the critic must keep tracking the new phase's
@@ -717,405 +705,6 @@ class PhaseController:
 #   epoch is every expert, so the literal reading perturbs all of them equally; weighting by share
 #   perturbs the experts in proportion to how much they were used, and leaves an unused expert
 #   alone. The switch-time injection itself still perturbs every expert with the full gamma.
-#
-# The window N = 30 has a third reading, besides the two listed in the contradictions table: the
-# paper's cost paragraph calls its ~10,800 iterations "epochs" ("N = 30 epochs out of ~10,800"),
-# which would make the window 30 iterations, i.e. 8 times longer than Algorithm 1's 30 update
-# epochs. `PhaseControllerConfig.noise_window_unit` selects it ("epochs", the default and
-# Algorithm 1's reading, or "iterations").
-
-# %%
-#| export
-class RunAdamW:
-    """AdamW over a population's flat parameters (R, P), every member with its own learning
-    rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
-
-    `group_of` (P,) assigns each parameter to one of G groups (step counts are per member and
-    group, as torch keeps them per parameter). `step(lr, stepping, frozen)` updates member r only
-    where stepping[r] and the group is not frozen[r, g]; elsewhere parameters, moments and step
-    counts stay bit-identical.
-    """
-
-    def __init__(self, flat: torch.Tensor, group_of: torch.Tensor, n_groups: int, betas=(0.9, 0.999),
-                 eps: float = 1e-5, weight_decay: float = 0.0):
-        self.flat = flat
-        self.group_of = group_of.to(flat.device)
-        self.n_groups = int(n_groups)
-        self.beta1, self.beta2 = float(betas[0]), float(betas[1])
-        self.eps, self.weight_decay = float(eps), float(weight_decay)
-        R = flat.shape[0]
-        self.exp_avg = torch.zeros_like(flat, requires_grad=False)
-        self.exp_avg_sq = torch.zeros_like(flat, requires_grad=False)
-        self.steps = torch.zeros(R, self.n_groups, dtype=flat.dtype, device=flat.device)
-
-    @torch.no_grad()
-    def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
-        """lr (R,), stepping (R,) bool, frozen (R, G) bool or None. Uses and clears flat.grad."""
-        p, grad = self.flat, self.flat.grad
-        lr = lr.to(p.dtype).unsqueeze(1)
-        active_g = stepping.unsqueeze(1).expand(-1, self.n_groups)
-        if frozen is not None:
-            active_g = active_g & ~frozen
-        steps = self.steps + active_g.to(self.steps.dtype)
-        cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
-        if self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
-            # every group of a member has the same step count: (R, 1) factors broadcast
-            active = stepping.unsqueeze(1)
-            safe = steps[:, :1].clamp(min=1)
-            step_size = lr / (1 - self.beta1 ** safe)
-            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
-        else:  # per-element factors: group values spread by a one-hot product (exact: x * 1 + 0)
-            onehot = self._onehot()
-            active = (active_g.to(p.dtype) @ onehot) > 0.5
-            safe = steps.clamp(min=1)
-            step_size = (lr / (1 - self.beta1 ** safe)).to(p.dtype) @ onehot
-            bc2_sqrt = (1 - self.beta2 ** safe).sqrt().to(p.dtype) @ onehot
-        if cpu and frozen is None and bool(stepping.all()):
-            # the usual case, in place (on the CPU the check costs nothing; on a GPU it would sync)
-            p.mul_(1 - lr * self.weight_decay)
-            self.exp_avg.lerp_(grad, 1 - self.beta1)
-            self.exp_avg_sq.mul_(self.beta2).add_((1 - self.beta2) * grad * grad)
-            p.sub_(step_size * self.exp_avg / (self.exp_avg_sq.sqrt() / bc2_sqrt + self.eps))
-        else:
-            m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
-            v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
-            new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
-            p.copy_(torch.where(active, new, p))
-            self.exp_avg, self.exp_avg_sq = m, v
-        self.steps = steps
-        self.flat.grad = None
-
-    def _onehot(self) -> torch.Tensor:
-        if getattr(self, "_onehot_cache", None) is None:
-            self._onehot_cache = F.one_hot(self.group_of, self.n_groups).T.to(self.flat.dtype).contiguous()
-        return self._onehot_cache
-
-    @torch.no_grad()
-    def reset(self, member: int, mask: torch.Tensor | None = None) -> None:
-        """Forget member's moments (only where `mask` (P,) is True, if given) and, for a full
-        reset, its step counts: the Adam reset of a plasticity method."""
-        if mask is None:
-            self.exp_avg[member].zero_()
-            self.exp_avg_sq[member].zero_()
-            self.steps[member].zero_()
-            return
-        mask = mask.to(self.flat.device)
-        self.exp_avg[member].masked_fill_(mask, 0.0)
-        self.exp_avg_sq[member].masked_fill_(mask, 0.0)
-        groups = torch.unique(self.group_of[mask])
-        self.steps[member, groups] = 0.0
-
-    def member_state(self, r: int) -> dict:
-        return {"exp_avg": self.exp_avg[r].detach().cpu().clone(), "exp_avg_sq": self.exp_avg_sq[r].detach().cpu().clone(),
-                "steps": self.steps[r].detach().cpu().clone()}
-
-    @torch.no_grad()
-    def load_member_state(self, r: int, state: dict) -> None:
-        for name in ("exp_avg", "exp_avg_sq", "steps"):
-            target = getattr(self, name)[r]
-            if tuple(state[name].shape) != tuple(target.shape):
-                raise ValueError(f"optimizer state {name!r} has shape {tuple(state[name].shape)}, expected {tuple(target.shape)}")
-            target.copy_(state[name].to(target.device))
-
-
-def group_index(module, layout, group_names=GROUP_NAMES) -> tuple:
-    """(group_of (P,) long, names): each parameter of `module` to its param_groups() group."""
-    by_id = {id(p): g for g, params in module.param_groups().items() for p in params}
-    names = [g for g in group_names if any(by_id.get(id(p)) == g for p in module.parameters())]
-    group_of = torch.zeros(layout.size, dtype=torch.long)
-    params = dict(module.named_parameters())
-    for name in layout.names:
-        a, b = layout.span(name)
-        group_of[a:b] = names.index(by_id[id(params[name])])
-    return group_of, names
-
-
-@dataclass(frozen=True)
-class Schedules:
-    """What the trainer uses in one iteration, per member (tensors of shape (R,))."""
-
-    lr_actor: torch.Tensor
-    lr_critic: torch.Tensor
-    router_frozen: torch.Tensor  # bool
-    clip_coef: torch.Tensor
-    target_kl: torch.Tensor  # inf: no early stop
-    ent_coef: torch.Tensor
-    kl_coef: torch.Tensor
-    policy_temperature: torch.Tensor
-    value_temperature: torch.Tensor
-    members: tuple  # one IterationSettings per member (for the logs)
-
-
-def _schedules(settings: list, critic_lrs: list, device) -> Schedules:
-    def col(values, dtype=torch.float64):
-        return torch.tensor(values, dtype=dtype, device=device)
-
-    return Schedules(
-        lr_actor=col([s.lr.get("head", 0.0) for s in settings]),
-        lr_critic=col(critic_lrs),
-        router_frozen=col([s.router_frozen for s in settings], torch.bool),
-        clip_coef=col([s.clip_coef for s in settings], torch.float32),
-        target_kl=col([math.inf if s.target_kl is None else s.target_kl for s in settings], torch.float32),
-        ent_coef=col([s.ent_coef for s in settings], torch.float32),
-        kl_coef=col([s.kl_coef for s in settings], torch.float32),
-        policy_temperature=col([s.policy_temperature for s in settings], torch.float32),
-        value_temperature=col([s.value_temperature for s in settings], torch.float32),
-        members=tuple(settings),
-    )
-
-
-PLASTICITY_METHODS: dict = {}
-
-
-def register_plasticity(cls):
-    """Class decorator: make a plasticity method available by its `name`."""
-    if not isinstance(getattr(cls, "name", None), str) or not cls.name:
-        raise ValueError(f"a plasticity method needs a non-empty string `name`, got {getattr(cls, 'name', None)!r}")
-    PLASTICITY_METHODS[cls.name] = cls
-    return cls
-
-
-def plasticity_method(name: str):
-    if name not in PLASTICITY_METHODS:
-        load_plugins()
-    if name not in PLASTICITY_METHODS:
-        raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r}")
-    return PLASTICITY_METHODS[name]
-
-
-@register_plasticity
-class NoPlasticity:
-    """The interface, and the baselines' method: the shared PPO schedule, no switch-time action.
-
-    configs: one config per member with .base_schedule(), .controller, .controller_enabled and
-    .seed (TrainConfig); actor/critic: PopulationActor/PopulationCritic; actor_opt/critic_opt:
-    RunAdamW. Subclasses override the hooks they need and keep the others.
-    """
-
-    name = "none"
-
-    def __init__(self, configs, actor, critic, actor_opt, critic_opt):
-        self.configs = list(configs)
-        self.R = len(self.configs)
-        self.actor, self.critic = actor, critic
-        self.actor_opt, self.critic_opt = actor_opt, critic_opt
-        self.bases = [c.base_schedule() for c in self.configs]
-        self.device = actor.flat.device
-
-    def member_settings(self, r: int, iteration: int) -> IterationSettings:
-        b = self.bases[r]
-        return IterationSettings(
-            iteration=int(iteration), since_switch=None, lr={"head": b.lr}, clip_coef=b.clip_coef,
-            target_kl=b.target_kl, ent_coef=float(entropy_coef(iteration, iteration, b, None)),
-            kl_coef=0.0, policy_temperature=b.temperature, value_temperature=b.temperature,
-            router_frozen=False, conservative=False, noise_epochs_left=0)
-
-    def on_switch(self, iteration: int) -> None:
-        pass
-
-    def begin_iteration(self, iteration: int) -> Schedules:
-        settings = [self.member_settings(r, iteration) for r in range(self.R)]
-        return _schedules(settings, [b.lr for b in self.bases], self.device)
-
-    def extra_loss(self, batch: dict) -> torch.Tensor | None:
-        """(R,) added to each member's loss; None when nothing is added (saves the work)."""
-        return None
-
-    def after_minibatch(self, stepped: torch.Tensor) -> None:
-        pass
-
-    def after_epoch(self, expert_counts: torch.Tensor | None, stepped: torch.Tensor) -> list:
-        return [0] * self.R
-
-    def state_dict(self, r: int) -> dict:
-        gens = getattr(self, "_generators", None)
-        return {} if gens is None else {"generator": gens[r].get_state()}
-
-    def load_state_dict(self, r: int, state: dict) -> None:
-        if "generator" in state:
-            self.member_generator(r).set_state(state["generator"])
-
-    # helpers for subclasses ---------------------------------------------------------------------
-    generator_seed_offset = 11  # member r's generator starts from its config's seed + this
-
-    def member_generator(self, r: int) -> torch.Generator:
-        """Member r's own random generator (seeded from its config's seed; checkpointed)."""
-        if getattr(self, "_generators", None) is None:
-            self._generators = [torch.Generator().manual_seed(int(c.seed) + self.generator_seed_offset)
-                                for c in self.configs]
-        return self._generators[r]
-
-    def expert_indices(self) -> list:
-        """Flat indices of each expert's trunk parameters in a member's row: [(E_i,) long]."""
-        if not hasattr(self, "_expert_idx"):
-            layout, by_expert = self.actor.layout, {}
-            for name, e in self.actor.template.trunk_parameters():
-                idx = torch.arange(*layout.span(name)) if e is None else layout.expert_index(name, e)
-                by_expert.setdefault(0 if e is None else e, []).append(idx)
-            self._expert_idx = [torch.cat(by_expert[e]).to(self.device) for e in sorted(by_expert)]
-        return self._expert_idx
-
-    @torch.no_grad()
-    def perturb_experts(self, r: int, stds, generator: torch.Generator) -> int:
-        """Add N(0, stds[e]^2) to every trunk parameter of member r's expert e; returns the
-        number of experts perturbed (std > 0)."""
-        done = 0
-        for idx, std in zip(self.expert_indices(), stds):
-            if std > 0:
-                noise = torch.randn(idx.numel(), generator=generator, device=generator.device)
-                self.actor.flat[r, idx] += noise.to(self.device, self.actor.flat.dtype) * std
-                done += 1
-        return done
-
-
-@register_plasticity
-class PhaseControllerMethod(NoPlasticity):
-    """PE-MAMoE's Phase Controller (Algorithm 1) for each member whose config enables it;
-    members with controller_enabled False behave exactly as NoPlasticity."""
-
-    name = "phase_controller"
-    generator_seed_offset = 7  # the noise generator of the single-network PhaseController (seed + 7)
-
-    def __init__(self, configs, actor, critic, actor_opt, critic_opt):
-        super().__init__(configs, actor, critic, actor_opt, critic_opt)
-        self.cfgs = [c.controller for c in self.configs]
-        self.enabled = [bool(c.controller_enabled) for c in self.configs]
-        self.last_switch = [None] * self.R
-        self.switches = [0] * self.R
-        self.noise_left = [0] * self.R
-        self.reference = None  # (R, P) anchor parameters, rows valid where has_reference
-        self.has_reference = [False] * self.R
-        self.settings = [None] * self.R
-        self._ls = actor.layout.span("log_std")
-
-    def _noise_std(self, r: int, since: int) -> float:
-        cfg = self.cfgs[r]
-        std = cfg.noise_gamma
-        if cfg.noise_lr_factor:
-            std *= self.bases[r].lr * (float(lr_multiplier(since, cfg)) if cfg.lr_drop else 1.0)
-        return std
-
-    @torch.no_grad()
-    def on_switch(self, iteration: int) -> None:
-        for r in range(self.R):
-            if self.last_switch[r] is not None and iteration < self.last_switch[r]:
-                raise ValueError(f"switch iteration must not go back in time: {iteration} < {self.last_switch[r]}")
-            self.last_switch[r], self.switches[r] = int(iteration), self.switches[r] + 1
-            if not self.enabled[r]:
-                continue
-            cfg = self.cfgs[r]
-            a, b = self._ls
-            if cfg.kl_anchor and cfg.kl_coef > 0:
-                if self.reference is None:
-                    self.reference = self.actor.flat.detach().clone()
-                self.reference[r] = self.actor.flat[r].detach()
-                if cfg.log_std_reset:  # anchor sigma at the reset value (see above)
-                    self.reference[r, a:b] = cfg.log_std_value
-                self.has_reference[r] = True
-            if cfg.adam_reset:
-                self.actor_opt.reset(r)  # the actor only: the critic keeps its moments
-            if cfg.noise_injection:
-                n_exp = len(self.expert_indices())
-                self.perturb_experts(r, [self._noise_std(r, 0)] * n_exp, self.member_generator(r))
-                self.noise_left[r] = cfg.noise_epochs
-            if cfg.log_std_reset:
-                self.actor.flat[r, a:b] = cfg.log_std_value
-
-    def member_settings(self, r: int, iteration: int) -> IterationSettings:
-        if not self.enabled[r]:
-            return super().member_settings(r, iteration)
-        b, cfg = self.bases[r], self.cfgs[r]
-        since = None if self.last_switch[r] is None else int(iteration) - self.last_switch[r]
-        if since is not None and since < 0:
-            raise ValueError(f"iteration {iteration} is before the last switch {self.last_switch[r]}")
-        since_phase = int(iteration) if since is None else since
-        active = since is not None
-        mult = float(lr_multiplier(since, cfg)) if active and cfg.lr_drop else 1.0
-        frozen = active and cfg.router_freeze and since < cfg.router_freeze_iters
-        conservative = active and cfg.conservative_window and since < cfg.conservative_iters
-        kl = float(kl_anchor_coef(since, cfg)) if active and cfg.kl_anchor else 0.0
-        if kl == 0.0:
-            self.has_reference[r] = False  # released (or never taken)
-        tau = float(temperature_text(since_phase, cfg)) if cfg.temperature_schedule else b.temperature
-        return IterationSettings(
-            iteration=int(iteration), since_switch=since,
-            lr={"router": 0.0 if frozen else b.lr * mult, "head": b.lr * mult},
-            clip_coef=cfg.conservative_clip if conservative else b.clip_coef,
-            target_kl=cfg.conservative_target_kl if conservative else b.target_kl,
-            ent_coef=float(entropy_coef(iteration, since_phase, b, cfg)), kl_coef=kl,
-            policy_temperature=tau if cfg.temperature_routers in ("policy", "both") else b.temperature,
-            value_temperature=tau if cfg.temperature_routers in ("value", "both") else b.temperature,
-            router_frozen=frozen, conservative=conservative, noise_epochs_left=self.noise_left[r])
-
-    def begin_iteration(self, iteration: int) -> Schedules:
-        for r in range(self.R):  # a window counted in iterations ends here (the default counts epochs)
-            if self.enabled[r] and self.cfgs[r].noise_window_unit == "iterations" and self.noise_left[r] > 0 \
-                    and self.last_switch[r] is not None and iteration > self.last_switch[r]:
-                self.noise_left[r] -= 1
-        settings = [self.member_settings(r, iteration) for r in range(self.R)]
-        self.settings = settings
-        return _schedules(settings, [b.lr for b in self.bases], self.device)
-
-    def extra_loss(self, batch: dict):
-        coefs = [0.0 if (s is None or not self.has_reference[r]) else s.kl_coef for r, s in enumerate(self.settings)]
-        if not any(c > 0 for c in coefs):
-            return None
-        with torch.no_grad():
-            ref_mean, ref_log_std, _ = self.actor.mean_and_gate(
-                batch["obs"], batch["tau"], batch["noise"], batch["experts"], flat=self.reference)
-        kl = gaussian_kl(batch["mean"], batch["log_std"], ref_mean, ref_log_std).mean(1)
-        coef = torch.tensor(coefs, dtype=kl.dtype, device=kl.device)
-        return coef * kl
-
-    @torch.no_grad()
-    def after_epoch(self, expert_counts, stepped) -> list:
-        out = [0] * self.R
-        want = [r for r in range(self.R) if self.enabled[r] and self.cfgs[r].noise_injection and self.noise_left[r] > 0]
-        if not want:
-            return out
-        n_exp = len(self.expert_indices())
-        counts = None if expert_counts is None else expert_counts.double().cpu()
-        stepped = stepped.cpu().tolist()
-        for r in want:
-            if not stepped[r]:
-                continue
-            if counts is None:  # an ungated actor: its trunk is the one expert, always used
-                shares = [1.0] * n_exp
-            else:
-                total = float(counts[r].sum())
-                shares = [float(c) / total if total > 0 else 0.0 for c in counts[r]]
-            since = 0 if self.last_switch[r] is None else (self.settings[r].since_switch or 0)
-            std = self._noise_std(r, since)
-            out[r] = self.perturb_experts(r, [std * s for s in shares], self.member_generator(r))
-            if self.cfgs[r].noise_window_unit == "epochs":
-                self.noise_left[r] -= 1
-        return out
-
-    def state_dict(self, r: int) -> dict:
-        if not self.enabled[r]:  # a disabled member is a NoPlasticity member that draws nothing
-            return {}
-        return {"cfg": asdict(self.cfgs[r]), "base": asdict(self.bases[r]), "enabled": self.enabled[r],
-                "last_switch": self.last_switch[r], "switches": self.switches[r], "noise_left": self.noise_left[r],
-                "reference": self.reference[r].detach().cpu().clone() if self.has_reference[r] else None,
-                "generator": self.member_generator(r).get_state()}
-
-    @torch.no_grad()
-    def load_state_dict(self, r: int, state: dict) -> None:
-        if not self.enabled[r]:
-            if state:
-                raise ValueError("PhaseControllerMethod.load_state_dict: the checkpoint was made with the controller on")
-            return
-        if not state or state["enabled"] != self.enabled[r] or (self.enabled[r] and state["cfg"] != asdict(self.cfgs[r])) \
-                or state["base"] != asdict(self.bases[r]):
-            raise ValueError("PhaseControllerMethod.load_state_dict: the checkpoint was made with a different config")
-        self.last_switch[r], self.switches[r], self.noise_left[r] = state["last_switch"], state["switches"], state["noise_left"]
-        self.member_generator(r).set_state(state["generator"])
-        self.has_reference[r] = state["reference"] is not None
-        if self.has_reference[r]:
-            if self.reference is None:
-                self.reference = self.actor.flat.detach().clone()
-            self.reference[r] = state["reference"].to(self.reference.device)
-
 
 # %% [markdown]
 # ## The schedules over three phases
@@ -1206,7 +795,6 @@ ax.stem(np.arange(len(epoch_std)), epoch_std, basefmt=" ")
 ax.set_title(f"noise std per update epoch after a switch (N = {cfg.noise_epochs})", fontsize=10)
 ax.set_xlabel("update epochs since the switch (0 = at the switch)")
 ax = axes[1, 2]
-delta = np.arange(demo_phase)
 ax.plot(its, [s.policy_temperature for s in pe], label="implemented (text: hot, then cools)")
 ax.plot(its, [float(temperature_formula(t % demo_phase, cfg)) for t in its], ls="--", label="printed formula (rises)")
 ax.set_title("router temperature")
@@ -1233,270 +821,5 @@ assert all(s.kl_coef == 0 and s.policy_temperature == 1.0 for s in bl)
 print("release after", int(np.ceil(np.log(cfg.kl_release / cfg.kl_coef) / np.log(cfg.kl_decay))), "iterations")
 
 # %% [markdown]
-# # Plasticity diagnostics
-#
-# The paper reads plasticity off two signals, the rank of the expert features and the fraction
-# of dormant units, and it plots the routers' expert probabilities and the mean action around the
-# switches. All are computed on a **fixed probe batch** (the same observations every time), so a
-# change in a curve is a change in the network, not in the data.
-#
-# **Feature rank.** For expert $j$, stack its last hidden layer (post-ReLU, the 32 features it
-# hands to the head) over the $B$ probe observations into $A \in \mathbb R^{B\times 32}$, with
-# singular values $\sigma_1 \ge \sigma_2 \ge \dots$. Every expert sees every probe row, whether or
-# not the router would pick it, so that the rank measures what the expert *can* represent. Three
-# summaries:
-#
-# * stable rank $\|A\|_F^2 / \|A\|_2^2 = \sum_i \sigma_i^2 / \sigma_1^2$: smooth, dominated by the
-#   largest directions;
-# * effective rank (Roy & Vetterli, 2007) $\exp\big(-\sum_i p_i \log p_i\big)$ with
-#   $p_i = \sigma_i / \sum_k \sigma_k$;
-# * $\mathrm{srank}_\delta$ (Kumar et al., 2021): the smallest $k$ with
-#   $\sum_{i\le k}\sigma_i \ge (1-\delta)\sum_i \sigma_i$, $\delta = 0.01$.
-#
-# All three equal $n$ for an $n\times n$ identity and 1 for a rank-one matrix (for srank with
-# $\delta = 0.01$, the identity reaches $n$ only while $n < 100$: beyond, dropping one of $n$ equal
-# values keeps 99 % of the sum). A zero matrix gets rank 0. The features are not centred.
-#
-# **Dormant units.** Two definitions, per layer of each expert:
-#
-# * *the paper's DNF*: unit $u$ is dormant when its mean absolute **pre-activation** over the
-#   batch is below a small $\delta$. The paper gives no $\delta$; we use $\delta = 0.01$, about 1 %
-#   of a typical pre-activation at initialisation. Note what this does and does not catch: a unit
-#   whose pre-activation sits near zero for every input, yes; a ReLU unit that is "dead" because its
-#   pre-activation is strongly *negative* for every input, no (its mean $|a|$ is large). So the
-#   paper's DNF is a measure of collapsed units rather than of dead ReLUs.
-# * *the $\tau$-dormant score* (Sokar et al., 2023), on the **post-activation** $h_u$:
-#   $s_u = \mathbb E|h_u| \,/\, \big(\tfrac1d\sum_k \mathbb E|h_k|\big)$, dormant when
-#   $s_u \le \tau = 0.025$. A dead ReLU has $s_u = 0$ and counts; the score is scale-free. A layer
-#   whose units are all silent counts as fully dormant.
-#
-# **Routers and actions.** Mean router probability per expert over the probe batch (noiseless
-# gating), for the policy router and, given probe global states, for the value router; also the
-# share of probe rows whose top choice is each expert. The MLP has one "expert" with probability 1.
-# The mean action is the policy mean $\mu(o)$ averaged over the probe batch (before the
-# environment clips actions to $[-1,1]$), per coordinate, with the policy's standard deviation
-# beside it.
-
-# %%
-#| export diagnostics
-import math
-
-import numpy as np
-import torch
-
-DORMANT_PAPER_DELTA = 0.01
-DORMANT_TAU = 0.025
-SRANK_DELTA = 0.01
-_AXES = ("x", "y", "z")
-
-
-def singular_values(a) -> np.ndarray:
-    """Singular values (descending, float64) of a 2-D matrix (tensor or array)."""
-    if isinstance(a, torch.Tensor):
-        a = a.detach().cpu().double().numpy()
-    a = np.asarray(a, dtype=float)
-    if a.ndim != 2:
-        raise ValueError(f"rank measures need a 2-D matrix (batch, features), got shape {a.shape}")
-    return np.linalg.svd(a, compute_uv=False)
-
-
-def stable_rank(a) -> float:
-    """||A||_F^2 / ||A||_2^2 (0 for a zero matrix)."""
-    s = singular_values(a)
-    return 0.0 if s.size == 0 or s[0] == 0 else float(np.sum(s**2) / s[0] ** 2)
-
-
-def effective_rank(a) -> float:
-    """Roy & Vetterli: exp of the entropy of the normalised singular values (0 for a zero matrix)."""
-    s = singular_values(a)
-    total = s.sum()
-    if total == 0:
-        return 0.0
-    p = s[s > 0] / total
-    return float(np.exp(-np.sum(p * np.log(p))))
-
-
-def srank(a, delta: float = SRANK_DELTA) -> int:
-    """Kumar et al.: smallest k with sum of the top-k singular values >= (1 - delta) * their total."""
-    if not 0 <= delta < 1:
-        raise ValueError(f"srank delta must be in [0, 1), got {delta!r}")
-    s = singular_values(a)
-    total = s.sum()
-    if total == 0:
-        return 0
-    cum = np.cumsum(s)
-    return int(np.searchsorted(cum, (1 - delta) * total * (1 - 1e-12)) + 1)
-
-
-def dormant_fraction_paper(preact, delta: float = DORMANT_PAPER_DELTA) -> float:
-    """The paper's DNF: share of units whose mean |pre-activation| over the batch is < delta. preact (B, d)."""
-    m = torch.as_tensor(preact).abs().double().mean(0)
-    return float((m < delta).double().mean())
-
-
-def dormant_fraction_tau(act, tau: float = DORMANT_TAU) -> float:
-    """Sokar et al.: share of units with E|h_u| / mean_k E|h_k| <= tau. act (B, d) post-activation."""
-    m = torch.as_tensor(act).abs().double().mean(0)
-    layer_mean = m.mean()
-    if layer_mean == 0:
-        return 1.0
-    return float((m / layer_mean <= tau).double().mean())
-
-
-def _axis(i: int, n: int) -> str:
-    return _AXES[i] if n <= len(_AXES) else str(i)
-
-
-@torch.no_grad()
-def plasticity_diagnostics(actor, critic=None, probe_obs=None, probe_state=None, temperature=None) -> dict:
-    """Flat {name: float} of rank, dormant, router and action statistics on fixed probe batches.
-
-    probe_obs (B, obs_dim) for the actor; probe_state (B, state_dim) for the value router (optional).
-    Names: rank/{stable,effective,srank}/expert{j} and /mean; dormant/{paper,tau}/expert{j}/layer{l},
-    /layer{l} (mean over experts) and /mean; router/policy/p{j}, router/policy/top{j};
-    router/value/p{j}, router/value/top{j}; action/mean_{x,y}, action/std_{x,y}.
-    """
-    if probe_obs is None:
-        raise ValueError("plasticity_diagnostics needs probe_obs")
-    out = {}
-    probe = actor.probe(probe_obs, temperature)
-    acts, pres = probe["act"], probe["preact"]  # per layer (E, B, hidden)
-    n_exp, n_layers = acts[0].shape[0], len(acts)
-    for name, fn in (("stable", stable_rank), ("effective", effective_rank), ("srank", srank)):
-        vals = [float(fn(acts[-1][j])) for j in range(n_exp)]
-        for j, v in enumerate(vals):
-            out[f"rank/{name}/expert{j}"] = v
-        out[f"rank/{name}/mean"] = float(np.mean(vals))
-    for name, fn, layers in (("paper", dormant_fraction_paper, pres), ("tau", dormant_fraction_tau, acts)):
-        per = np.array([[fn(layers[l][j]) for l in range(n_layers)] for j in range(n_exp)])
-        for j in range(n_exp):
-            for l in range(n_layers):
-                out[f"dormant/{name}/expert{j}/layer{l + 1}"] = float(per[j, l])
-        for l in range(n_layers):
-            out[f"dormant/{name}/layer{l + 1}"] = float(per[:, l].mean())
-        out[f"dormant/{name}/mean"] = float(per.mean())
-    _router_stats(out, "policy", probe["router_probs"], n_exp)
-    if critic is not None and probe_state is not None:
-        _, aux = critic(probe_state, temperature, None, deterministic_gate=True)
-        _router_stats(out, "value", aux["router_probs"], 1 if aux["router_probs"] is None else aux["router_probs"].shape[-1])
-    mean = probe["mean"].reshape(-1, probe["mean"].shape[-1])
-    std = actor.log_std.exp()
-    for i in range(mean.shape[-1]):
-        out[f"action/mean_{_axis(i, mean.shape[-1])}"] = float(mean[:, i].mean())
-        out[f"action/std_{_axis(i, mean.shape[-1])}"] = float(std[i])
-    return out
-
-
-def _router_stats(out: dict, which: str, probs, n_exp: int) -> None:
-    if probs is None:  # MLP: a single "expert" takes every row
-        out[f"router/{which}/p0"] = 1.0
-        out[f"router/{which}/top0"] = 1.0
-        return
-    probs = probs.reshape(-1, probs.shape[-1]).double()
-    mean = probs.mean(0)
-    top = torch.bincount(probs.argmax(-1), minlength=n_exp).double() / probs.shape[0]
-    for j in range(n_exp):
-        out[f"router/{which}/p{j}"] = float(mean[j])
-        out[f"router/{which}/top{j}"] = float(top[j])
-
-
-# %% [markdown]
-# ## Live demonstration: a switch on a real PE-MAMoE actor
-#
-# A fresh actor and critic from notebook 05, random probe observations, a few PPO-like gradient
-# steps on a dummy objective so the optimizer has state, then a switch. We check which parameters
-# moved (only the expert trunks, by exactly the noise; the log-std jumped back to $\log 0.3$) and
-# compare the diagnostics before and after.
-
-# %%
-import pandas as pd
-
-from pemamoe import diagnostics as dg
-
-g = torch.Generator().manual_seed(seed)
-n_probe = by_scale(scale, ci=256, small=1024, paper=2048)
-probe_obs = torch.randn(n_probe, obs_dim, generator=g)
-probe_state = torch.randn(n_probe, state_dim, generator=g)
-
-torch.manual_seed(seed)
-actor = make_actor("smoe", obs_dim)
-critic = make_critic("smoe", state_dim)
-opt = torch.optim.AdamW(build_param_groups(actor, critic, demo_base.lr), lr=demo_base.lr, weight_decay=1e-4)
-ctl = PhaseController(cfg, actor, opt, demo_base, seed=seed)
-
-target = torch.randn(n_probe, 2, generator=g).clamp(-1, 1)
-n_steps = by_scale(scale, ci=20, small=200, paper=200)
-for t in range(n_steps):  # a dummy regression objective, only to give Adam some state
-    s = ctl.begin_iteration(t)
-    action, _, routing = actor.act(probe_obs, temperature=s.policy_temperature)
-    logp, ent, aux = actor.evaluate(probe_obs, target, routing)
-    loss = -logp.mean() - s.ent_coef * ent.mean() + aux["aux_loss"]
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
-    actor.log_std.data.add_(-0.002)  # pretend the policy narrowed, so the reset has something to undo
-
-before_params = {n: p.detach().clone() for n, p in actor.named_parameters()}
-before_diag = dg.plasticity_diagnostics(actor, critic, probe_obs, probe_state)
-ctl.on_switch(n_steps)
-after_params = {n: p.detach().clone() for n, p in actor.named_parameters()}
-after_diag = dg.plasticity_diagnostics(actor, critic, probe_obs, probe_state)
-
-rows = []
-for n, p0 in before_params.items():
-    d = after_params[n] - p0
-    if n.startswith("gate.experts."):
-        for j in range(d.shape[0]):
-            rows.append({"parameter": f"{n}[{j}]", "changed": bool(d[j].abs().sum() > 0), "rms change": float(d[j].pow(2).mean().sqrt())})
-    else:
-        rows.append({"parameter": n, "changed": bool(d.abs().sum() > 0), "rms change": float(d.pow(2).mean().sqrt())})
-changes = pd.DataFrame(rows)
-print(changes.to_string(index=False))
-print("Adam state after reset:", len(opt.state), "entries; log-std now", actor.log_std.data.tolist())
-assert not changes[~changes.parameter.str.startswith(("gate.experts", "log_std"))].changed.any()
-
-# %% [markdown]
-# Every expert trunk moved by an RMS close to $\gamma_0 = 0.005$ (all three experts are noised at
-# the switch); the router, noise gate and head are bit-identical; the log-std was set back.
-# Next, one iteration after the switch with a real update: the router is frozen, and the
-# after-epoch noise touches only the experts the rollout selected.
-
-# %%
-s = ctl.begin_iteration(n_steps)
-router_before = [p.detach().clone() for p in actor.param_groups()["router"]]
-bank_before = actor.gate.experts.w1.detach().clone()
-action, _, routing = actor.act(probe_obs[:8], temperature=s.policy_temperature)  # a tiny batch: maybe not every expert is used
-logp, ent, aux = actor.evaluate(probe_obs[:8], action, routing)
-loss = -logp.mean() + ctl.kl_penalty(probe_obs[:8], routing) + aux["aux_loss"]
-opt.zero_grad(set_to_none=True)
-loss.backward()
-opt.step()
-noised = ctl.after_epoch(routing.experts)
-delta_w1 = (actor.gate.experts.w1 - bank_before).abs().flatten(1).sum(1)
-print("settings:", {k: v for k, v in vars(s).items() if k != "lr"}, "\nLRs:", s.lr)
-print("experts selected in the batch:", routing.experts.unique().tolist(), "-> noised:", noised)
-print("router unchanged during freeze:", all(torch.equal(a, b) for a, b in zip(router_before, actor.param_groups()["router"])))
-assert all(torch.equal(a, b) for a, b in zip(router_before, actor.param_groups()["router"]))
-
-table = pd.DataFrame({"before switch": before_diag, "after switch": after_diag})
-table = table[~table.index.str.contains("/expert.*/layer")]
-print(table.to_string(float_format=lambda v: f"{v:.4g}"))
-
-# %% [markdown]
-# The noise is small: the ranks and dormant fractions move a little, the mean action barely; the
-# visible change at the switch is the action spread, back at 0.3. The paper's claim is about what
-# these perturbations do *over training* (rank peaks and dormant-fraction oscillations in sync with
-# the switches); that is measured by the trainer, which logs `plasticity_diagnostics` every
-# iteration, in notebooks 07 and 09.
-#
-# A last check across the network kinds: the diagnostics return the same kind of keys for all
-# (the MLP as a single expert).
-
-# %%
-from pemamoe.nets import NETWORKS
-
-for kind in NETWORKS:
-    a, c = make_actor(kind, obs_dim), make_critic(kind, state_dim)
-    d = dg.plasticity_diagnostics(a, c, probe_obs, probe_state)
-    print(f"{kind:8s} {len(d):3d} metrics  stable rank {d['rank/stable/mean']:.2f}  effective {d['rank/effective/mean']:.2f}"
-          f"  srank {d['rank/srank/mean']:.1f}  dormant(paper) {d['dormant/paper/mean']:.3f}  dormant(tau) {d['dormant/tau/mean']:.3f}")
+# Appendix 06b continues with a switch on a real actor (which parameters move, the router freeze
+# through a real optimizer step) and with the plasticity diagnostics before and after it.

@@ -123,6 +123,8 @@ from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
     PhaseControllerConfig,
+)
+from pemamoe.population_plasticity import (
     RunAdamW,
     group_index,
     plasticity_method,

@@ -30,6 +30,8 @@ from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
     PhaseControllerConfig,
+)
+from pemamoe.population_plasticity import (
     RunAdamW,
     group_index,
     plasticity_method,
@@ -39,7 +41,7 @@ from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_
                           verify_done, write_done)
 
 
-# %% notebooks/07_mappo.py, cell 7 (line 206)
+# %% notebooks/07_mappo.py, cell 7 (line 208)
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
@@ -335,13 +337,13 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 532)
+# %% notebooks/07_mappo.py, cell 12 (line 534)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 14 (line 561)
+# %% notebooks/07_mappo.py, cell 14 (line 563)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -374,7 +376,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 617)
+# %% notebooks/07_mappo.py, cell 18 (line 619)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -417,7 +419,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 674)
+# %% notebooks/07_mappo.py, cell 20 (line 676)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
@@ -584,7 +586,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 883)
+# %% notebooks/07_mappo.py, cell 22 (line 885)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -750,7 +752,7 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 1076)
+# %% notebooks/07_mappo.py, cell 24 (line 1078)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -805,7 +807,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07_mappo.py, cell 25 (line 1131)
+# %% notebooks/07_mappo.py, cell 25 (line 1133)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -944,7 +946,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 27 (line 1278)
+# %% notebooks/07_mappo.py, cell 27 (line 1280)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -1229,7 +1231,7 @@ def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names
     return row
 
 
-# %% notebooks/07_mappo.py, cell 29 (line 1572)
+# %% notebooks/07_mappo.py, cell 29 (line 1574)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

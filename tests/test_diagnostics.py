@@ -1,4 +1,4 @@
-"""Diagnostics formulas on matrices whose answers are known by hand (notebook 06)."""
+"""Diagnostics formulas on matrices whose answers are known by hand (appendix notebook 06b)."""
 
 import math
 

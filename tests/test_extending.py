@@ -35,7 +35,7 @@ def plugin(tmp_path, monkeypatch):
     yield "ln_mlp_sp"
     from pemamoe.methods import METHOD_REGISTRY, _LOADED_PLUGINS
     from pemamoe.nets import NETWORKS
-    from pemamoe.phase_controller import PLASTICITY_METHODS
+    from pemamoe.population_plasticity import PLASTICITY_METHODS
 
     METHOD_REGISTRY.pop("ln_mlp_sp", None), NETWORKS.pop("ln_mlp", None), PLASTICITY_METHODS.pop("shrink_perturb", None)
     _LOADED_PLUGINS.discard("my_methods")

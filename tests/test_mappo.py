@@ -19,7 +19,8 @@ from pemamoe.mappo import (
     compute_gae,
     train,
 )
-from pemamoe.phase_controller import PhaseControllerConfig, PhaseControllerMethod
+from pemamoe.phase_controller import PhaseControllerConfig
+from pemamoe.population_plasticity import PhaseControllerMethod
 
 
 @pytest.fixture(autouse=True)

@@ -14,7 +14,7 @@ import torch
 import pemamoe.mappo as mappo
 from pemamoe.mappo import TIMING_COLUMNS, TrainConfig, train, train_population
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.phase_controller import PhaseControllerMethod, RunAdamW, group_index
+from pemamoe.population_plasticity import PhaseControllerMethod, RunAdamW, group_index
 
 
 @pytest.fixture(autouse=True)
