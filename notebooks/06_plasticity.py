@@ -681,7 +681,7 @@ class PhaseController:
 # ## What the trainer runs
 #
 # The trainer (notebook 07) trains R runs at once, their parameters stacked on a leading run axis
-# (notebook 05), so it calls the population twin of this controller, `PhaseControllerMethod`
+# (appendix 05b), so it calls the population twin of this controller, `PhaseControllerMethod`
 # (appendix 06b): the same config, the same schedule functions and one `IterationSettings` per
 # member, acting on each member's row of the parameters and of the optimizer state. The baselines
 # run `NoPlasticity` there, the shared PPO schedule and nothing else.

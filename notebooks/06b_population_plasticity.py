@@ -18,7 +18,7 @@
 # method can skip:
 #
 # * **plasticity methods** acting on each member of a population of runs whose parameters are
-#   stacked on a leading run axis (notebook 05): the interface and the baselines' `NoPlasticity`,
+#   stacked on a leading run axis (notebook 05b): the interface and the baselines' `NoPlasticity`,
 #   PE-MAMoE's `PhaseControllerMethod`, and the registry (`register_plasticity`,
 #   `plasticity_method`) through which the trainer and plug-ins find them;
 # * `RunAdamW`, AdamW over a population's stacked parameters with per-member learning rates,
@@ -62,7 +62,7 @@ from pemamoe.phase_controller import (
 # ## Plasticity methods for a population of runs
 #
 # The trainer (notebook 07) trains R runs at once, their parameters stacked on a leading run
-# axis (notebook 05, "A population of networks"). Everything that changes the optimisation at a
+# axis (appendix 05b). Everything that changes the optimisation at a
 # phase switch is a **plasticity method**: a small object with a fixed set of hooks that the
 # trainer calls, which acts on each member separately and only ever touches that member's row of
 # the parameters and of the optimizer state.
@@ -666,7 +666,7 @@ assert worst < 1e-6
 assert critic_lr[0][0] < demo_base.lr and all(pop == demo_base.lr for _, pop in critic_lr)
 
 # %% [markdown]
-# **The registry.** The trainer finds a method by the name a `MethodSpec` gives (notebook 05);
+# **The registry.** The trainer finds a method by the name a `MethodSpec` gives (appendix 05b);
 # an unknown name is an error listing the known ones.
 
 # %%
