@@ -3,7 +3,7 @@
 
 __all__ = ['EXPERT_IMPLS', 'ACTIVE_MODES', 'MAC_MODES', 'PAPER_OBS_DIM', 'PAPER_ACTOR_PARAMS', 'PAPER_ACTIVE_PARAMS', 'NetConfig', 'ExpertBank', 'RoutingSample', 'GateOutput', 'load_balance_loss', 'GatedExperts', 'GaussianActor', 'MLPActor', 'MoEActor', 'SMoEActor', 'MLPCritic', 'MoECritic', 'SMoECritic', 'NETWORKS', 'register_network', 'network_kind', 'make_actor', 'make_critic', 'count_parameters', 'active_parameters', 'macs_per_step']
 
-# %% notebooks/05_moe_actor.py, cell 4 (line 47)
+# %% notebooks/05_moe_actor.py, cell 4 (line 51)
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -22,7 +22,7 @@ from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gau
                              run_linear, run_load_balance)
 
 
-# %% notebooks/05_moe_actor.py, cell 8 (line 141)
+# %% notebooks/05_moe_actor.py, cell 8 (line 145)
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
@@ -66,7 +66,7 @@ class NetConfig:
             require_field(self, name, "real", gt=0)
 
 
-# %% notebooks/05_moe_actor.py, cell 10 (line 212)
+# %% notebooks/05_moe_actor.py, cell 10 (line 216)
 class ExpertBank(nn.Module):
     """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
 
@@ -146,7 +146,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05_moe_actor.py, cell 12 (line 330)
+# %% notebooks/05_moe_actor.py, cell 12 (line 334)
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -287,7 +287,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 14 (line 504)
+# %% notebooks/05_moe_actor.py, cell 14 (line 508)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -300,7 +300,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 518)
+# %% notebooks/05_moe_actor.py, cell 15 (line 522)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -505,7 +505,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 17 (line 735)
+# %% notebooks/05_moe_actor.py, cell 17 (line 739)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -574,7 +574,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 20 (line 833)
+# %% notebooks/05_moe_actor.py, cell 20 (line 837)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 
