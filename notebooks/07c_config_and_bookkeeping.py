@@ -29,8 +29,8 @@
 #   environment state into one state per member.
 #
 # Neither module imports `pemamoe.mappo`; `pemamoe.mappo` imports both and re-exports the names
-# callers already import from it (`from pemamoe.mappo import TrainConfig` keeps working). Moving
-# the code here changed no number: `config.json` and every `config_hash()` are what they were.
+# callers import from it (`from pemamoe.mappo import TrainConfig` works, as does
+# `from pemamoe.train_config import TrainConfig`).
 
 # %%
 #| default_exp train_config
@@ -78,8 +78,8 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 # **identity**: `to_dict` with three adjustments, each so that two configs share a hash exactly
 # when they compute the same thing.
 #
-# * A baseline's phase-controller settings are dropped, since they cannot change its run (the
-#   noise sweep's γ values over the MoE baseline are then one run, not three).
+# * A baseline's phase-controller settings are dropped, since they cannot change its run (three
+#   noise levels given to a baseline without `force_controller` are one run, not three).
 # * The fully resolved `EnvConfig` is added, so a changed environment default (or step engine)
 #   gives new folders instead of silently reusing results computed under the old one.
 # * `device` is replaced by the device it resolves to (a CUDA run is not bit-identical to a CPU
