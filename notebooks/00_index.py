@@ -34,10 +34,10 @@
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/diagnostics.py` | schedule figures |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
-| (appendix to IV-B) the run's configuration, presets' code, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
+# | (appendix to IV-B) the run's configuration, presets' code, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
-| (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
+# | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #
