@@ -36,9 +36,11 @@
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
 # | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
+# | (appendix to IV-B) the run's configuration, presets' code, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
+# | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #

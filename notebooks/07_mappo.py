@@ -18,6 +18,11 @@
 # notebook 06 are wired into one PPO loop, `train(config)`, that every experiment of the paper
 # runs (the four methods MLP, MoE, SMoE and PE-MAMoE, the noise sweep and the tricks ablation).
 #
+# The run's configuration object and the trainer's bookkeeping (episode accounting, the log row,
+# checkpoint encoding) are in appendix 07c, and run folders in 07b, so what remains here is the
+# method. The notebook is still longer than about 800 lines because the rollout, the update and
+# the training loop are the algorithm and read best top to bottom, in one place.
+#
 # **Centralised training, decentralised execution (CTDE).** Each of the $U = 3$ UAVs acts on its
 # *own* local observation: the actor never sees the other UAVs' observations or the global state,
 # so it can run on board. One set of actor weights is shared by all UAVs (parameter sharing): the
@@ -98,13 +103,11 @@ results_dir = "results"
 # %%
 #| export
 import dataclasses
-import hashlib
 import json
 import math
-import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -114,7 +117,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.core import SCALES, atomic_path, by_scale, check_scale, config_error, require_field
+from pemamoe.bookkeeping import (EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases,
+                                 _merged_phases, _progress_bar, _torch_save_atomic, _write_parquet_atomic,
+                                 explained_variance, merge_env_states, split_env_state)
+from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -132,6 +138,9 @@ from pemamoe.population_plasticity import (
 from pemamoe.phases import PhaseSchedule
 from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
                           verify_done, write_done)
+# the configuration (appendix 07c), re-exported: callers import TrainConfig and the presets from here
+from pemamoe.train_config import (DEVICES, MEDIUM_PHASE_ITERS, METHODS, PAPER_PHASE_LENGTH, PAPER_UPDATE_EPOCHS,
+                                  TIMING_COLUMNS, TrainConfig, _is_int, _plain, resolve_device, scale_controller)
 
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose
@@ -204,306 +213,14 @@ from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_
 # The controller runs only for `method="pemamoe"`; `force_controller=True` runs it for a baseline
 # as well (the noise sweep's "MoE with expert noise alone" uses it). A baseline's controller
 # settings are left out of its config hash, since they cannot change its run.
-
-# %%
-#| export
-METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
-DEVICES = ("cpu", "cuda", "auto")
-PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
-PAPER_UPDATE_EPOCHS = 8
-# Columns that describe how a run was executed (speed, population size), not what it computed:
-# they differ between two executions of the same run and are left out of every comparison.
-TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
-
-
-def resolve_device(name: str) -> torch.device:
-    """"cpu", "cuda" or "auto" (CUDA when available) -> torch.device."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("TrainConfig.device is 'cuda' but torch sees no CUDA device; use 'cpu' or 'auto'")
-    return torch.device(name)
-
-
-def _is_int(v):
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-
-def _plain(v):
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, (tuple, list)):
-        return type(v)(_plain(x) for x in v)
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    return v
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Every number of one MAPPO run (defaults: the paper's training table; see notebook 07)."""
-
-    method: str = "pemamoe"  # a name in pemamoe.methods.METHOD_REGISTRY: network kind and plasticity method
-    force_controller: bool = False  # True: run the phase controller for a baseline too (e.g. MoE + noise only)
-    seed: int = 0
-    # budget and phase clock
-    num_envs: int = 64
-    rollout_steps: int = 32  # slots per environment per iteration (64 x 32 = 2048 env steps)
-    iterations: int = 10800
-    phase_length_iters: int = 1200  # L: the phase advances every L iterations
-    n_phases: int = 3
-    # None: the phases cycle (the paper). An int: every iteration is in that phase and there is no
-    # switch (the learning-budget study, notebook 09); members of a population may hold different ones.
-    fixed_phase: int | None = None
-    # PPO update
-    update_epochs: int = 8
-    num_minibatches: int = 32
-    lr: float = 3e-4
-    weight_decay: float = 1e-4  # decoupled (AdamW)
-    adam_betas: tuple = (0.9, 0.999)
-    adam_eps: float = 1e-5
-    anneal_lr: bool = False
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_coef: float = 0.15
-    clip_vloss: bool = False
-    vf_coef: float = 2.0
-    ent_start: float = 0.01
-    ent_end: float = 0.003
-    ent_anneal_portion: float = 0.3  # of the whole run (baselines)
-    target_kl: float | None = 0.1  # per minibatch; None disables the early stop
-    max_grad_norm: float = 0.5
-    norm_adv: bool = True
-    value_norm: bool = True
-    # environment, networks, phase controller
-    env_overrides: dict = field(default_factory=dict)
-    net: NetConfig = field(default_factory=NetConfig)
-    controller: PhaseControllerConfig = field(default_factory=PhaseControllerConfig)
-    # diagnostics, logging, checkpoints
-    probe_size: int = 512  # rows of the fixed probe batch for the plasticity diagnostics
-    diag_every: int = 50  # iterations between diagnostics (also at switches and at the end)
-    checkpoint_every: int = 100  # iterations between checkpoints and log flushes
-    device: str = "cpu"  # networks and the update: "cpu", "cuda" or "auto"; the environment stays on the CPU
-
-    def __post_init__(self):
-        own = "TrainConfig"
-        if isinstance(self.method, str):
-            try:
-                method_spec(self.method)  # loads $PEMAMOE_PLUGINS on an unknown name
-            except ValueError:
-                pass
-        require_field(self, "method", "choice", tuple(METHOD_REGISTRY))
-        require_field(self, "device", "choice", DEVICES)
-        require_field(self, "seed", "int", ge=0)
-        for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
-                     "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
-            require_field(self, name, "int", ge=1)
-        require_field(self, "n_phases", "int", ge=1, le=3)
-        require_field(self, "fixed_phase", "int", ge=0, lt=self.n_phases, optional=True,
-                      note=f"a phase index below n_phases = {self.n_phases}, or None to cycle")
-        batch = self.num_envs * self.rollout_steps
-        if batch % self.num_minibatches or self.num_minibatches > batch:
-            raise config_error(own, "num_minibatches", self.num_minibatches,
-                               f"a divisor of num_envs * rollout_steps = {batch}")
-        require_field(self, "lr", "real", gt=0)
-        require_field(self, "weight_decay", "real", ge=0)
-        require_field(self, "adam_betas", "reals", ge=0, lt=1, length=2)
-        require_field(self, "adam_eps", "real", gt=0)
-        require_field(self, "gamma", "real", ge=0, le=1)
-        require_field(self, "gae_lambda", "real", ge=0, le=1)
-        require_field(self, "clip_coef", "real", gt=0)
-        require_field(self, "vf_coef", "real", ge=0)
-        for name in ("ent_start", "ent_end"):
-            require_field(self, name, "real", ge=0)
-        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
-        require_field(self, "target_kl", "real", gt=0, optional=True)
-        require_field(self, "max_grad_norm", "real", gt=0)
-        for name in ("force_controller", "anneal_lr", "clip_vloss", "norm_adv", "value_norm"):
-            require_field(self, name, "bool")
-        if not isinstance(self.net, NetConfig):
-            raise config_error(own, "net", self.net, "a NetConfig")
-        if not isinstance(self.controller, PhaseControllerConfig):
-            raise config_error(own, "controller", self.controller, "a PhaseControllerConfig")
-        if not isinstance(self.env_overrides, dict):
-            raise config_error(own, "env_overrides", self.env_overrides, "a dict of EnvConfig overrides")
-        if self.env_overrides.get("phase_clock", "external") != "external":
-            raise config_error(own, "env_overrides", self.env_overrides,
-                               "free of phase_clock other than 'external' (the trainer owns the phase clock)")
-        try:
-            self.env_config()
-        except (ValueError, TypeError) as err:
-            raise ValueError(f"TrainConfig.env_overrides is invalid: {err}") from err
-        # numpy scalars -> Python numbers, so that to_dict / config_hash never meet a type JSON cannot write
-        object.__setattr__(self, "env_overrides", {k: _plain(v) for k, v in self.env_overrides.items()})
-
-    # -- derived quantities ---------------------------------------------------------------------
-    @property
-    def batch_env_steps(self) -> int:
-        """Environment steps per iteration (num_envs * rollout_steps)."""
-        return self.num_envs * self.rollout_steps
-
-    @property
-    def total_env_steps(self) -> int:
-        return self.iterations * self.batch_env_steps
-
-    @property
-    def controller_enabled(self) -> bool:
-        return self.method_spec().plasticity == "phase_controller" or self.force_controller
-
-    def method_spec(self):
-        """The registry entry of this run's method (network kind, plasticity method, label)."""
-        return method_spec(self.method)
-
-    def env_config(self) -> EnvConfig:
-        """The environment's config, with the phase clock owned by the trainer."""
-        return EnvConfig.from_overrides(**{**self.env_overrides, "phase_clock": "external"})
-
-    def base_schedule(self) -> BaseSchedule:
-        return BaseSchedule(
-            lr=self.lr, clip_coef=self.clip_coef, target_kl=self.target_kl, ent_start=self.ent_start,
-            ent_end=self.ent_end, ent_anneal_portion=self.ent_anneal_portion,
-            total_iterations=self.iterations, phase_length=self.phase_length_iters)
-
-    # -- copies ------------------------------------------------------------------------------------
-    def replace(self, **changes) -> "TrainConfig":
-        return dataclasses.replace(self, **changes)
-
-    def without(self, *mechanisms: str) -> "TrainConfig":
-        """The same run with phase-controller mechanisms switched off (ablations)."""
-        ctrl = self.controller
-        for m in mechanisms:
-            ctrl = ctrl.without(m)
-        return self.replace(controller=ctrl)
-
-    # -- serialisation -------------------------------------------------------------------------
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["adam_betas"] = list(self.adam_betas)
-        return json.loads(json.dumps(d, sort_keys=True))  # plain JSON types only
-
-    def label(self) -> str:
-        """Display label of this run's variant: the method's label, plus any ablation or gamma."""
-        parts = [self.method_spec().label]
-        if self.controller_enabled:
-            off = [m for m in MECHANISMS if not getattr(self.controller, m)]
-            if off:
-                parts.append("w/o " + "+".join(off))
-            if self.force_controller:
-                parts.append("+ controller")
-        return " ".join(parts)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        d = dict(d)
-        d["net"] = NetConfig(**d.get("net", {}))
-        d["controller"] = PhaseControllerConfig(**d.get("controller", {}))
-        d["adam_betas"] = tuple(d.get("adam_betas", (0.9, 0.999)))
-        d.pop("label", None)
-        return cls(**d)
-
-    def identity(self) -> dict:
-        """What determines the computation: to_dict() without the phase controller for the
-        baselines, which never use it (so a noise sweep over the MoE baseline is one run), plus
-        the fully resolved environment, so a changed environment default (or step engine) can
-        never reuse results computed under the old one."""
-        d = self.to_dict()
-        if not self.controller_enabled:
-            d.pop("controller")
-        d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
-        d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
-        if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged
-            d.pop("fixed_phase")
-        return d
-
-    def config_hash(self) -> str:
-        """12 hex digits identifying the run (for result caches); see `identity`."""
-        text = json.dumps(self.identity(), sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(text.encode()).hexdigest()[:12]
-
-    def run_name(self) -> str:
-        return f"{self.method}-s{self.seed}-{self.config_hash()}"
-
-    # -- presets --------------------------------------------------------------------------------
-    @classmethod
-    def for_scale(cls, scale: str, method: str = "pemamoe", seed: int = 0, **overrides) -> "TrainConfig":
-        """Preset for scale "ci" | "small" | "medium" | "paper", then `overrides`.
-
-        An override may name a TrainConfig field, a PhaseControllerConfig field (e.g.
-        noise_gamma=0.01), a NetConfig field, or `without=("noise_injection", ...)`.
-        Controller windows are rescaled to the preset's phase length unless overridden.
-        """
-        check_scale(scale)
-        preset = by_scale(
-            scale,
-            ci=dict(num_envs=4, rollout_steps=16, iterations=6, phase_length_iters=2, update_epochs=2,
-                    num_minibatches=2, probe_size=48, diag_every=2, checkpoint_every=2),
-            small=dict(num_envs=16, rollout_steps=32, iterations=540, phase_length_iters=60, update_epochs=4,
-                       num_minibatches=4, probe_size=256, diag_every=5, checkpoint_every=40),
-            # the small update settings, each phase long enough to learn in (notebook 09b), 3 phases x 2 cycles
-            medium=dict(num_envs=16, rollout_steps=32, iterations=6 * MEDIUM_PHASE_ITERS,
-                        phase_length_iters=MEDIUM_PHASE_ITERS, update_epochs=4, num_minibatches=4, probe_size=256,
-                        diag_every=20, checkpoint_every=100),
-            paper=dict(num_envs=64, rollout_steps=32, iterations=10800, phase_length_iters=1200, update_epochs=8,
-                       num_minibatches=32, probe_size=512, diag_every=50, checkpoint_every=100),
-        )
-        own = {f.name for f in fields(cls)}
-        ctrl_names = {f.name for f in fields(PhaseControllerConfig)}
-        net_names = {f.name for f in fields(NetConfig)}
-        top, ctrl_over, net_over, without = {}, {}, {}, ()
-        for key, value in overrides.items():
-            if key == "without":
-                without = (value,) if isinstance(value, str) else tuple(value)
-            elif key in own:
-                top[key] = value
-            elif key in ctrl_names:
-                ctrl_over[key] = value
-            elif key in net_names:
-                net_over[key] = value
-            else:
-                raise ValueError(
-                    f"TrainConfig.for_scale: unknown override {key!r}; use a field of TrainConfig, "
-                    f"PhaseControllerConfig or NetConfig, or without=(mechanisms...)")
-        settings = {**preset, **top}
-        preset = PhaseControllerConfig(**dict(method_spec(method).plasticity_preset))  # the method's preset
-        ctrl = settings.pop("controller", None) or scale_controller(
-            preset, settings["phase_length_iters"], settings["update_epochs"])
-        if ctrl_over:
-            ctrl = dataclasses.replace(ctrl, **ctrl_over)
-        for m in without:
-            ctrl = ctrl.without(m)
-        net = settings.pop("net", None) or NetConfig()
-        if net_over:
-            net = dataclasses.replace(net, **net_over)
-        return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
-
-
-MEDIUM_PHASE_ITERS = 1200  # x 512 = 614k environment steps per phase; the reason is in notebook 09b
-
-
-def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:
-    """Rescale the controller's windows from the paper's 1200-iteration, 8-epoch phases to
-    `phase_length_iters` iterations of `update_epochs` epochs (each window >= 1 if non-zero)."""
-    r = phase_length_iters / PAPER_PHASE_LENGTH
-    r_epochs = r * update_epochs / PAPER_UPDATE_EPOCHS
-
-    def window(n, ratio):
-        return 0 if n == 0 else max(1, int(round(n * ratio)))
-
-    if r == 1 and r_epochs == 1:
-        return ctrl
-    return dataclasses.replace(
-        ctrl,
-        lr_warmup_iters=window(ctrl.lr_warmup_iters, r),
-        conservative_iters=window(ctrl.conservative_iters, r),
-        router_freeze_iters=window(ctrl.router_freeze_iters, r),
-        noise_epochs=window(ctrl.noise_epochs, r if ctrl.noise_window_unit == "iterations" else r_epochs),
-        kl_decay=float(ctrl.kl_decay ** (1.0 / r)),
-        tau_beta=float(ctrl.tau_beta / r),
-    )
-
+#
+# The code behind these presets, and `TrainConfig` itself (its fields and their checks, `to_dict`
+# and `from_dict` for `config.json`, the identity and hash that name a run's folder), is in the
+# appendix notebook 07c (`pemamoe.train_config`); this notebook's module imports it from there and
+# re-exports it.
 
 # %% [markdown]
-# The three presets side by side (the columns that differ, and the rescaled controller windows):
+# The presets side by side (the columns that differ, and the rescaled controller windows):
 
 # %%
 _rows = []
@@ -516,10 +233,6 @@ for _s in SCALES:
                   "conservative": _c.controller.conservative_iters, "freeze": _c.controller.router_freeze_iters,
                   "noise epochs": _c.controller.noise_epochs, "kl decay": round(_c.controller.kl_decay, 4)})
 pd.DataFrame(_rows)
-
-# %%
-assert TrainConfig.for_scale("paper").total_env_steps == 22_118_400
-assert TrainConfig.for_scale("paper").controller == PhaseControllerConfig()
 
 # %% [markdown]
 # ## The phase clock
@@ -670,92 +383,14 @@ class RunningNorm:
 # reason. Actions are stored unclipped (the log-probability belongs to the sampled Gaussian
 # action); the environment clips them to $[-1, 1]^2$ and reports it in `info`.
 #
-# A small `EpisodeTracker` accumulates each environment's running episode (team return and the
-# system metrics) and emits one row per finished episode.
+# `EpisodeTracker` (appendix 07c) accumulates each environment's running episode (team return and
+# the system metrics) and emits one row per finished episode.
 
 # %%
 #| export
-_EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
-_EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
-
-
-class EpisodeTracker:
-    """Running sums of each environment's current episode; one row per finished episode.
-
-    With `members` > 1 the environments are split into that many equal blocks (one per run of
-    a population): each block numbers its episodes and its environments from 0, exactly as if
-    it ran alone, and `update` returns one list of rows per member.
-    """
-
-    def __init__(self, num_envs: int, members: int = 1):
-        if num_envs % members:
-            raise ValueError(f"num_envs={num_envs} must split into members={members} equal blocks")
-        self.num_envs, self.members, self.per_member = num_envs, members, num_envs // members
-        self.episodes = np.zeros(members, dtype=np.int64)
-        self.ret = np.zeros(num_envs)
-        self.length = np.zeros(num_envs, dtype=np.int64)
-        self.phase_start = np.full(num_envs, -1, dtype=np.int64)
-        self.sums = {k: np.zeros(num_envs) for k in _EPISODE_SUMS + _EPISODE_MEANS}
-
-    def update(self, reward, info, terminated, truncated, iteration: int) -> list:
-        """Add one step; returns the finished episodes' rows (of every member, in environment order)."""
-        return [row for rows in self.update_members(reward, info, terminated, truncated, iteration) for row in rows]
-
-    def update_members(self, reward, info, terminated, truncated, iteration: int) -> list:
-        """Add one step; returns one list of finished-episode rows per member."""
-        phase = np.asarray(info["phase"], dtype=np.int64)
-        self.phase_start = np.where(self.length == 0, phase, self.phase_start)
-        self.ret += reward
-        self.length += 1
-        for k in self.sums:
-            self.sums[k] += np.asarray(info[k], dtype=float)
-        rows = [[] for _ in range(self.members)]
-        for b in np.flatnonzero(terminated | truncated):
-            n, r = int(self.length[b]), int(b // self.per_member)
-            row = {"episode": int(self.episodes[r]), "iteration": int(iteration), "env": int(b % self.per_member),
-                   "phase": int(phase[b]), "phase_start": int(self.phase_start[b]), "return": float(self.ret[b]),
-                   "length": n, "terminated": bool(terminated[b]), "truncated": bool(truncated[b] and not terminated[b])}
-            row.update({k: float(self.sums[k][b]) for k in _EPISODE_SUMS})
-            row.update({k: float(self.sums[k][b] / n) for k in _EPISODE_MEANS})
-            rows[r].append(row)
-            self.episodes[r] += 1
-            self._clear(b)
-        return rows
-
-    def _clear(self, b) -> None:
-        self.ret[b], self.length[b] = 0.0, 0
-        for k in self.sums:
-            self.sums[k][b] = 0.0
-
-    def discard_running(self) -> None:
-        """Forget every unfinished episode (the environments were restarted)."""
-        self._clear(slice(None))
-
-    def member_state(self, r: int) -> dict:
-        rows = slice(r * self.per_member, (r + 1) * self.per_member)
-        return {"episodes": int(self.episodes[r]), "ret": torch.from_numpy(self.ret[rows].copy()),
-                "length": torch.from_numpy(self.length[rows].copy()),
-                "phase_start": torch.from_numpy(self.phase_start[rows].copy()),
-                "sums": {k: torch.from_numpy(v[rows].copy()) for k, v in self.sums.items()}}
-
-    def load_member_state(self, r: int, state: dict) -> None:
-        rows = slice(r * self.per_member, (r + 1) * self.per_member)
-        self.episodes[r] = int(state["episodes"])
-        self.ret[rows], self.length[rows] = state["ret"].numpy(), state["length"].numpy()
-        self.phase_start[rows] = state["phase_start"].numpy()
-        for k, v in state["sums"].items():
-            self.sums[k][rows] = v.numpy()
-
-    def state_dict(self) -> dict:
-        if self.members != 1:
-            raise ValueError("state_dict() is for a single run; use member_state(r)")
-        return self.member_state(0)
-
-    def load_state_dict(self, state: dict) -> None:
-        self.load_member_state(0, state)
 
 
 class Rollout(NamedTuple):
@@ -1041,13 +676,6 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
                first_ratio_dev=first_ratio_dev.double().tolist(), noised_experts=noised)
     return out
 
-
-def explained_variance(pred, target) -> float:
-    """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
-    pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
-    var = target.var(unbiased=False)
-    return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
-
 # %% [markdown]
 # ## Probe batch, checkpoints and the training loop
 #
@@ -1056,79 +684,12 @@ def explained_variance(pred, target) -> float:
 # once per run from a separate copy of the environment (its own seed, random actions, a third of
 # the rows from each phase); it depends only on the config, so a resumed run rebuilds the same one.
 #
-# A **checkpoint** holds everything the next iteration reads: both networks, the optimiser (its
-# moments and step counts), the return normaliser, the phase controller (its KL reference, noise
-# budget and random generator), the torch and numpy random states, the environments' complete
-# state including their random streams, the current observations, the running episodes and the
-# log rows so far. Everything is stored as tensors, plain numbers, strings and dicts, so
-# `torch.load(..., weights_only=True)` reads it without unpickling code. Files are written to a
-# temporary name and renamed, so a killed run leaves the previous complete file, never a torn one.
-#
-# Run directory layout:
-#
-# | file | content |
-# |---|---|
-# | `config.json` | the resolved `TrainConfig` (`TrainConfig.from_dict` reads it back) |
-# | `metrics.parquet` | one row per iteration (columns below) |
-# | `episodes.parquet` | one row per finished training episode |
-# | `checkpoint.pt` | the resumable state (above) |
-# | `done.json` | written last: the run finished, sealed with its config hash, iteration count and the logs' sha256; `train` then returns the stored result once it verifies (notebook 07b) |
-# | `.lock` | the writer's lock, holding its PID (notebook 07b) |
-
-# %%
-#| exporti
-def _encode(obj):
-    """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
-    if isinstance(obj, np.ndarray):
-        return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(obj).copy())}
-    if isinstance(obj, dict):
-        return {k: _encode(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_encode(v) for v in obj)
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
-
-
-def _decode(obj):
-    if isinstance(obj, dict):
-        if set(obj) == {"__ndarray__"}:
-            return obj["__ndarray__"].numpy().copy()
-        return {k: _decode(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_decode(v) for v in obj)
-    return obj
-
-
-def _torch_save_atomic(obj, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
-def _write_parquet_atomic(rows: list, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        pd.DataFrame(rows).to_parquet(tmp, engine="pyarrow", index=False)
-
-
-class _Determinism:
-    """Single-threaded, deterministic torch for the duration of a run (restored afterwards)."""
-
-    def __init__(self, threads: int | None):
-        self.threads = threads
-
-    def __enter__(self):
-        self.old = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled())
-        if self.threads is not None:
-            torch.set_num_threads(int(self.threads))
-        # cuBLAS needs a fixed workspace for deterministic products on a GPU; read when CUDA starts
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        torch.use_deterministic_algorithms(True)
-        return self
-
-    def __exit__(self, *exc):
-        torch.set_num_threads(self.old[0])
-        torch.use_deterministic_algorithms(self.old[1])
-        return False
+# A **checkpoint** holds everything the next iteration reads (both networks, the optimiser's
+# moments and step counts, the return normaliser, the phase controller, the random states, the
+# environments' complete state, the current observations, the running episodes and the log rows
+# so far), so a run resumed from it continues bit for bit. How a checkpoint is encoded, the run
+# folder's files and the columns of the per-iteration log row are in appendix 07c; how a folder is
+# locked, sealed and checked before it is trusted, in appendix 07b.
 
 # %%
 #| export
@@ -1192,39 +753,6 @@ def load_run(run_dir) -> RunResult:
     critic.load_state_dict(ckpt["critic"])
     return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
                      actor, critic, run_dir, finished=done is not None, from_cache=True)
-
-
-def split_env_state(state: dict, rows) -> dict:
-    """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
-    rows = np.asarray(rows)
-    rng = state["rng"]
-    return {"arrays": {k: v[rows].copy() for k, v in state["arrays"].items()},
-            "rng": {"buffers": {k: v[rows].copy() for k, v in rng["buffers"].items()},
-                    "cursor": {k: v[rows].copy() for k, v in rng["cursor"].items()},
-                    "generators": [rng["generators"][i] for i in rows]},
-            "external_phase": _member_phases(state["external_phase"], rows)}
-
-
-def merge_env_states(states: list) -> dict:
-    """Concatenate member environment states (inverse of split_env_state)."""
-    first = states[0]
-    return {"arrays": {k: np.concatenate([s["arrays"][k] for s in states]) for k in first["arrays"]},
-            "rng": {"buffers": {k: np.concatenate([s["rng"]["buffers"][k] for s in states]) for k in first["rng"]["buffers"]},
-                    "cursor": {k: np.concatenate([s["rng"]["cursor"][k] for s in states]) for k in first["rng"]["cursor"]},
-                    "generators": [g for s in states for g in s["rng"]["generators"]]},
-            "external_phase": _merged_phases([s["external_phase"] for s in states],
-                                             [len(s["arrays"]["phase"]) for s in states])}
-
-
-def _member_phases(external, rows):
-    """One phase for all environments stays an int; a per-environment phase array is sliced."""
-    return external if np.ndim(external) == 0 else np.asarray(external)[rows].copy()
-
-
-def _merged_phases(phases: list, sizes: list):
-    if all(np.ndim(p) == 0 for p in phases) and len({int(p) for p in phases}) == 1:
-        return phases[0]
-    return np.concatenate([np.broadcast_to(np.asarray(p, dtype=np.int64), (n,)) for p, n in zip(phases, sizes)])
 
 
 # Fields that members of one population may set differently; every other field is shared.
@@ -1345,15 +873,6 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
         for lock in locks:
             lock.release()
     return results
-
-
-def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
-    from tqdm.auto import tqdm
-
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    return tqdm(total=total, initial=initial, disable=not enabled, desc=label, unit="it", dynamic_ncols=True,
-                leave=True)
 
 
 def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress) -> list:
@@ -1528,40 +1047,6 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
                                  actor.member(r, singles[r][0]), critic.member(r, singles[r][1]), run_dir,
                                  finished=finished, resumed_from=resumed_from))
     return results
-
-
-def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names, actor, norms, step_stats,
-                   episodes, upd, ro, ret, U) -> dict:
-    row = {"iteration": it, "phase": phase, "switch": switch, "env_steps": global_step,
-           "agent_steps": global_step * U}
-    ep = pd.DataFrame(episodes)
-    row["episodes"] = len(ep)
-    for name, col in (("episode_return", "return"), ("episode_length", "length"), ("coverage", "coverage"),
-                      ("served_users", "served_users"), ("uav_using_rate", "uav_using_rate"),
-                      ("energy_rate_kj", "energy_rate_kj"), ("collisions_per_episode", "collisions")):
-        row[name] = float(ep[col].mean()) if len(ep) else float("nan")
-    row.update({k: float(v[r]) for k, v in step_stats.items()})
-    row.update({k: upd[k][r] for k in _UPDATE_STATS})
-    row.update({k: upd[k][r] for k in ("early_stop_epoch", "gradient_steps", "first_ratio_dev", "noised_experts")})
-    row["explained_variance"] = explained_variance(ro.values[r].reshape(-1), ret[r].reshape(-1))
-    s = sched.members[r]
-    lr_a, lr_c = float(sched.lr_actor[r]), float(sched.lr_critic[r])
-    for name in group_names:
-        row[f"lr/{name}"] = 0.0 if (name == "router" and s.router_frozen) else lr_a
-    row["lr/critic"] = lr_c
-    row.update({"clip_coef": s.clip_coef, "target_kl": float("nan") if s.target_kl is None else s.target_kl,
-                "ent_coef": s.ent_coef, "kl_coef": s.kl_coef,
-                "temperature/policy": s.policy_temperature, "temperature/value": s.value_temperature,
-                "router_frozen": s.router_frozen, "conservative": s.conservative,
-                "noise_epochs_left": s.noise_epochs_left,
-                "log_std_mean": float(actor.params()["log_std"][r].detach().double().mean()),
-                "value_norm/mean": float(norms.norms[r]._mean()), "value_norm/std": float(norms.norms[r].std)})
-    if ro.actor_routing is not None and actor.k < actor.n_experts:
-        counts = torch.bincount(ro.actor_routing.experts[r].reshape(-1).cpu(), minlength=actor.n_experts).double()
-        for j, c in enumerate(counts / counts.sum()):
-            row[f"rollout/expert_frac{j}"] = float(c)
-    return row
-
 
 
 # %% [markdown]

@@ -166,7 +166,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
 # %% [markdown]
 # ## Same run or not: the config's identity
 #
-# `TrainConfig.identity()` is what determines the computation (notebook 07); two configs with the
+# `TrainConfig.identity()` is what determines the computation (appendix 07c); two configs with the
 # same identity give the same run. A stored config is compared by identity, and a mismatch lists
 # the differing keys with both values, e.g. `seed: stored 1, requested 0`.
 
