@@ -679,7 +679,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
 # %% [markdown]
 # ## Probe batch, checkpoints and the training loop
 #
-# The plasticity diagnostics of notebook 06 need a **fixed** probe batch, so that a change in
+# The plasticity diagnostics of appendix 06b need a **fixed** probe batch, so that a change in
 # expert rank or dormant fraction reflects the network and not the data. `collect_probe` draws it
 # once per run from a separate copy of the environment (its own seed, random actions, a third of
 # the rows from each phase); it depends only on the config, so a resumed run rebuilds the same one.

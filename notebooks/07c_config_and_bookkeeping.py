@@ -430,7 +430,7 @@ assert TrainConfig.for_scale("paper").controller == PhaseControllerConfig()
 # the explained variance of the critic, the learning rate of every parameter group and the
 # schedule the phase controller handed out, the log-std and the value normaliser's mean and
 # standard deviation, and, for sparse gating, the share of rollout rows routed to each expert. The
-# trainer adds the diagnostics of notebook 06 and the timing columns. `_progress_bar` is the
+# trainer adds the diagnostics of appendix 06b and the timing columns. `_progress_bar` is the
 # trainer's optional tqdm bar (shown by default only when stderr is a terminal).
 
 # %%

@@ -320,7 +320,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
 # and the display `label` of `TrainConfig.label()`.
 #
 # Which methods exist, in which order, with which label and colour, comes from the method registry
-# (`pemamoe.methods`, notebook 05): a method registered by outside code (a plugin) appears in every
+# (`pemamoe.methods`, appendix 05b): a method registered by outside code (a plugin) appears in every
 # figure below without a change here.
 
 # %%
@@ -695,7 +695,7 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
 # ## Plasticity indicators
 #
 # Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
-# trunk), and the dormant-neuron fraction under both definitions of notebook 06, averaged over
+# trunk), and the dormant-neuron fraction under both definitions of appendix 06b, averaged over
 # layers and experts: the **paper's** (a unit whose mean absolute pre-activation is below
 # δ = 0.01) and **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025). They
 # measure different things (collapsed units versus silent ones), so the figure shows both.
