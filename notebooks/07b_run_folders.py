@@ -46,6 +46,10 @@
 # %%
 #| default_exp runs
 
+# %% tags=["parameters"]
+scale = "small"  # `make figures` passes these to every notebook; this one draws no figure
+figures_dir = "paper_figures"
+
 # %%
 #| export
 import fcntl

@@ -3,7 +3,7 @@
 
 __all__ = ['RUN_FILES', 'LOG_FILES', 'DONE_FORMAT', 'LOCK_NAME', 'RunFolderError', 'RunLockedError', 'check_run_dir', 'read_json', 'read_parquet', 'read_config', 'load_checkpoint', 'config_difference', 'check_stored_config', 'file_digest', 'write_done', 'verify_done', 'prepare_run_dir', 'RunLock', 'lock_run', 'holder_pid']
 
-# %% notebooks/07b_run_folders.py, cell 3 (line 49)
+# %% notebooks/07b_run_folders.py, cell 4 (line 53)
 import fcntl
 import hashlib
 import json
@@ -46,7 +46,7 @@ def check_run_dir(run_dir) -> Path:
     return Path(run_dir)
 
 
-# %% notebooks/07b_run_folders.py, cell 5 (line 96)
+# %% notebooks/07b_run_folders.py, cell 6 (line 100)
 def read_json(path) -> dict:
     """A JSON object from `path`; RunFolderError (naming the file) when missing, empty or garbage."""
     path = Path(path)
@@ -115,7 +115,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
     return ck
 
 
-# %% notebooks/07b_run_folders.py, cell 7 (line 173)
+# %% notebooks/07b_run_folders.py, cell 8 (line 177)
 def config_difference(stored: dict, requested: dict, limit: int = 6) -> str:
     """The keys where two identity dicts differ, as `key: stored X, requested Y` (nested keys
     dotted, at most `limit` of them); "" when equal."""
@@ -146,7 +146,7 @@ def check_stored_config(stored: dict, config, path) -> None:
                              "use another run_dir, or resume=False to overwrite it")
 
 
-# %% notebooks/07b_run_folders.py, cell 8 (line 205)
+# %% notebooks/07b_run_folders.py, cell 9 (line 209)
 def _short(value, width: int = 60) -> str:
     text = repr(value)
     return text if len(text) <= width else text[:width - 3] + "..."
@@ -159,7 +159,7 @@ def _config_from_dict(d, cls, path):
         raise RunFolderError(path, f"does not hold a valid {cls.__name__} ({type(err).__name__}: {err})") from None
 
 
-# %% notebooks/07b_run_folders.py, cell 10 (line 225)
+# %% notebooks/07b_run_folders.py, cell 11 (line 229)
 def file_digest(path) -> str:
     """sha256 of a file's bytes, as hex."""
     h = hashlib.sha256()
@@ -232,7 +232,7 @@ def prepare_run_dir(run_dir, config, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-# %% notebooks/07b_run_folders.py, cell 12 (line 308)
+# %% notebooks/07b_run_folders.py, cell 13 (line 312)
 class RunLock:
     """The exclusive writer lock of one run folder (a context manager; see `lock_run`)."""
 
