@@ -712,8 +712,10 @@ obs, infos = env.reset(seed=seed)
 print("agents:", env.agents, "| observation dim:", observation_dim(env.cfg), "| state dim:", state_dim(env.cfg))
 print("observation layout:", observation_layout(env.cfg))
 total = 0.0
+rng = np.random.default_rng(seed)  # seeded actions (an unseeded `space.sample()` would change the frame every run)
 while env.agents:
-    actions = {a: env.action_space(a).sample() for a in env.agents}
+    actions = {a: rng.uniform(-1.0, 1.0, env.action_space(a).shape).astype(env.action_space(a).dtype)
+               for a in env.agents}
     obs, rewards, terms, truncs, infos = env.step(actions)
     total += rewards["uav_0"]
 print(f"random-policy episode return: {total:.1f}")
