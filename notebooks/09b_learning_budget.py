@@ -137,6 +137,37 @@ def seconds_to_reach(curves: pd.DataFrame, level: float, column: str = "coverage
     return pd.DataFrame(rows)
 
 
+def phase_learning(metrics: pd.DataFrame, plateaus: pd.DataFrame, column: str = "coverage",
+                   tail: float = PLATEAU_TAIL) -> pd.DataFrame:
+    """How close each phase visit of cycling runs came to the study's plateau: per method and
+    visit (the phase's k-th block of the schedule), the seed-mean of `column` over the last `tail`
+    of the visit's iterations (episodes ending there, iterations weighted by their episodes), and
+    its ratio to the plateau of that method in that phase (`plateaus`: plateau_table rows of one
+    update setting)."""
+    rows = []
+    for method, runs in metrics.groupby("method", sort=False):
+        one = runs[runs.run == runs.run.iloc[0]].sort_values("iteration")
+        its, phases = one.iteration.to_numpy(), one.phase.to_numpy()
+        starts = [0] + [i for i in range(1, len(its)) if phases[i] != phases[i - 1]]
+        bounds = list(zip(starts, starts[1:] + [len(its)]))
+        plateau = plateaus[plateaus.method == method].set_index("phase").plateau
+        for visit, (a, b) in enumerate(bounds):
+            first, last = its[a], its[b - 1]
+            cut = last - max(1, round(tail * (last - first + 1))) + 1
+            window = runs[(runs.iteration >= cut) & (runs.iteration <= last) & (runs.episodes > 0)]
+            per_seed = window.groupby("seed").apply(
+                lambda g: float((g[column] * g.episodes).sum() / g.episodes.sum()), include_groups=False)
+            phase = int(phases[a])
+            level = float(per_seed.mean()) if len(per_seed) else np.nan
+            ref = float(plateau.get(phase, np.nan))
+            rows.append({"method": method, "visit": visit, "phase": phase, "iterations": f"{first}-{last}",
+                         "seeds": len(per_seed), f"{column}_last_{round(tail * 100)}pct": level,
+                         "seed_min": float(per_seed.min()) if len(per_seed) else np.nan,
+                         "seed_max": float(per_seed.max()) if len(per_seed) else np.nan,
+                         "plateau": ref, "fraction_of_plateau": level / ref if ref > 0 else np.nan})
+    return pd.DataFrame(rows)
+
+
 # %% [markdown]
 # ## The runs
 #
@@ -244,3 +275,31 @@ have = medium.phase_length_iters * medium.batch_env_steps
 print(f"largest steps to {PLATEAU_FRACTION:.0%} of plateau (small update settings): {need:,.0f}")
 print(f"medium preset: {medium.phase_length_iters} iterations x {medium.batch_env_steps} = {have:,} steps per phase"
       f" -> {'covers' if have >= need else 'does NOT cover'} it")
+
+# %% [markdown]
+# ## Did each phase of the scale's own runs learn?
+#
+# The study's plateaus are the yardstick for the cycling runs of the main sweep at this notebook's
+# scale (notebook 09's runs, read from the same cache): for every method and every phase visit,
+# the coverage over the last 10 % of the visit and its fraction of that method's plateau in that
+# phase. The bar the `medium` scale has to clear is MLP at 85 % or more in every visit (and at
+# least 0.65 in phase 0); for the other methods the table reports the fraction, whatever it is. A
+# method far below its plateau is a finding, not something to tune away. The fractions compare a
+# run that switches phases with a run that never does: a later visit starts from a network
+# trained on other phases, which can help or hurt.
+
+# %%
+from pemamoe.analysis import load_runs
+from pemamoe.sweep import main_specs
+
+main_dirs = run_sweep(main_specs(scale, seeds, tuple(methods) if methods else METHODS), backend, workers,
+                      results_dir, ray_address)
+main_metrics, _ = load_runs(main_dirs)
+learned = phase_learning(main_metrics, table[table.settings == "small"])
+mlp_rows = learned[learned.method == "mlp"]
+mlp_ok = bool((mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()
+              and (mlp_rows[mlp_rows.phase == 0].coverage_last_10pct >= 0.65).all())
+print(f"scale {scale}: MLP at >= {PLATEAU_FRACTION:.0%} of its plateau in every visit and >= 0.65 in phase 0: "
+      f"{'yes' if mlp_ok else 'NO'}")
+write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
+learned

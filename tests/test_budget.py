@@ -97,3 +97,22 @@ def test_plateau_and_steps_to_85_percent_from_hand_made_curves():
     hit = seconds_to_reach(curves, 0.75).iloc[0]
     assert hit.env_steps == 600_000 and hit.compute_s == pytest.approx(600.0)
     assert np.isnan(seconds_to_reach(curves, 0.9).iloc[0].env_steps)
+
+
+def test_phase_learning_reads_the_last_tenth_of_each_visit_against_the_plateau():
+    from pemamoe.budget import phase_learning
+
+    rows = []
+    for seed, shift in ((0, -0.05), (1, 0.05)):
+        for it in range(40):  # 4 visits of 10 iterations: phases 0, 1, 2, 0
+            phase = (it // 10) % 3
+            rows.append({"run": f"mlp-s{seed}", "method": "mlp", "seed": seed, "iteration": it, "phase": phase,
+                         "episodes": 2 if it % 10 == 9 else 1, "coverage": 0.1 * phase + it / 100 + shift})
+    plateaus = pd.DataFrame({"method": "mlp", "phase": [0, 1, 2], "plateau": [0.5, 0.4, 0.5]})
+    out = phase_learning(pd.DataFrame(rows), plateaus)
+    assert out.visit.tolist() == [0, 1, 2, 3] and out.phase.tolist() == [0, 1, 2, 0]
+    assert out.iterations.tolist() == ["0-9", "10-19", "20-29", "30-39"]
+    # the last tenth of a 10-iteration visit is its last iteration: coverage it / 100 + 0.1 * phase
+    assert out.coverage_last_10pct.tolist() == pytest.approx([0.09, 0.29, 0.49, 0.39])
+    assert out.seed_min.tolist() == pytest.approx([0.04, 0.24, 0.44, 0.34])
+    assert out.fraction_of_plateau.tolist() == pytest.approx([0.18, 0.725, 0.98, 0.78])
