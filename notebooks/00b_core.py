@@ -560,9 +560,10 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
 
     figures_dir: default paper_figures/ (a relative path is under the repository root).
     stream:      print progress lines and the notebooks' own output (False: silent).
-    precompute:  first train every run of the scale's 39-run sweep (notebooks 09 and 10) as one
-                 sweep, so that compatible runs of different experiments share populations and the
-                 notebooks only read results (None: when all notebooks run).
+    precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
+                 09 and 10, and the learning-budget study of 09b) as one sweep, so that compatible
+                 runs of different experiments share populations, no notebook trains for hours
+                 under its timeout, and the notebooks only read results (None: when all notebooks run).
     extra:       further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
     """
     import subprocess
@@ -576,7 +577,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         from pemamoe.sweep import experiment_specs, run_sweep  # the sweep imports core: import here
 
         say(f"[figures] training the {scale} sweep first (cached runs are skipped)")
-        run_sweep(experiment_specs("all", scale), extra.get("backend", "local"), extra.get("workers", 2),
+        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale),
+                  extra.get("backend", "local"), extra.get("workers", 2),
                   repo_path(extra.get("results_dir", "results")), extra.get("ray_address"))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
