@@ -103,7 +103,14 @@ def budget_curves(metrics: pd.DataFrame, column: str = "coverage", block_steps: 
     g = m.groupby([*keys, "block"])
     out = (g.weighted.sum() / g.episodes.sum()).rename(column).to_frame()
     out["compute_s"] = g.compute_s.max()
-    return out.reset_index().rename(columns={"block": "env_steps"})
+    out = out.reset_index().rename(columns={"block": "env_steps"})
+    # A run's steps rarely end on a block boundary: its last, partial block (2,000,384 steps end
+    # the block 2.0M-2.1M after one iteration) would weigh as much as a full one, so it goes.
+    last = metrics.groupby(keys).env_steps.max().rename("run_steps").reset_index()
+    out = out.merge(last, on=keys)
+    partial = out.env_steps > out.run_steps
+    keep = ~partial | (out.groupby(keys).env_steps.transform("count") == 1)  # a run shorter than one block keeps it
+    return out[keep].drop(columns="run_steps").reset_index(drop=True)
 
 
 def plateau_table(curves: pd.DataFrame, column: str = "coverage", fraction: float = PLATEAU_FRACTION,

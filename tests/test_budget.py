@@ -116,3 +116,17 @@ def test_phase_learning_reads_the_last_tenth_of_each_visit_against_the_plateau()
     assert out.coverage_last_10pct.tolist() == pytest.approx([0.09, 0.29, 0.49, 0.39])
     assert out.seed_min.tolist() == pytest.approx([0.04, 0.24, 0.44, 0.34])
     assert out.fraction_of_plateau.tolist() == pytest.approx([0.18, 0.725, 0.98, 0.78])
+
+
+def test_budget_curves_weight_iterations_by_episodes_and_drop_the_last_partial_block():
+    from pemamoe.budget import budget_curves
+
+    steps = np.arange(1, 12) * 10  # 10 .. 110 steps; blocks of 20 end at 20, 40, ..., 100, and 120 (partial)
+    m = pd.DataFrame({"method": "mlp", "settings": "small", "phase": 0, "seed": 0, "run": "r", "env_steps": steps,
+                      "episodes": [1, 3] * 5 + [1], "coverage": np.linspace(0.1, 0.6, 11),
+                      "member_seconds": 2.0})
+    c = budget_curves(m, block_steps=20)
+    assert c.env_steps.tolist() == [20, 40, 60, 80, 100]
+    cov = np.linspace(0.1, 0.6, 11)
+    assert c.coverage.iloc[0] == pytest.approx((cov[0] * 1 + cov[1] * 3) / 4)
+    assert c.compute_s.tolist() == pytest.approx([4.0, 8.0, 12.0, 16.0, 20.0])
