@@ -363,10 +363,10 @@ class TrainConfig:
         return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
 
 
-# x 512 = 921,600 environment steps per phase. In the learning-budget study (notebook 09b; runs of
-# the code at d02f78f) the slowest case so far, MLP in phase 1, first reached 85 % of its plateau
-# after 900k steps; MoE and SMoE were still training when this was set, so it may grow.
-MEDIUM_PHASE_ITERS = 1800
+# x 512 = 1,024,000 environment steps per phase. In the learning-budget study (notebook 09b; runs of
+# the code at d02f78f) the slowest case so far, MoE in phase 1, first reached 85 % of its plateau
+# after 1.0M steps; SMoE was still training when this was set, so it may grow.
+MEDIUM_PHASE_ITERS = 2000
 
 
 def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:
