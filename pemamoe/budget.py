@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.runs import read_json, read_parquet, verify_done
+from pemamoe.sweep import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
 PLATEAU_TAIL = 0.10  # the plateau: mean over this last fraction of the steps
@@ -17,9 +18,12 @@ PLATEAU_FRACTION = 0.85  # "learned": this fraction of the plateau
 
 
 def update_setting(config: dict) -> str:
-    """Name of a run's update settings, from its config.json: "paper" (64 x 32, 8 x 32) or "small"."""
-    paper = (config["num_envs"], config["update_epochs"], config["num_minibatches"]) == (64, 8, 32)
-    return "paper" if paper else "small"
+    """Name of a run's update settings (a key of pemamoe.sweep.BUDGET_UPDATES), from its
+    config.json: the first setting whose overrides the config holds, else "small" (no overrides)."""
+    for name, overrides in BUDGET_UPDATES.items():
+        if overrides and all(config.get(k) == v for k, v in overrides.items()):
+            return name
+    return "small"
 
 
 def load_budget(run_dirs) -> pd.DataFrame:

@@ -188,10 +188,11 @@ def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), step
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"budget_specs: steps must be an integer >= 1, got {steps!r}")
 
+    base = TrainConfig.for_scale(preset)
+
     def spec(method, seed, phase, update):
-        extra = dict(BUDGET_UPDATES[update]) if update != "small" else {}
-        batch = (extra.get("num_envs") or TrainConfig.for_scale(preset).num_envs) * \
-            (extra.get("rollout_steps") or TrainConfig.for_scale(preset).rollout_steps)
+        extra = dict(BUDGET_UPDATES[update])
+        batch = extra.get("num_envs", base.num_envs) * extra.get("rollout_steps", base.rollout_steps)
         iterations = -(-steps // batch)
         extra.update(fixed_phase=phase, iterations=iterations, phase_length_iters=iterations,
                      diag_every=max(1, min(100, iterations // 20)), checkpoint_every=max(1, min(100, iterations)))
