@@ -512,6 +512,7 @@ PAPER_COUNTERPARTS = {
     "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
     "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
     "results_mean_return": "Fig. 'Mean return over training'",
+    "results_coverage": "(ours) coverage over training, with each phase's random and k-means levels",
     "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
     "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
     "results_router_policy": "Fig. 'Policy-side expert routing probability'",

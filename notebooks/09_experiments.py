@@ -725,6 +725,7 @@ plt.show()
 
 # %%
 figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training", reference=levels)
+figure("coverage", "coverage (fraction of users served)", "results_coverage", "Coverage over training", reference=levels)
 
 # %%
 scores = run_scores(episodes)
@@ -830,6 +831,35 @@ axes[0].set_title(f"Mean action response to phase switches (probe batch, determi
 axes[0].legend(fontsize=8, ncol=4)
 save_figure(fig, "results_mean_action", figures_dir)
 plt.show()
+
+# %% [markdown]
+# ## Did each phase learn?
+#
+# The learning-budget study (appendix 09b) trains every method in each single phase, with no switch,
+# for 2 million environment steps; the mean coverage over its last 10 % is that method's
+# **plateau** in that phase. Here that plateau is the yardstick for the runs above: for every
+# method and every phase visit, the coverage over the last 10 % of the visit and its fraction of
+# the plateau. The bar a scale has to clear before its comparisons say anything about learning is
+# MLP at 85 % or more of its plateau in every visit, and at least 0.65 coverage in phase 0; the
+# other methods get the same fraction, whatever it is. A method far below its plateau is a finding,
+# not something to tune away. The comparison is not like for like in one respect: a later visit
+# starts from a network trained on other phases, which can help or hurt.
+
+# %%
+from pemamoe.budget import (BLOCK_STEPS, PLATEAU_FRACTION, budget_curves, load_budget, phase_learning,
+                            plateau_table)
+from pemamoe.sweep import budget_specs
+
+study_dirs = run_sweep(budget_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address)
+plateaus = plateau_table(budget_curves(load_budget(study_dirs), block_steps=BLOCK_STEPS if scale != "ci" else 64))
+learned = phase_learning(metrics, plateaus[plateaus.settings == "small"])
+mlp_rows = learned[learned.method == "mlp"]
+mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()
+              and (mlp_rows[mlp_rows.phase == 0].coverage_last_10pct >= 0.65).all())
+print(f"scale {scale}: MLP at >= {PLATEAU_FRACTION:.0%} of its plateau in every visit and >= 0.65 in phase 0: "
+      f"{'yes' if mlp_ok else 'NO'}")
+write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
+learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction_of_plateau").round(2)
 
 # %% [markdown]
 # ## The parameter table, generated from the configuration objects

@@ -288,29 +288,8 @@ print(f"medium preset: {medium.phase_length_iters} iterations x {medium.batch_en
       f" -> {'covers' if have >= need else 'does NOT cover'} it")
 
 # %% [markdown]
-# ## Did each phase of the scale's own runs learn?
+# ## Where the plateaus are used
 #
-# The study's plateaus are the yardstick for the cycling runs of the main sweep at this notebook's
-# scale (notebook 09's runs, read from the same cache): for every method and every phase visit,
-# the coverage over the last 10 % of the visit and its fraction of that method's plateau in that
-# phase. The bar the `medium` scale has to clear is MLP at 85 % or more in every visit (and at
-# least 0.65 in phase 0); for the other methods the table reports the fraction, whatever it is. A
-# method far below its plateau is a finding, not something to tune away. The fractions compare a
-# run that switches phases with a run that never does: a later visit starts from a network
-# trained on other phases, which can help or hurt.
-
-# %%
-from pemamoe.analysis import load_runs
-from pemamoe.sweep import main_specs
-
-main_dirs = run_sweep(main_specs(scale, seeds, tuple(methods) if methods else METHODS), backend, workers,
-                      results_dir, ray_address)
-main_metrics, _ = load_runs(main_dirs)
-learned = phase_learning(main_metrics, table[table.settings == "small"])
-mlp_rows = learned[learned.method == "mlp"]
-mlp_ok = bool((mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()
-              and (mlp_rows[mlp_rows.phase == 0].coverage_last_10pct >= 0.65).all())
-print(f"scale {scale}: MLP at >= {PLATEAU_FRACTION:.0%} of its plateau in every visit and >= 0.65 in phase 0: "
-      f"{'yes' if mlp_ok else 'NO'}")
-write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
-learned
+# Notebook 09 ("Did each phase learn?") holds the scale's cycling runs against these plateaus: for
+# every method and phase visit, the coverage over the last 10 % of the visit as a fraction of the
+# plateau, with the bar a scale has to clear (MLP at 85 % or more everywhere, 0.65 in phase 0).

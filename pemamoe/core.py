@@ -361,6 +361,7 @@ PAPER_COUNTERPARTS = {
     "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
     "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
     "results_mean_return": "Fig. 'Mean return over training'",
+    "results_coverage": "(ours) coverage over training, with each phase's random and k-means levels",
     "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
     "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
     "results_router_policy": "Fig. 'Policy-side expert routing probability'",
@@ -479,7 +480,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 633)
+# %% notebooks/00b_core.py, cell 21 (line 634)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
