@@ -577,14 +577,22 @@ def switch_iterations(metrics: pd.DataFrame) -> list:
     return sorted(one_run.loc[one_run.switch.astype(bool), "iteration"].tolist())
 
 
-def phase_blocks(metrics: pd.DataFrame) -> list:
-    """[(start, end, phase)] of the phase schedule (of the first run): each block from its first
-    iteration to the next block's first iteration (the last block to its last iteration)."""
+def phase_visits(metrics: pd.DataFrame) -> list:
+    """[(first, last, phase)] of the phase schedule (of the first run): each visit of a phase, its
+    first and last logged iteration, both inclusive."""
     one_run = metrics[metrics.run == metrics.run.iloc[0]].sort_values("iteration")
     its, phases = one_run.iteration.to_numpy(), one_run.phase.to_numpy()
     starts = [0] + [i for i in range(1, len(its)) if phases[i] != phases[i - 1]]
-    ends = [its[s] for s in starts[1:]] + [its[-1]]
-    return [(int(its[s]), int(e), int(phases[s])) for s, e in zip(starts, ends)]
+    lasts = [s - 1 for s in starts[1:]] + [len(its) - 1]
+    return [(int(its[a]), int(its[b]), int(phases[a])) for a, b in zip(starts, lasts)]
+
+
+def phase_blocks(metrics: pd.DataFrame) -> list:
+    """[(start, end, phase)] for drawing: each visit from its first iteration to the next visit's
+    first (so that segments join), the last one to its last iteration."""
+    visits = phase_visits(metrics)
+    ends = [first for first, _, _ in visits[1:]] + [visits[-1][1]]
+    return [(first, end, phase) for (first, _, phase), end in zip(visits, ends)]
 
 
 def plot_reference_levels(ax, metrics: pd.DataFrame, levels: pd.DataFrame, column: str) -> None:

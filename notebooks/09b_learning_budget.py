@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pemamoe.analysis import phase_visits
 from pemamoe.runs import read_json, read_parquet, verify_done
 from pemamoe.sweep import BUDGET_UPDATES
 
@@ -157,18 +158,12 @@ def phase_learning(metrics: pd.DataFrame, plateaus: pd.DataFrame, column: str = 
     update setting)."""
     rows = []
     for method, runs in metrics.groupby("method", sort=False):
-        one = runs[runs.run == runs.run.iloc[0]].sort_values("iteration")
-        its, phases = one.iteration.to_numpy(), one.phase.to_numpy()
-        starts = [0] + [i for i in range(1, len(its)) if phases[i] != phases[i - 1]]
-        bounds = list(zip(starts, starts[1:] + [len(its)]))
         plateau = plateaus[plateaus.method == method].set_index("phase").plateau
-        for visit, (a, b) in enumerate(bounds):
-            first, last = its[a], its[b - 1]
+        for visit, (first, last, phase) in enumerate(phase_visits(runs)):
             cut = last - max(1, round(tail * (last - first + 1))) + 1
             window = runs[(runs.iteration >= cut) & (runs.iteration <= last) & (runs.episodes > 0)]
             per_seed = window.groupby("seed").apply(
                 lambda g: float((g[column] * g.episodes).sum() / g.episodes.sum()), include_groups=False)
-            phase = int(phases[a])
             level = float(per_seed.mean()) if len(per_seed) else np.nan
             ref = float(plateau.get(phase, np.nan))
             rows.append({"method": method, "visit": visit, "phase": phase, "iterations": f"{first}-{last}",

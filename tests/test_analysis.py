@@ -142,3 +142,14 @@ def test_plot_over_training_draws_any_method_and_the_reference_levels(plugin_met
     hlines = [c for c in ax.collections if isinstance(c, LineCollection)]
     assert len(hlines) == 2 * 3  # each heuristic, each phase block
     plt.close(fig)
+
+
+def test_phase_visits_are_inclusive_and_phase_blocks_join_them():
+    import pandas as pd
+
+    from pemamoe.analysis import phase_blocks, phase_visits
+
+    phases = [0, 0, 0, 1, 1, 2, 2, 2, 0]
+    frame = pd.DataFrame({"run": "a", "iteration": range(len(phases)), "phase": phases})
+    assert phase_visits(frame) == [(0, 2, 0), (3, 4, 1), (5, 7, 2), (8, 8, 0)]
+    assert phase_blocks(frame) == [(0, 3, 0), (3, 5, 1), (5, 8, 2), (8, 8, 0)]
