@@ -1114,8 +1114,12 @@ def _smooth(y, w):
     return pd.Series(y).rolling(w, min_periods=1).mean().to_numpy()
 
 
+from pemamoe.analysis import plot_reference_levels, reference_levels
+
 cfg0 = results["pemamoe"].config
 w = max(1, cfg0.phase_length_iters // 8)
+# Each phase's level without learning (random policy dotted, k-means heuristic dash-dot; notebook 09).
+levels = reference_levels(scale, repo_path(results_dir))
 panels = [("episode_return", "team return per episode"), ("served_users", "served users (mean per slot)"),
           ("collisions_per_episode", "collisions per episode"), ("rank/stable/mean", "expert stable rank (probe)")]
 fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2))
@@ -1125,12 +1129,14 @@ for ax, (col, title) in zip(axes, panels):
         sel = m[col].notna()
         y = m.loc[sel, col].to_numpy()
         ax.plot(m.loc[sel, "iteration"], _smooth(y, w) if col != "rank/stable/mean" else y, label=method)
+    plot_reference_levels(ax, results["pemamoe"].metrics.assign(run="pemamoe"), levels, col)
     for s in range(cfg0.phase_length_iters, cfg0.iterations, cfg0.phase_length_iters):
         ax.axvline(s, color="grey", ls="--", lw=0.8)
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("iteration")
 axes[0].legend(fontsize=8)
-fig.suptitle(f"MAPPO training at scale '{scale}' (seed {seed}, 1 seed; dashed: phase switches)", fontsize=10)
+fig.suptitle(f"MAPPO training at scale '{scale}' (seed {seed}, 1 seed; dashed: phase switches; black: each phase's "
+             "random-policy (dotted) and k-means (dash-dot) level)", fontsize=10)
 fig.tight_layout()
 save_figure(fig, "mappo_training_curves", figures_dir)
 plt.show()
