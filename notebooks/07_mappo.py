@@ -117,9 +117,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.bookkeeping import (EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases,
-                                 _merged_phases, _progress_bar, _torch_save_atomic, _write_parquet_atomic,
-                                 explained_variance, merge_env_states, split_env_state)
+from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
+    EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
+    _torch_save_atomic, _write_parquet_atomic, explained_variance, merge_env_states, split_env_state)
 from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
@@ -138,9 +138,10 @@ from pemamoe.population_plasticity import (
 from pemamoe.phases import PhaseSchedule
 from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
                           verify_done, write_done)
-# the configuration (appendix 07c), re-exported: callers import TrainConfig and the presets from here
-from pemamoe.train_config import (DEVICES, MEDIUM_PHASE_ITERS, METHODS, PAPER_PHASE_LENGTH, PAPER_UPDATE_EPOCHS,
-                                  TIMING_COLUMNS, TrainConfig, _is_int, _plain, resolve_device, scale_controller)
+# the configuration (appendix 07c): callers import TrainConfig and the presets from here
+from pemamoe.train_config import (  # re-export (public names only)
+    DEVICES, MEDIUM_PHASE_ITERS, METHODS, PAPER_PHASE_LENGTH, PAPER_UPDATE_EPOCHS, TIMING_COLUMNS, TrainConfig,
+    _is_int, _plain, resolve_device, scale_controller)
 
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose

@@ -57,9 +57,9 @@ import numpy as np
 
 from pemamoe.core import by_scale, check_scale
 from pemamoe.env import compile_step_kernels
-# how the runs execute (appendix 09c); SweepInterrupted, execute_population and sweep_cli re-exported
-from pemamoe.execution import (BACKENDS, SweepInterrupted, _progress, _run_local, _run_ray, _stop_on_signals,
-                               execute_population, sweep_cli)
+# how the runs execute (appendix 09c)
+from pemamoe.execution import (  # re-export (public names only)
+    BACKENDS, SweepInterrupted, _progress, _run_local, _run_ray, _stop_on_signals, execute_population, sweep_cli)
 from pemamoe.mappo import METHODS, TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.runs import verify_done
@@ -134,7 +134,7 @@ class RunSpec:
 # `SweepInterrupted`; rerunning the sweep resumes the killed runs. How a worker runs a population
 # (`execute_population`), how the backends start, stop and report, and the command line are in
 # appendix 09c (`pemamoe.execution`); `pemamoe.sweep` imports them from there and re-exports
-# `SweepInterrupted`, `execute_population` and `sweep_cli`.
+# `BACKENDS`, `SweepInterrupted`, `execute_population` and `sweep_cli`.
 #
 # Both backends return the run folders in the order of the specs.
 

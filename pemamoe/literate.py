@@ -12,6 +12,20 @@ Directives use nbdev's syntax, on the first lines of a code cell:
 ``#| export phases``        either form with a module name sends the cell to that module instead
                             (one notebook may explain two closely related modules).
 
+The public names of an ``#| export`` cell are the names it defines at top level (functions,
+classes, assignments) that do not start with ``_``. Imported names are not public, with one
+explicit exception, for a main notebook's module that re-exports what its appendix defines::
+
+    from pemamoe.train_config import (  # re-export
+        TrainConfig, resolve_device, _plain)
+
+A ``# re-export`` comment (alone, or followed by prose: ``# re-export: ...``) on the first line
+of a top-level ``from ... import`` statement in an ``#| export`` cell puts the names that
+statement binds (the ``as`` name where there is one) in ``__all__``, except those starting with
+``_`` (imported, not exported: ``_plain`` above). Every other import stays out of ``__all__``.
+The marker anywhere else (another line, ``import x``, ``import *``, an ``#| exporti`` cell) is an
+export error, so a misplaced one never goes unseen.
+
 Usage::
 
     python -m pemamoe.literate export   # write pemamoe/<module>.py for every notebook
@@ -21,8 +35,10 @@ Usage::
 import argparse
 import ast
 import difflib
+import io
 import re
 import sys
+import tokenize
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,6 +53,8 @@ _DIRECTIVE = re.compile(r"^#\|\s*(?P<name>[\w-]+)\s*(?P<arg>.*?)\s*$")
 _KNOWN_DIRECTIVES = {"default_exp", "export", "exporti", "hide"}
 _HAND_WRITTEN = {"__init__", "__main__", "literate"}
 _FUTURE_IMPORT = re.compile(r"^from __future__ import .+$", re.MULTILINE)
+# `# re-export`, alone or followed by prose (`# re-export: ...`); "re-exported" in prose is not it
+_REEXPORT = re.compile(r"#\s*re-export(?![\w-])")
 
 
 class ExportError(ValueError):
@@ -131,12 +149,27 @@ def cells_by_module(cells: list[Cell], origin: str) -> dict[str, list[Cell]]:
     return groups
 
 
-def public_names(source: str, origin: str) -> list[str]:
-    """Top-level names a cell defines that do not start with an underscore, in order."""
+def _parse(source: str, origin: str) -> ast.Module:
     try:
-        tree = ast.parse(source)
+        return ast.parse(source)
     except SyntaxError as err:
         raise ExportError(f"{origin}: exported cell does not parse: {err}") from err
+
+
+def _reexport_lines(source: str) -> list[int]:
+    """1-based lines of the cell whose comment carries the ``# re-export`` marker."""
+    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
+    return [tok.start[0] for tok in tokens if tok.type == tokenize.COMMENT and _REEXPORT.search(tok.string)]
+
+
+def public_names(source: str, origin: str) -> list[str]:
+    """Top-level names a cell defines, and those it re-exports, that do not start with ``_``, in order.
+
+    A name is re-exported when a top-level ``from ... import`` binds it and the statement's first
+    line carries a ``# re-export`` comment; any other import never reaches ``__all__``.
+    """
+    tree = _parse(source, origin)
+    marked = set(_reexport_lines(source))
     names: list[str] = []
     for node in tree.body:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
@@ -145,6 +178,19 @@ def public_names(source: str, origin: str) -> list[str]:
             names += [t.id for t in node.targets if isinstance(t, ast.Name)]
         elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
             names.append(node.target.id)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)) and node.lineno in marked:
+            marked.discard(node.lineno)
+            if isinstance(node, ast.Import) or any(a.name == "*" for a in node.names):
+                raise ExportError(
+                    f"{origin}, line {node.lineno} of its code: '# re-export' marks "
+                    "'from <module> import <names>' statements only (no 'import <module>', no 'import *')"
+                )
+            names += [a.asname or a.name for a in node.names]
+    if marked:
+        raise ExportError(
+            f"{origin}, line {min(marked)} of its code: '# re-export' belongs on the first line of a "
+            "top-level 'from <module> import ...' statement"
+        )
     return [n for n in names if not n.startswith("_") and n != "__all__"]
 
 
@@ -164,6 +210,13 @@ def render_module(notebook_rel: str, cells: list[Cell]) -> str:
             for name in public_names(source, where):
                 if name not in exported_names:
                     exported_names.append(name)
+        else:
+            _parse(source, where)
+            if _reexport_lines(source):
+                raise ExportError(
+                    f"{where}: '# re-export' in an '#| exporti' cell, whose names never go to __all__; "
+                    "use '#| export'"
+                )
         chunks.append(f"# %% {where}\n{source}\n")
     head = [
         f"{HEADER_MARKER}{notebook_rel}. DO NOT EDIT.",

@@ -126,3 +126,68 @@ def test_bad_notebooks_get_clear_errors(source, message):
     with pytest.raises(literate.ExportError, match=message.replace("|", r"\|").replace("(", r"\(")):
         cells = literate.parse_cells(source, "nb.py")
         literate.cells_by_module(cells, "nb.py")
+
+
+REEXPORT_NOTEBOOK = '''# %%
+#| default_exp demo
+
+# %%
+#| export
+import math  # re-exported? no: prose mentioning re-exported names is not the marker
+from pathlib import Path
+from os.path import (  # re-export: joined paths, with a private alias that stays private
+    join, basename as base_name, dirname as _dirname)
+from math import pi as PI  # re-export
+
+def area(r):
+    return PI * r**2
+'''
+
+
+def test_marked_imports_are_reexported_and_others_are_not():
+    cells = literate.parse_cells(REEXPORT_NOTEBOOK, "notebooks/99_demo.py")
+    groups = literate.cells_by_module(cells, "notebooks/99_demo.py")
+    text = literate.render_module("notebooks/99_demo.py", groups["demo"])
+    assert "__all__ = ['join', 'base_name', 'PI', 'area']" in text
+    namespace = {}
+    exec(compile(text, "demo", "exec"), namespace)
+    assert namespace["_dirname"]("a/b") == "a"  # imported, just not exported
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("from os.path import (\n    join,  # re-export\n    basename)\n", "first line of a top-level"),
+        ("import os.path  # re-export\n", "statements only"),
+        ("from os.path import *  # re-export\n", "statements only"),
+        ("if True:\n    from os.path import join  # re-export\n", "first line of a top-level"),
+        ("x = 1  # re-export\n", "first line of a top-level"),
+    ],
+)
+def test_misplaced_reexport_marker_is_an_error(body, message):
+    source = "# %%\n#| default_exp demo\n\n# %%\n#| export\n" + body
+    cells = literate.parse_cells(source, "nb.py")
+    with pytest.raises(literate.ExportError, match=message):
+        literate.render_module("nb.py", literate.cells_by_module(cells, "nb.py")["demo"])
+
+
+def test_reexport_marker_in_exporti_cell_is_an_error():
+    source = "# %%\n#| default_exp demo\n\n# %%\n#| exporti\nfrom os.path import join  # re-export\n"
+    cells = literate.parse_cells(source, "nb.py")
+    with pytest.raises(literate.ExportError, match="exporti"):
+        literate.render_module("nb.py", literate.cells_by_module(cells, "nb.py")["demo"])
+
+
+def test_star_imports_bring_the_appendix_names_the_main_modules_reexport():
+    from pemamoe import execution, train_config
+
+    mappo_ns, sweep_ns = {}, {}
+    exec("from pemamoe.mappo import *", mappo_ns)
+    exec("from pemamoe.sweep import *", sweep_ns)
+    assert mappo_ns["TrainConfig"] is train_config.TrainConfig
+    assert {"EpisodeTracker", "resolve_device", "train_population"} <= mappo_ns.keys()
+    assert sweep_ns["sweep_cli"] is execution.sweep_cli
+    assert {"SweepInterrupted", "execute_population", "run_sweep"} <= sweep_ns.keys()
+    # private helpers of the marked imports and incidental imports stay out of __all__
+    for ns in (mappo_ns, sweep_ns):
+        assert not {"_plain", "_progress", "np", "Path", "SCALES", "METHOD_REGISTRY"} & ns.keys()
