@@ -73,7 +73,7 @@ from pemamoe.channel import (
 )
 from pemamoe.core import config_error, require, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
-from pemamoe.env_wrappers import (  # the public environments, rendering, reference policies (appendix 04b)
+from pemamoe.env_wrappers import (  # re-export: the public environments, rendering, reference policies (appendix 04b)
     HEURISTICS,
     UAVParallelEnv,
     UAVVectorEnv,

@@ -63,7 +63,7 @@ from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
 # The batched machinery of appendix 05b, used by the classes below and re-exported from here:
-from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gaussian_entropy,  # noqa: F401
+from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gaussian_entropy,  # re-export  # noqa: F401
                              gaussian_kl, gaussian_log_prob, loop_experts, masked_mixed, run_experts, run_gate,
                              run_linear, run_load_balance)
 
