@@ -290,9 +290,10 @@ class TrainConfig:
         return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
 
 
-# The medium phase: 2,000 iterations x 512 = 1,024,000 environment steps. In the learning-budget study (notebook 09b; runs of
-# the code at d02f78f, all four methods finished) the slowest case, MoE in phase 1, first reached
-# 85 % of its plateau after 1.0M steps; every other method and phase needed 900k or fewer.
+# The medium phase: 2,000 iterations x 512 = 1,024,000 environment steps. In the learning-budget
+# study (notebook 09b; runs of the code at d02f78f, all four methods finished) the slowest case, MoE
+# in phase 1, first reached 85 % of its plateau after 1.0M steps; every other method and phase
+# needed 900k or fewer.
 MEDIUM_PHASE_ITERS = 2000
 
 
