@@ -14,7 +14,9 @@ def main(argv=None) -> int:
         formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
     sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
-    fig.add_argument("--scale", default="small", help="ci | small | paper (default: small)")
+    from pemamoe.core import SCALES
+
+    fig.add_argument("--scale", default="small", choices=SCALES, help="the preset scale (default: small)")
     fig.add_argument("--figures-dir", default=None, help="output folder (default: paper_figures/)")
     fig.add_argument("--notebook", action="append", help="run only these notebooks (repeatable)")
     fig.add_argument("--backend", default="local", help="sweep backend: local | ray")
