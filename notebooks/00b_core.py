@@ -529,6 +529,9 @@ PAPER_COUNTERPARTS = {
     "env_reward_anatomy": "(ours) reward anatomy of objective O'",
     "mappo_training_curves": "(ours) one training run per method, notebook 07",
     "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
+    "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
+    "learning_budget_compute": "(ours) MLP's two update settings per compute second",
+    **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }

@@ -199,12 +199,13 @@ from pemamoe.train_config import (  # re-export (public names only)
 #   gives each phase `MEDIUM_PHASE_ITERS` iterations, three phases twice over (six phases). Both
 #   numbers come from the learning-budget study of notebook 09b, which trains every method in each
 #   single phase for two million steps; that notebook states what the study found and whether this
-#   phase length lets every method get close to its plateau. Three reasons fix the rest. The small
-#   update settings, because in the study they reach MLP's phase-0 level in less compute per run
-#   than the paper's (64 environments, 8 epochs x 32 minibatches), which learn no more per
-#   environment step. Two cycles instead of the paper's three, because a third would add half
-#   again to a sweep that already runs several times over its two-hour budget (README); two cycles
-#   still show every switch the paper is about: each phase is left, entered cold and entered again.
+#   phase length lets every method get close to its plateau. The study also picks the update
+#   settings: per compute second the small ones and the paper's (64 environments, 8 epochs x 32
+#   minibatches) are close, but the paper's cost about twice as much per environment step and level
+#   off no higher, and a phase is counted in environment steps. Two cycles instead of the paper's
+#   three, because a third would add half again to a sweep that already runs several times over
+#   its two-hour budget (README); two cycles still show every switch the paper is about: each phase
+#   is entered cold, left, and entered again.
 # * **ci**: a handful of iterations crossing two phase switches, seconds per run.
 #
 # **Time-compressed schedules.** The phase controller's windows are counted in iterations
