@@ -265,3 +265,25 @@ def test_log_std_reset_survives_the_anchor_window():
         ctrl.reference[0, ls] = math.log(0.2)  # the literal order: snapshot before the reset
     pull = log_std_grad()
     assert (pull > 0.05).all()  # gradient descent lowers log-std back towards the old sigma
+
+
+@pytest.mark.parametrize("R", [1, 2, 3, 12])
+@pytest.mark.parametrize("n,d", [(48, 177), (384, 177), (640, 531), (96, 40)])
+def test_wide_first_layer_gives_the_bits_of_the_narrow_products(R, n, d):
+    """run_experts computes layer 1 of all experts as one wide product when the input needs no
+    gradient; outputs and weight/bias gradients must equal the per-expert path bit for bit."""
+    from pemamoe.popnets import run_experts
+
+    g = torch.Generator().manual_seed(R * 1000 + n + d)
+    x = torch.randn(R, n, d, generator=g)
+    params = [torch.randn(R, 3, d, 32, generator=g), torch.randn(R, 3, 32, generator=g),
+              torch.randn(R, 3, 32, 32, generator=g), torch.randn(R, 3, 32, generator=g)]
+    upstream = torch.randn(R, 3, n, 32, generator=g)
+    results = []
+    for input_grad in (False, True):  # False: the wide product; True: the narrow per-expert path
+        leaves = [p.clone().requires_grad_() for p in params]
+        out = run_experts(x.clone().requires_grad_(input_grad), *leaves)
+        (out * upstream).sum().backward()
+        results.append([out.detach(), *[p.grad for p in leaves]])
+    for wide, narrow in zip(*results):
+        assert torch.equal(wide, narrow)
