@@ -484,6 +484,20 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
     return change(a, b), float(low), float(high)
 
 
+def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
+    """A claim is reproduced when our whole interval lies on the paper's side of zero. An interval
+    of zero width (one seed per group: the bootstrap has nothing to resample) decides nothing."""
+    if not (np.isfinite(ci_low) and np.isfinite(ci_high)):
+        return "undefined (no finite estimate)"
+    if ci_low == ci_high:
+        return "not resolved (no interval: one seed)"
+    if ci_low > 0 and paper_value > 0 or ci_high < 0 and paper_value < 0:
+        return "reproduced (same direction)"
+    if ci_low > 0 or ci_high < 0:
+        return "contradicted (opposite direction)"
+    return "not resolved (interval contains 0)"
+
+
 # %% [markdown]
 # ## What no learning gives: reference levels of the heuristics
 #

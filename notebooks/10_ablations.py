@@ -46,8 +46,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from pemamoe.analysis import (SUMMARY_METRICS, heuristic_episodes, iqm, is_proposed, load_runs, method_order,
-                              relative_change, run_scores)
+from pemamoe.analysis import (SUMMARY_METRICS, claim_verdict, heuristic_episodes, iqm, is_proposed, load_runs,
+                              method_order, relative_change, run_scores)
 from pemamoe.core import by_scale, save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
 from pemamoe.sweep import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, run_sweep,
@@ -203,15 +203,6 @@ def best_baseline(metric, higher_is_better=True):
     return by.idxmax() if higher_is_better else by.idxmin()
 
 
-def verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
-    """A claim is reproduced when our whole interval lies on the paper's side of zero."""
-    if ci_low > 0 and paper_value > 0 or ci_high < 0 and paper_value < 0:
-        return "reproduced (same direction)"
-    if ci_low > 0 or ci_high < 0:
-        return "contradicted (opposite direction)"
-    return "not resolved (interval contains 0)"
-
-
 claims = []
 for metric, paper_text, paper_value, higher in (
         ("return", "+26.3 % IQM return over the best baseline", 26.3, True),
@@ -226,7 +217,7 @@ for _, r in tricks.iterrows():
                    "ours %": r["IQM return change %"], "ci_low": r.ci_low, "ci_high": r.ci_high,
                    "compared with": f"full {method_label(proposed)}"})
 headline = pd.DataFrame(claims)
-headline["verdict"] = [verdict(r.ci_low, r.ci_high, r["paper %"]) for _, r in headline.iterrows()]
+headline["verdict"] = [claim_verdict(r.ci_low, r.ci_high, r["paper %"]) for _, r in headline.iterrows()]
 write_table(headline.round(2), "headline_claims", figures_dir)
 
 reference = pd.concat([main, kmeans_scores], ignore_index=True)
@@ -243,8 +234,10 @@ reference_table
 #
 # The cell below states, from the numbers above, which of the paper's claims our runs reproduce
 # at this scale: a claim counts as reproduced when our interval lies on the same side of zero as
-# the paper's number. With few seeds and short training the intervals are wide; a claim whose
-# interval straddles zero is reported as *not resolved*, not as confirmed.
+# the paper's number, and as contradicted when it lies wholly on the other side (the rule is
+# `claim_verdict`, notebook 09; the table's last column). With few seeds and short training the
+# intervals are wide; a claim whose interval straddles zero is reported as *not resolved*, not as
+# confirmed, and so is any claim at a scale with one seed per method, where there is no interval.
 
 # %%
 for _, row in headline.iterrows():

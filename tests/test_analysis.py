@@ -153,3 +153,14 @@ def test_phase_visits_are_inclusive_and_phase_blocks_join_them():
     frame = pd.DataFrame({"run": "a", "iteration": range(len(phases)), "phase": phases})
     assert phase_visits(frame) == [(0, 2, 0), (3, 4, 1), (5, 7, 2), (8, 8, 0)]
     assert phase_blocks(frame) == [(0, 3, 0), (3, 5, 1), (5, 8, 2), (8, 8, 0)]
+
+
+def test_claim_verdict_needs_an_interval_on_the_papers_side_of_zero():
+    from pemamoe.analysis import claim_verdict
+
+    assert claim_verdict(2.0, 9.0, 26.3).startswith("reproduced")
+    assert claim_verdict(-80.0, -10.0, -75.0).startswith("reproduced")
+    assert claim_verdict(-30.0, -1.0, 26.3).startswith("contradicted")
+    assert claim_verdict(-5.0, 4.0, 26.3).startswith("not resolved (interval contains 0)")
+    assert claim_verdict(-28.0, -28.0, 26.3) == "not resolved (no interval: one seed)"
+    assert claim_verdict(float("nan"), float("nan"), -75.0).startswith("undefined")
