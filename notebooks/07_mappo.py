@@ -836,8 +836,10 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     configs: TrainConfigs that differ only in MEMBER_FIELDS (seed, controller settings such as
     ablation switches and noise gamma, force_controller). run_dirs: one folder per member (or
     None). Every member's result is bit-identical to training its config alone: same files, same
-    metrics. Members with a finished folder are read back; members whose checkpoints stopped at
-    different iterations train as separate sub-populations. Returns one RunResult per config.
+    metrics. Members with a finished folder are read back. Members whose checkpoints stopped at
+    different iterations start as sub-populations: the one furthest behind trains up to the next
+    one's iteration, checkpoints, and joins it (a killed sweep resumes as one population again,
+    not as a queue of small ones). Returns one RunResult per config.
     """
     configs = list(configs)
     check_population(configs)
@@ -869,13 +871,25 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
                     ckpt = load_checkpoint(path, config)  # refuses another run's checkpoint, names a torn one
             start = 0 if ckpt is None else int(ckpt["iteration"])
             pending.setdefault(start, []).append((r, ckpt))
+        first_start = {r: start for start, members in pending.items() for r, _ in members}
         with _Determinism(threads):
-            for start in sorted(pending):
-                members = pending[start]
+            while pending:
+                start = min(pending)
+                members = pending.pop(start)
+                stop = max_iterations
+                # Catch up with the next sub-population, then train as one (members are independent
+                # of their neighbours, so this changes no bit). Needs every member's folder to reload.
+                catch_up = pending and all(dirs[r] is not None for r, _ in members)
+                if catch_up:
+                    stop = min(pending) if max_iterations is None else min(min(pending), max_iterations)
                 group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                     [ck for _, ck in members], max_iterations, verbose, progress)
+                                     [ck for _, ck in members], stop, verbose, progress)
+                if catch_up and stop == min(pending) and stop < configs[members[0][0]].iterations:
+                    joined = [(r, load_checkpoint(dirs[r] / "checkpoint.pt", configs[r])) for r, _ in members]
+                    pending[stop] = sorted(pending[stop] + joined, key=lambda m: m[0])
+                    continue
                 for (r, _), res in zip(members, group):
-                    results[r] = res
+                    results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
     finally:
         for lock in locks:
             lock.release()
