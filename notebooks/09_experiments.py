@@ -143,8 +143,10 @@ class RunSpec:
 def group_specs(specs, population: int, workers: int = 1) -> list:
     """Pending runs as populations: runs whose configs share everything but the member fields
     (seed, controller settings, force_controller) go together, at most `population` per group,
-    in the order they first appear. A group larger than the others is split so that `workers`
-    processes get work when there are fewer groups than workers."""
+    in the order they first appear. A compatible set larger than `population` is split into
+    groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
+    far more per member, and equal parts finish together). A group larger than the others is also
+    split so that `workers` processes get work when there are fewer groups than workers."""
     groups = {}
     for spec in specs:
         groups.setdefault(population_key(spec.to_config()), []).append(spec)
@@ -153,7 +155,12 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
         size = population
         if len(groups) < workers:  # fewer populations than workers: spread each one over the workers
             size = min(size, max(1, -(-len(members) // max(1, workers // len(groups)))))
-        out += [members[i:i + size] for i in range(0, len(members), size)]
+        parts = -(-len(members) // size)
+        base, extra = divmod(len(members), parts)
+        bounds = [0]
+        for i in range(parts):
+            bounds.append(bounds[-1] + base + (i < extra))
+        out += [members[a:b] for a, b in zip(bounds, bounds[1:])]
     return out
 
 

@@ -212,3 +212,18 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
     new = [p for p in psutil.Process().children(recursive=True) if p.pid not in before]
     gone, alive = psutil.wait_procs(new, timeout=15)
     assert not alive, f"left running: {alive}"
+
+
+def test_a_large_compatible_set_splits_into_near_equal_populations():
+    from pemamoe.sweep import group_specs
+
+    specs = experiment_specs("all", "small")
+    unique = list({s.to_config().run_name(): s for s in reversed(specs)}.values())[::-1]  # one spec per run
+    groups = group_specs(unique, 16, 2)
+    by_method = {}
+    for g in groups:
+        assert len({s.method for s in g}) == 1
+        by_method.setdefault(g[0].method, []).append(len(g))
+    assert by_method == {"mlp": [3], "moe": [12], "smoe": [3], "pemamoe": [11, 10]}
+    assert [s for g in groups for s in g if s.method == "pemamoe"] == [s for s in unique if s.method == "pemamoe"]
+    assert [len(g) for g in group_specs([s for s in unique if s.method == "pemamoe"], 4, 1)] == [4, 4, 4, 3, 3, 3]
