@@ -879,7 +879,7 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
                 stop = max_iterations
                 # Catch up with the next sub-population, then train as one (members are independent
                 # of their neighbours, so this changes no bit). Needs every member's folder to reload.
-                catch_up = pending and all(dirs[r] is not None for r, _ in members)
+                catch_up = bool(pending) and all(dirs[r] is not None for r, _ in members)
                 if catch_up:
                     stop = min(pending) if max_iterations is None else min(min(pending), max_iterations)
                 group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
@@ -1128,14 +1128,13 @@ for method in ("pemamoe", "mlp"):
 # %%
 import matplotlib.pyplot as plt
 
+from pemamoe.analysis import plot_reference_levels, reference_levels
 from pemamoe.core import save_figure
 
 
 def _smooth(y, w):
     return pd.Series(y).rolling(w, min_periods=1).mean().to_numpy()
 
-
-from pemamoe.analysis import plot_reference_levels, reference_levels
 
 cfg0 = results["pemamoe"].config
 w = max(1, cfg0.phase_length_iters // 8)
