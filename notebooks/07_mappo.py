@@ -839,7 +839,8 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     metrics. Members with a finished folder are read back. Members whose checkpoints stopped at
     different iterations start as sub-populations: the one furthest behind trains up to the next
     one's iteration, checkpoints, and joins it (a killed sweep resumes as one population again,
-    not as a queue of small ones). Returns one RunResult per config.
+    not as a queue of small ones; this needs the lagging members' folders, so with run_dir None
+    they train to the end first). Returns one RunResult per config.
     """
     configs = list(configs)
     check_population(configs)

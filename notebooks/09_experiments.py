@@ -145,7 +145,7 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
     (seed, controller settings, force_controller) go together, at most `population` per group,
     in the order they first appear. A compatible set larger than `population` is split into
     groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
-    far more per member, and equal parts finish together). A group larger than the others is also
+    far more per member, and with no more parts than workers, equal parts finish together). A group larger than the others is also
     split so that `workers` processes get work when there are fewer groups than workers."""
     groups = {}
     for spec in specs:
@@ -494,8 +494,8 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
 def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     """A claim is reproduced when our whole interval lies on the paper's side of zero. An interval
     of zero width (one seed per group: the bootstrap has nothing to resample) decides nothing."""
-    if not (np.isfinite(ci_low) and np.isfinite(ci_high)):
-        return "undefined (no finite estimate)"
+    if not (np.isfinite(ci_low) and np.isfinite(ci_high)) or not np.isfinite(paper_value) or paper_value == 0:
+        return "undefined (no finite estimate, or no direction to compare with)"
     if ci_low == ci_high:
         return "not resolved (no interval: one seed)"
     if ci_low > 0 and paper_value > 0 or ci_high < 0 and paper_value < 0:
@@ -879,7 +879,9 @@ from pemamoe.budget import (BLOCK_STEPS, PLATEAU_FRACTION, budget_curves, load_b
                             plateau_table)
 from pemamoe.sweep import budget_specs
 
-study_dirs = run_sweep(budget_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address)
+# The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
+study_dirs = run_sweep(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
+                       workers, results_dir, ray_address)
 plateaus = plateau_table(budget_curves(load_budget(study_dirs), block_steps=BLOCK_STEPS if scale != "ci" else 64))
 learned = phase_learning(metrics, plateaus[plateaus.settings == "small"])
 mlp_rows = learned[learned.method == "mlp"]

@@ -279,9 +279,10 @@ speed
 #   Those phases have faster, more erratic users and a smaller service radius (150 m instead of
 #   200 m); the heuristic, which reads every user's position each slot and flies to the centroid of
 #   its users, copes with that far better than the learned policies do within 2M steps.
-# * **The two top-1 routed methods level off lower.** SMoE and PE-MAMoE plateau at about 0.67 in
+# * **The two top-1 routed methods level off lower.** SMoE and PE-MAMoE plateau at 0.66-0.67 in
 #   phase 0 and 0.30-0.39 in phases 1 and 2, clearly below MLP and MoE. Their small "steps to 85 %"
-#   (200k-700k) reflect that low, early plateau, not fast learning. In a fixed phase PE-MAMoE is
+#   in phases 1 and 2 (200k-300k, against 700k-1.0M for MLP and MoE) reflect that low, early
+#   plateau, not fast learning. In a fixed phase PE-MAMoE is
 #   SMoE with the controller's settings and nothing to react to, so this says the sparse network
 #   itself learns less in 2M steps; whether the switch-time mechanisms make up for it under phase
 #   changes is what the medium sweep tests.
@@ -293,8 +294,8 @@ speed
 #   with the paper's. But the paper's settings cost about twice as much per environment step (334
 #   vs 174 compute seconds per million steps, both measured on the same shared machine), and they
 #   level off lower within 2M steps (0.76 vs 0.79). A phase is a number of environment steps, so
-#   the small settings give the same learning for about half the compute; the medium preset uses
-#   them.
+#   for a phase of a given length the small settings cost about half the compute and level off no
+#   lower; the medium preset uses them.
 
 # %% [markdown]
 # ## From the study to the `medium` preset

@@ -153,8 +153,8 @@ def relative_change(scores: pd.DataFrame, metric: str, a_mask, b_mask, reps: int
 def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     """A claim is reproduced when our whole interval lies on the paper's side of zero. An interval
     of zero width (one seed per group: the bootstrap has nothing to resample) decides nothing."""
-    if not (np.isfinite(ci_low) and np.isfinite(ci_high)):
-        return "undefined (no finite estimate)"
+    if not (np.isfinite(ci_low) and np.isfinite(ci_high)) or not np.isfinite(paper_value) or paper_value == 0:
+        return "undefined (no finite estimate, or no direction to compare with)"
     if ci_low == ci_high:
         return "not resolved (no interval: one seed)"
     if ci_low > 0 and paper_value > 0 or ci_high < 0 and paper_value < 0:

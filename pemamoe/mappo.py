@@ -508,7 +508,8 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     metrics. Members with a finished folder are read back. Members whose checkpoints stopped at
     different iterations start as sub-populations: the one furthest behind trains up to the next
     one's iteration, checkpoints, and joins it (a killed sweep resumes as one population again,
-    not as a queue of small ones). Returns one RunResult per config.
+    not as a queue of small ones; this needs the lagging members' folders, so with run_dir None
+    they train to the end first). Returns one RunResult per config.
     """
     configs = list(configs)
     check_population(configs)
@@ -739,7 +740,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1080)
+# %% notebooks/07_mappo.py, cell 26 (line 1081)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -3,7 +3,7 @@
 
 __all__ = ['time_forward', 'time_train_step', 'cost_table']
 
-# %% notebooks/05b_population_nets.py, cell 11 (line 525)
+# %% notebooks/05b_population_nets.py, cell 11 (line 526)
 import statistics
 import time
 

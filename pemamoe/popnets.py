@@ -121,7 +121,8 @@ def run_linear(x, weight, bias):
 
 def run_experts(x, w1, b1, w2, b2):
     """Every expert of every member on that member's rows: x (R, n, in), w1 (R, E, in, h) ->
-    (R, E, n, h), the ReLU trunk in -> h -> h (one batched matmul per layer over R*E)."""
+    (R, E, n, h), the ReLU trunk in -> h -> h (layer 1: one wide product per member when x needs
+    no gradient, else per expert; layer 2: one batched product over R*E)."""
     R, E, d, h = w1.shape
     n = x.shape[1]
     if not x.requires_grad:

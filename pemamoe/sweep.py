@@ -75,7 +75,7 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
     (seed, controller settings, force_controller) go together, at most `population` per group,
     in the order they first appear. A compatible set larger than `population` is split into
     groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
-    far more per member, and equal parts finish together). A group larger than the others is also
+    far more per member, and with no more parts than workers, equal parts finish together). A group larger than the others is also
     split so that `workers` processes get work when there are fewer groups than workers."""
     groups = {}
     for spec in specs:

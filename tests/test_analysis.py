@@ -164,3 +164,4 @@ def test_claim_verdict_needs_an_interval_on_the_papers_side_of_zero():
     assert claim_verdict(-5.0, 4.0, 26.3).startswith("not resolved (interval contains 0)")
     assert claim_verdict(-28.0, -28.0, 26.3) == "not resolved (no interval: one seed)"
     assert claim_verdict(float("nan"), float("nan"), -75.0).startswith("undefined")
+    assert claim_verdict(2.0, 9.0, 0.0).startswith("undefined")
