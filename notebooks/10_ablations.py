@@ -243,7 +243,7 @@ reference_table
 for _, row in headline.iterrows():
     print(f"{row['claim']:<55s} ours {row['ours %']:+8.1f} % [{row['ci_low']:+.1f}, {row['ci_high']:+.1f}]"
           f" -> {row.verdict}")
-counts = headline.verdict.str.split(" (").str[0].value_counts()
+counts = headline.verdict.str.split(" (", regex=False).str[0].value_counts()
 print(f"\nscale={scale}: of {len(headline)} claims, " + ", ".join(f"{n} {v}" for v, n in counts.items()))
 
 # %% [markdown]
