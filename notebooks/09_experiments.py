@@ -145,8 +145,9 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
     (seed, controller settings, force_controller) go together, at most `population` per group,
     in the order they first appear. A compatible set larger than `population` is split into
     groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
-    far more per member, and with no more parts than workers, equal parts finish together). A group larger than the others is also
-    split so that `workers` processes get work when there are fewer groups than workers."""
+    far more per member, and with no more parts than workers, equal parts finish together). A
+    group larger than the others is also split so that `workers` processes get work when there
+    are fewer groups than workers."""
     groups = {}
     for spec in specs:
         groups.setdefault(population_key(spec.to_config()), []).append(spec)
@@ -875,14 +876,14 @@ plt.show()
 # starts from a network trained on other phases, which can help or hurt.
 
 # %%
-from pemamoe.budget import (BLOCK_STEPS, PLATEAU_FRACTION, budget_curves, load_budget, phase_learning,
+from pemamoe.budget import (PLATEAU_FRACTION, block_steps, budget_curves, load_budget, phase_learning,
                             plateau_table)
 from pemamoe.sweep import budget_specs
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
 study_dirs = run_sweep(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
                        workers, results_dir, ray_address)
-plateaus = plateau_table(budget_curves(load_budget(study_dirs), block_steps=BLOCK_STEPS if scale != "ci" else 64))
+plateaus = plateau_table(budget_curves(load_budget(study_dirs), block_steps=block_steps(scale)))
 learned = phase_learning(metrics, plateaus[plateaus.settings == "small"])
 mlp_rows = learned[learned.method == "mlp"]
 mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()

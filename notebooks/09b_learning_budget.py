@@ -64,6 +64,12 @@ from pemamoe.runs import read_json, read_parquet, verify_done
 from pemamoe.sweep import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
+
+
+def block_steps(scale: str) -> int:
+    """Environment steps per curve point: BLOCK_STEPS, or 64 at the ci scale, whose study is a
+    few iterations long."""
+    return 64 if scale == "ci" else BLOCK_STEPS
 PLATEAU_TAIL = 0.10  # the plateau: mean over this last fraction of the steps
 PLATEAU_FRACTION = 0.85  # "learned": this fraction of the plateau
 
@@ -196,8 +202,7 @@ from pemamoe.sweep import budget_specs, run_sweep
 specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)
 run_dirs = run_sweep(specs, backend, workers, results_dir, ray_address)
 metrics = load_budget(run_dirs)
-block = BLOCK_STEPS if scale != "ci" else 64
-curves = budget_curves(metrics, block_steps=block)
+curves = budget_curves(metrics, block_steps=block_steps(scale))
 table = plateau_table(curves)
 study_scale = "ci" if scale == "ci" else "small"
 levels = reference_levels(study_scale, results_dir)
@@ -282,10 +287,10 @@ speed
 # * **The two top-1 routed methods level off lower.** SMoE and PE-MAMoE plateau at 0.66-0.67 in
 #   phase 0 and 0.30-0.39 in phases 1 and 2, clearly below MLP and MoE. Their small "steps to 85 %"
 #   in phases 1 and 2 (200k-300k, against 700k-1.0M for MLP and MoE) reflect that low, early
-#   plateau, not fast learning. In a fixed phase PE-MAMoE is
-#   SMoE with the controller's settings and nothing to react to, so this says the sparse network
-#   itself learns less in 2M steps; whether the switch-time mechanisms make up for it under phase
-#   changes is what the medium sweep tests.
+#   plateau, not fast learning. In a fixed phase PE-MAMoE is SMoE with the controller's settings
+#   and nothing to react to, so this says the sparse network itself learns less in 2M steps;
+#   whether the switch-time mechanisms make up for it under phase changes is what the medium
+#   sweep tests.
 # * **The slowest case sets the phase length.** MoE in phase 1 first reaches 85 % of its plateau
 #   at 1.0M steps; everything else takes 900k or fewer. The `medium` phase is therefore 2,000
 #   iterations of 512 steps (1,024,000), checked by the cell below.

@@ -546,15 +546,14 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
             while pending:
                 start = min(pending)
                 members = pending.pop(start)
-                stop = max_iterations
                 # Catch up with the next sub-population, then train as one (members are independent
                 # of their neighbours, so this changes no bit). Needs every member's folder to reload.
                 catch_up = bool(pending) and all(dirs[r] is not None for r, _ in members)
-                if catch_up:
-                    stop = min(pending) if max_iterations is None else min(min(pending), max_iterations)
+                after = min(pending) if catch_up else None
+                stop = max_iterations if after is None else min(after, max_iterations or after)
                 group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
                                      [ck for _, ck in members], stop, verbose, progress)
-                if catch_up and stop == min(pending) and stop < configs[members[0][0]].iterations:
+                if catch_up and stop == after and stop < configs[members[0][0]].iterations:
                     joined = [(r, load_checkpoint(dirs[r] / "checkpoint.pt", configs[r])) for r, _ in members]
                     pending[stop] = sorted(pending[stop] + joined, key=lambda m: m[0])
                     continue
@@ -740,7 +739,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1081)
+# %% notebooks/07_mappo.py, cell 26 (line 1080)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

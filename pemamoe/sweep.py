@@ -75,8 +75,9 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
     (seed, controller settings, force_controller) go together, at most `population` per group,
     in the order they first appear. A compatible set larger than `population` is split into
     groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
-    far more per member, and with no more parts than workers, equal parts finish together). A group larger than the others is also
-    split so that `workers` processes get work when there are fewer groups than workers."""
+    far more per member, and with no more parts than workers, equal parts finish together). A
+    group larger than the others is also split so that `workers` processes get work when there
+    are fewer groups than workers."""
     groups = {}
     for spec in specs:
         groups.setdefault(population_key(spec.to_config()), []).append(spec)
@@ -139,7 +140,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     return [s.run_dir(results_dir) for s in specs]
 
 
-# %% notebooks/09_experiments.py, cell 10 (line 224)
+# %% notebooks/09_experiments.py, cell 10 (line 225)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",
