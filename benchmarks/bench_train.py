@@ -50,6 +50,27 @@ def measure(method: str, R: int, scale: str = "paper") -> dict:
             "throughput": R * steps / it_s, "per_run_sps": steps / it_s}
 
 
+MATMUL_OPS = ("aten::bmm", "aten::baddbmm", "aten::mm", "aten::addmm", "aten::mv", "aten::addmv")
+
+
+def matmul_ceiling(method: str, R: int) -> dict:
+    """Share of one paper-preset iteration spent inside matrix-product kernels, from the profiler's
+    self time of those kernels in a real iteration, and the throughput if everything else were
+    free: an upper bound that no removal of overhead can beat without fewer or faster products."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cfgs = [TrainConfig.for_scale("paper", method=method, seed=s, diag_every=10**9) for s in range(R)]
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        res = train_population(cfgs, max_iterations=2, threads=1, progress=False)
+    m = res[0].metrics
+    # both iterations are in the profile; the first also builds and warms up, so count the kernels
+    # of both against the logged time of both
+    total = float(m["rollout_time"].sum() + m["update_time"].sum())
+    mm = sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in MATMUL_OPS) / 1e6
+    steps = cfgs[0].batch_env_steps * len(m)
+    return {"matmul_s": mm, "iteration_s": total, "share": mm / total, "ceiling": R * steps / mm}
+
+
 def diagnostics_cost(method: str) -> float:
     cfg = TrainConfig.for_scale("paper", method=method, seed=0, diag_every=1)
     m = train_population([cfg], max_iterations=2, threads=1, progress=False)[0].metrics
@@ -58,13 +79,17 @@ def diagnostics_cost(method: str) -> float:
 
 def rss_child(R: int) -> float:
     """Peak RSS (GiB) of a process that trains an R-member paper-preset PE-MAMoE population."""
+    # VmHWM is the peak of the child's own address space. getrusage's ru_maxrss is not: Linux
+    # carries the parent's resident size over the fork and exec, so after the timed populations
+    # above it reported this benchmark's own 5.4 GiB instead of the child's.
     code = ("import resource; from pemamoe.mappo import TrainConfig, train_population; "
             f"cfgs=[TrainConfig.for_scale('paper', method='pemamoe', seed=s) for s in range({R})]; "
             "train_population(cfgs, max_iterations=2, threads=1, progress=False); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+            "hwm=[l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM:')]; "
+            "print(hwm[0] if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
-    return int(out.stdout.strip().splitlines()[-1]) / 2**20
+    return int(out.stdout.strip().splitlines()[-1]) / 2**20  # KiB -> GiB
 
 
 def sweep_groups(scale: str) -> list:
@@ -126,6 +151,11 @@ def main() -> int:
         if scale == "medium":
             verdict = "met" if max(workers) / 60 <= TARGET_MEDIUM_SWEEP_MIN else "NOT met"
             print(f"target: medium sweep <= {TARGET_MEDIUM_SWEEP_MIN:.0f} min: {verdict}")
+
+    for method in ("mlp", "pemamoe"):
+        c = matmul_ceiling(method, 16)
+        print(f"{method} R = 16: matrix products take {c['share']:.0%} of an iteration (profiled); with every "
+              f"other cost removed the throughput would be at most {c['ceiling']:.0f} member env steps/s", flush=True)
 
     gib = rss_child(16)
     thr = rates[("pemamoe", 16)]["throughput"]
