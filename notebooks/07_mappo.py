@@ -90,6 +90,17 @@
 # **Devices.** `TrainConfig.device` ("cpu", "cuda" or "auto") places the networks, the buffers and
 # the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
 # the resolved device is part of the run's identity (its hash).
+#
+# **What it buys, and where it stops.** `make bench` measures it (figures in the README, commit
+# `8ca3ef6`): on one core, a 16-member PE-MAMoE population at the paper preset trains 3,039
+# member environment steps per second, 3.7x a lone run, well short of the 10,000 the population
+# issue asked for. The same benchmark profiles a 16-member iteration: the matrix products alone
+# take 29 % of it, so even with every other cost removed the population could not pass about
+# 10,150 steps per second. Going further needs fewer or faster products. The gated networks
+# compute all three experts for every row and keep one, because no top-1 formulation has yet kept
+# a member's bits independent of its neighbours; and the router and noise-gate products (149
+# inputs, 3 outputs) run far below the core's speed, while fusing them into the experts' product
+# changes their last bits and with them every cached result.
 
 # %%
 #| default_exp mappo
