@@ -39,8 +39,8 @@ TARGET_MEDIUM_SWEEP_MIN = 120.0  # the whole medium sweep (issue: at most 2 hour
 TARGET_RSS_GIB = 4.0
 
 
-def measure(method: str, R: int, scale: str = "paper") -> dict:
-    cfgs = [TrainConfig.for_scale(scale, method=method, seed=s, diag_every=10**9) for s in range(R)]
+def measure(method: str, R: int, scale: str = "paper", device: str = "cpu") -> dict:
+    cfgs = [TrainConfig.for_scale(scale, method=method, seed=s, diag_every=10**9, device=device) for s in range(R)]
     res = train_population(cfgs, max_iterations=1 + TIMED, threads=1, progress=False)
     m = res[0].metrics.iloc[1:]
     roll, upd = statistics.median(m["rollout_time"]), statistics.median(m["update_time"])
@@ -102,7 +102,45 @@ def sweep_groups(scale: str) -> list:
     return [(g[0].method, len(g)) for g in group_specs(list(unique.values()), 16, 2)]
 
 
+def gpu_main(sizes, methods) -> int:
+    """`--device cuda`: the same per-member rates with the networks and the update on the GPU (the
+    environment stays on the CPU, one torch thread). No projections or CPU-only figures."""
+    torch.set_num_threads(1)
+    print(f"device: {torch.cuda.get_device_name(0)}; paper preset, 1 CPU torch thread for the environment side")
+    print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
+    rates = {}
+    for method in methods:
+        base = None
+        for R in sizes:
+            r = measure(method, R, device="cuda")
+            base = base or r["throughput"]
+            rates[(method, R)] = r
+            print(f"{method:8s} {R:3d} {r['rollout_s']:9.2f} {r['update_s']:9.2f} {r['throughput']:11.0f} "
+                  f"{r['throughput'] / base:6.2f} {r['per_run_sps']:11.0f}", flush=True)
+    print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
+    if ("pemamoe", 16) in rates:
+        thr = rates[("pemamoe", 16)]["throughput"]
+        print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
+              f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'}) on the GPU")
+    out = Path(__file__).resolve().parents[1] / "build" / "bench_train_cuda.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps({f"{m}/R{R}": v for (m, R), v in rates.items()}, indent=1))
+    return 0
+
+
 def main() -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                        help="cuda: the population rates on a GPU only (benchmarks/device_check.sh)")
+    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="population sizes (cuda; default 1 4 16)")
+    parser.add_argument("--methods", nargs="+", default=None, choices=METHODS, help="methods (cuda; default all)")
+    args = parser.parse_args()
+    if args.device == "cuda":
+        if not torch.cuda.is_available():
+            parser.error("--device cuda: torch sees no CUDA device on this machine")
+        return gpu_main(args.sizes or list(SIZES), args.methods or list(METHODS))
     torch.set_num_threads(1)
     print("paper preset: 64 envs x 32 slots = 2048 env steps/iteration, 8 epochs x 32 minibatches, 1 torch thread")
     print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
