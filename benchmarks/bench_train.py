@@ -102,29 +102,40 @@ def sweep_groups(scale: str) -> list:
     return [(g[0].method, len(g)) for g in group_specs(list(unique.values()), 16, 2)]
 
 
-def gpu_main(sizes, methods) -> int:
-    """`--device cuda`: the same per-member rates with the networks and the update on the GPU (the
-    environment stays on the CPU, one torch thread). No projections or CPU-only figures."""
-    torch.set_num_threads(1)
-    print(f"device: {torch.cuda.get_device_name(0)}; paper preset, 1 CPU torch thread for the environment side")
+def rate_table(methods, sizes, device: str) -> dict:
+    """Measure and print each method at each population size; {(method, R): measure(...)}."""
     print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
     rates = {}
     for method in methods:
         base = None
         for R in sizes:
-            r = measure(method, R, device="cuda")
+            r = measure(method, R, device=device)
             base = base or r["throughput"]
             rates[(method, R)] = r
             print(f"{method:8s} {R:3d} {r['rollout_s']:9.2f} {r['update_s']:9.2f} {r['throughput']:11.0f} "
                   f"{r['throughput'] / base:6.2f} {r['per_run_sps']:11.0f}", flush=True)
-    print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
-    if ("pemamoe", 16) in rates:
-        thr = rates[("pemamoe", 16)]["throughput"]
-        print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
-              f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'}) on the GPU")
-    out = Path(__file__).resolve().parents[1] / "build" / "bench_train_cuda.json"
+    return rates
+
+
+def report_target(rates: dict, json_name: str, where: str = "") -> None:
+    """Print the PE-MAMoE R = 16 throughput against the target; keep the rates in build/."""
+    thr = rates[("pemamoe", 16)]["throughput"]
+    print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
+          f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'}){where}")
+    out = Path(__file__).resolve().parents[1] / "build" / json_name
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({f"{m}/R{R}": v for (m, R), v in rates.items()}, indent=1))
+
+
+def gpu_main(sizes, methods) -> int:
+    """`--device cuda`: the same per-member rates with the networks and the update on the GPU (the
+    environment stays on the CPU, one torch thread). No projections or CPU-only figures."""
+    torch.set_num_threads(1)
+    print(f"device: {torch.cuda.get_device_name(0)}; paper preset, 1 CPU torch thread for the environment side")
+    rates = rate_table(methods, sizes, "cuda")
+    print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
+    if ("pemamoe", 16) in rates:
+        report_target(rates, "bench_train_cuda.json", " on the GPU")
     return 0
 
 
@@ -143,16 +154,7 @@ def main() -> int:
         return gpu_main(args.sizes or list(SIZES), args.methods or list(METHODS))
     torch.set_num_threads(1)
     print("paper preset: 64 envs x 32 slots = 2048 env steps/iteration, 8 epochs x 32 minibatches, 1 torch thread")
-    print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
-    rates = {}
-    for method in METHODS:
-        base = None
-        for R in SIZES:
-            r = measure(method, R)
-            base = base or r["throughput"]
-            rates[(method, R)] = r
-            print(f"{method:8s} {R:3d} {r['rollout_s']:9.2f} {r['update_s']:9.2f} {r['throughput']:11.0f} "
-                  f"{r['throughput'] / base:6.2f} {r['per_run_sps']:11.0f}", flush=True)
+    rates = rate_table(METHODS, SIZES, "cpu")
     print(f"diagnostics (every 50 iterations at the paper preset): {diagnostics_cost('pemamoe'):.2f} s per call (pemamoe, R = 1)")
 
     # Projections: each population's iterations at the measured rate of the nearest measured size,
@@ -196,14 +198,9 @@ def main() -> int:
               f"other cost removed the throughput would be at most {c['ceiling']:.0f} member env steps/s", flush=True)
 
     gib = rss_child(16)
-    thr = rates[("pemamoe", 16)]["throughput"]
     print(f"peak RSS of a 16-member paper-preset PE-MAMoE population: {gib:.2f} GiB "
           f"(target <= {TARGET_RSS_GIB:.0f} GiB: {'met' if gib <= TARGET_RSS_GIB else 'NOT met'})")
-    print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
-          f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'})")
-    out = Path(__file__).resolve().parents[1] / "build" / "bench_train.json"
-    out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({f"{m}/R{R}": v for (m, R), v in rates.items()}, indent=1))
+    report_target(rates, "bench_train.json")
     return 0
 
 
