@@ -717,7 +717,8 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
     ax.set_ylabel(ylabel)
     extra = f"\nblack lines: each phase's level without learning ({reference_note})" if reference is not None else ""
     ax.set_title(f"{title}\n{note}{extra}", fontsize=9)
-    ax.legend(fontsize=8, ncol=3)
+    # beside the axes: inside, it hid the highest reference levels (k-means in phase 2)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     save_figure(fig, name, figures_dir)
     plt.show()
 
