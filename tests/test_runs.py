@@ -227,10 +227,12 @@ def test_a_torch_script_reading_results_exits_cleanly(store):
         run = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300)
         return run.returncode, run.stderr[-500:]
 
+    # 20 runs catch a 15 % abort with probability 1 - 0.85**20 = 96 % (30 runs: 99 %, at half
+    # again the cost of the suite's slowest test)
     with ThreadPoolExecutor(max_workers=4) as pool:  # more only thrashes 2 cores
-        results = list(pool.map(once, range(30)))
+        results = list(pool.map(once, range(20)))
     failures = [r for r in results if r[0] != 0]
-    assert not failures, f"{len(failures)} of 30 exited non-zero, e.g. {failures[0]}"
+    assert not failures, f"{len(failures)} of 20 exited non-zero, e.g. {failures[0]}"
 
 
 def test_appendix_notebook_runs(capsys):
