@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import re
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +71,7 @@ def load_runs(run_dirs) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 15 (line 414)
+# %% notebooks/09_experiments.py, cell 15 (line 415)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -103,6 +104,20 @@ def normalise_scores(scores: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd
     return out
 
 
+@contextmanager
+def _rliable_seeded(seed: int):
+    """rliable 1.2.0's stratified bootstraps draw their resampling indices from numpy's global
+    generator (`np.random.choice`), not from the `random_state` they are given, so without this
+    a second `make figures` printed other intervals. Seed the global generator for the call and
+    put its state back afterwards."""
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield np.random.RandomState(seed)
+    finally:
+        np.random.set_state(saved)
+
+
 def bootstrap_iqm(norm_scores: pd.DataFrame, methods, metrics=tuple(SUMMARY_METRICS), reps: int = 2000, seed: int = 0):
     """rliable stratified-bootstrap IQM across runs, per metric: {method: (point (M,), ci (2, M))}."""
     from rliable import library as rly
@@ -113,8 +128,8 @@ def bootstrap_iqm(norm_scores: pd.DataFrame, methods, metrics=tuple(SUMMARY_METR
     def per_metric_iqm(s):
         return np.array([rmetrics.aggregate_iqm(s[:, [j]]) for j in range(s.shape[1])])
 
-    point, ci = rly.get_interval_estimates(score_dict, per_metric_iqm, reps=reps,
-                                           random_state=np.random.RandomState(seed))
+    with _rliable_seeded(seed) as random_state:
+        point, ci = rly.get_interval_estimates(score_dict, per_metric_iqm, reps=reps, random_state=random_state)
     return {m: (point[m], ci[m]) for m in methods}
 
 
@@ -126,8 +141,10 @@ def probability_of_improvement(norm_scores: pd.DataFrame, method: str, baselines
 
     mine = norm_scores.loc[norm_scores.method == method, list(metrics)].to_numpy()
     pairs = {b: [mine, norm_scores.loc[norm_scores.method == b, list(metrics)].to_numpy()] for b in baselines}
-    point, ci = rly.get_interval_estimates(pairs, rmetrics.probability_of_improvement, reps=reps,
-                                           random_state=np.random.RandomState(seed))
+    with _rliable_seeded(seed) as random_state:
+        point, ci = rly.get_interval_estimates(pairs, rmetrics.probability_of_improvement, reps=reps,
+                                               random_state=random_state)
+
     def scalar(x):  # rliable returns length-1 arrays for a scalar statistic
         return float(np.ravel(x)[0])
 
@@ -164,7 +181,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 524)
+# %% notebooks/09_experiments.py, cell 17 (line 541)
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -216,7 +233,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 591)
+# %% notebooks/09_experiments.py, cell 19 (line 608)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

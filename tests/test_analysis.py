@@ -165,3 +165,20 @@ def test_claim_verdict_needs_an_interval_on_the_papers_side_of_zero():
     assert claim_verdict(-28.0, -28.0, 26.3) == "not resolved (no interval: one seed)"
     assert claim_verdict(float("nan"), float("nan"), -75.0).startswith("undefined")
     assert claim_verdict(2.0, 9.0, 0.0).startswith("undefined")
+
+
+def test_bootstrap_intervals_do_not_depend_on_numpys_global_generator():
+    # rliable draws resampling indices from np.random; the analysis seeds it for each call and
+    # puts the caller's state back, so a second `make figures` writes the same intervals
+    rng = np.random.default_rng(3)
+    rows = [{"method": m, **{k: rng.random() for k in analysis.SUMMARY_METRICS}} for m in ("a", "b") for _ in range(5)]
+    norm = pd.DataFrame(rows)
+    results = []
+    for global_seed in (1, 2):
+        np.random.seed(global_seed)
+        before = np.random.get_state()[1].copy()
+        poi = analysis.probability_of_improvement(norm, "a", ["b"], reps=200)
+        iqm = analysis.bootstrap_iqm(norm, ["a", "b"], reps=200)
+        assert np.array_equal(np.random.get_state()[1], before)  # the caller's generator is untouched
+        results.append((poi.to_numpy().tolist(), [iqm[m][1].tolist() for m in ("a", "b")]))
+    assert results[0] == results[1]
