@@ -8,12 +8,16 @@ iterations (one torch thread, as the sweep workers run) and prints, measured in 
 * per-run speed: environment steps per second of one member (2048 / seconds per iteration);
 * the split of an iteration into rollout and update;
 
-then projects the 39-run sweeps (paper, small and medium scale) from the measured rates and the sweep's own
-grouping of runs into populations, and measures the peak resident memory of a 16-member
-paper-preset population in a child process. Diagnostics are switched off while timing (they run
-every 50 iterations in a real run; their cost is printed separately at R = 1).
+then projects the 39-run sweeps (paper, small and medium scale) from the measured rates and the
+sweep's own grouping of runs into populations, profiles a 16-member MLP and PE-MAMoE iteration for
+the share of its time inside matrix-product kernels (and the throughput those kernels alone would
+allow), and measures the peak resident memory of a 16-member paper-preset population in a child
+process. Diagnostics are switched off while timing (they run every 50 iterations in a real run;
+their cost is printed separately at R = 1).
 
-Run with `python benchmarks/bench_train.py` (about 5 minutes on the 2-core machine).
+Run with `python benchmarks/bench_train.py` (about 8 minutes on the 2-core machine);
+`--device cuda [--methods ..] [--sizes ..]` measures only the rates, on a GPU
+(benchmarks/device_check.sh).
 """
 
 import json
