@@ -698,8 +698,9 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # %% [markdown]
 # ## 4 · What these checks show, and what they cannot
 #
-# *(The numbers quoted here are those of the `small` run; the cells above print the values of
-# whatever scale the notebook was run at.)*
+# *(The numbers quoted here are those of the `small` run, and so of the `medium` one, which uses the
+# same problem sizes in this notebook; the cells above print the values of whatever scale the notebook
+# was run at.)*
 #
 # **Noise energy.** The identity $\sum_t\gamma_t^2 = \gamma^2KN$ is exact for disjoint windows
 # (bit for bit, tested), and an upper bound otherwise. The shipped controller adds one pulse at the
