@@ -85,6 +85,14 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 # * `device` is replaced by the device it resolves to (a CUDA run is not bit-identical to a CPU
 #   run), and `fixed_phase` is left out while it is `None`, so that adding the field kept every
 #   cycling run's hash, and with it every cached result.
+# * `TRAINING_NUMERICS`, the version of the training arithmetic, is added once it is above 1. The
+#   config alone cannot tell a run made before a change of the trainer, the networks or the
+#   environment's step code from one made after it, yet the two hold different numbers; bumping
+#   this constant with such a change gives every run a new folder, so an old result is never
+#   served as a new one. Version 1 is the arithmetic of every run made before the constant existed
+#   and leaves the identity as it was. A test (`tests/test_numerics.py`) trains a short population
+#   of every method and compares it with a stored fingerprint, so a change that moves the numbers
+#   without a bump fails the suite.
 #
 # **Presets.** `for_scale(scale, method, seed, **overrides)` starts from the scale's numbers, takes
 # the method's controller preset from the registry, rescales its windows with `scale_controller`
@@ -97,6 +105,9 @@ METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
+# The version of the training arithmetic (see the identity above): bump it with any change that
+# alters the numbers a run computes for the same config, and refresh tests/numerics_fingerprint.json.
+TRAINING_NUMERICS = 1
 # Columns that describe how a run was executed (speed, population size), not what it computed:
 # they differ between two executions of the same run and are left out of every comparison.
 TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
@@ -291,7 +302,7 @@ class TrainConfig:
         """What determines the computation: to_dict() without the phase controller for the
         baselines, which never use it (so a noise sweep over the MoE baseline is one run), plus
         the fully resolved environment, so a changed environment default (or step engine) can
-        never reuse results computed under the old one."""
+        never reuse results computed under the old one, plus TRAINING_NUMERICS once it is above 1."""
         d = self.to_dict()
         if not self.controller_enabled:
             d.pop("controller")
@@ -299,6 +310,8 @@ class TrainConfig:
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged
             d.pop("fixed_phase")
+        if TRAINING_NUMERICS != 1:  # version 1 is every run made before the version existed
+            d["numerics"] = TRAINING_NUMERICS
         return d
 
     def config_hash(self) -> str:

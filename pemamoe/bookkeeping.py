@@ -3,7 +3,7 @@
 
 __all__ = ['EpisodeTracker', 'explained_variance', 'split_env_state', 'merge_env_states']
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 13 (line 440)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 13 (line 453)
 import os
 import sys
 from pathlib import Path
@@ -94,7 +94,7 @@ class EpisodeTracker:
         self.load_member_state(0, state)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 14 (line 531)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 14 (line 544)
 def explained_variance(pred, target) -> float:
     """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
     pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
@@ -143,7 +143,7 @@ def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
                 leave=True)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 635)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 648)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -198,7 +198,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 690)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 703)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)
