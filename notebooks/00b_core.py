@@ -38,9 +38,12 @@ seed = 0
 # ## Scales
 #
 # Every notebook takes a `scale` parameter. `ci` must finish in seconds to a few minutes (the test
-# suite runs every notebook at this scale), `small` regenerates every figure with real training on
-# a 2-core machine within an hour, and `paper` follows the paper's training table. A notebook picks
-# its sizes with `by_scale`, so the three sizes sit next to each other in the code.
+# suite runs every notebook at this scale); `small` regenerates every figure with real but short
+# training (about half an hour on a 2-core machine once the learning-budget study is cached; the
+# README gives the measured costs of every scale); `medium` trains each phase long enough to learn
+# in (notebook 09b) and costs hours; `paper` follows the paper's training table. A notebook picks
+# its sizes with `by_scale`, so the sizes sit next to each other in the code; `medium` takes the
+# small size unless a notebook gives it its own, since most sizes are not about training.
 
 # %%
 #| export

@@ -760,7 +760,8 @@ anatomy[["phase", "policy"] + [f"{c} mean" for c in columns]].round(2)
 # ### Reading the anatomy
 #
 # * **QoS** dominates, as the objective intends, and grows with the phase because the class
-#   rewards do (5, 10, 20). The k-means heuristic earns about three times the random policy's QoS.
+#   rewards do (5, 10, 20). The k-means heuristic earns about three times the random policy's QoS
+#   (these readings: `paper_figures/env_reward_anatomy.md`).
 # * **Overlap** is active in every phase and grows with its weight (20, 40, 80).
 # * **Collisions** are rare but expensive: random flight collides in about 2 % of slots, k-means
 #   almost never (its clusters keep the UAVs apart).

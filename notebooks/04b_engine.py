@@ -221,7 +221,7 @@ print("environment 1 of the batch draws what a lone environment draws:", same)
 # can be read against notebooks 01–03 and the paper. It is also slow for this problem's sizes. A step
 # at 3 UAVs and 20 users makes about a thousand numpy calls, each on a few dozen numbers, so the
 # interpreter's per-call overhead, not arithmetic, sets the pace: about 1.1 ms per PettingZoo step
-# and 22,000 environment steps per second at B = 64 (`make bench` at commit `d2066cc`, 2-core machine), against the
+# and 22,000 environment steps per second at B = 64 (`make bench` at commit `a335d46`, 2-core machine), against the
 # 200 µs and 50,000 this project targets.
 #
 # The compiled engine (`step_engine="compiled"`, the default) runs the same step as explicit loops
@@ -243,7 +243,8 @@ print("environment 1 of the batch draws what a lone environment draws:", same)
 #   plain loop, and another machine's numpy may take `exp` or `log10` from a different math library
 #   than numba. With the default settings (one frequency colour, integer class rewards) those sums
 #   are exact, and on the development machine the two engines' outputs agree bit for bit; with
-#   frequency reuse, intermediate interference values differ by an ulp in about one link in eight.
+#   frequency reuse, intermediate interference values differ by an ulp in about one link in eight
+#   (measured at `7b4705b`).
 #   The motion of UAVs and users never depends on those values, so such differences cannot
 #   accumulate along a trajectory. The tests step both engines side by side through episode
 #   ends, phase switches, frequency reuse, Nakagami m ≠ 1, the held-out regime and the `mix` demand
@@ -253,9 +254,10 @@ print("environment 1 of the batch draws what a lone environment draws:", same)
 # The compiled step also skips work the reference does for every link: it computes distances for
 # all links, the large-scale channel only for users inside a service radius, and this slot's
 # realised gain only on the links of admitted users. The random numbers of every link are drawn
-# regardless, so no stream changes. Measured with `make bench` at commit `d2066cc`: 110–130 µs per PettingZoo step
-# and 63,000–83,000 env-steps/s at B = 64 (47,000–60,000 when every user is covered), depending on
-# how busy the shared machine is.
+# regardless, so no stream changes. Measured with `make bench` over eight runs at commit `81d9b1e`:
+# 110–130 µs per PettingZoo step and 63,000–83,000 env-steps/s at B = 64 (47,000–60,000 when every
+# user is covered), depending on how busy the shared machine is. (`d2066cc` later moved the demand
+# classification to phase switches, which can only make the step cheaper.)
 #
 # The scheduler is the one place where loops read better than arrays: per UAV, the attached users
 # are sorted by (priority, distance) with a stable insertion sort, and admission grows k = 1, 2, …

@@ -1140,5 +1140,6 @@ table
 #   applied to the whole (noisy) logit vector cannot change a top-k decision.
 # * On a CPU at these sizes, kernel-call overhead dominates small batches (the batched `stacked`
 #   execution wins up to a few hundred rows) while true conditional computation (`masked`) wins
-#   on rollout-sized batches; the default `"auto"` switches at 512 rows. `make bench` reprints
+#   on rollout-sized batches (`benchmarks/bench_nets.py` at `469129f`); the default `"auto"`
+#   switches at 512 rows. `make bench` reprints
 #   the comparison on the current machine.

@@ -161,7 +161,7 @@ register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controll
 # where kernel-call overhead dominates the tiny matrices, and `masked` wins from roughly 512 rows
 # on, where doing a third of the arithmetic pays for the indexing (forward and backward of the
 # top-1 actor at 2048 rows, one thread: 4.6 to 6.7 ms masked against 6.0 to 8.8 ms stacked and
-# 7.0 to 10.3 ms loop over our runs). No single strategy is fastest everywhere, so the default
+# 7.0 to 10.3 ms loop over our runs at `469129f`). No single strategy is fastest everywhere, so the default
 # `"auto"` takes `masked` for sparse mixing at batches of at least `NetConfig.masked_min_batch`
 # rows and `stacked` otherwise (dense mixing always runs every expert, so it uses `stacked`).
 # `ExpertBank` (notebook 05) calls the two functions below for `masked` and `loop`; each strategy

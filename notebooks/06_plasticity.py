@@ -696,7 +696,8 @@ class PhaseController:
 # * **The KL anchor does not undo the log-std reset.** The anchor's reference is the pre-switch
 #   actor, but with its log-std set to the reset value. Anchored on the narrowed pre-switch sigma,
 #   the KL term's pull on log sigma (for sigma_ref = 0.2 about 0.125 per dimension at weight 0.1)
-#   is about 12 times the entropy bonus's push, and it undid the reset within tens of iterations,
+#   is about 12 times the entropy bonus's push, and it undid the reset within tens of iterations
+#   (observed with the code before `4233dde`, the commit that fixed it),
 #   well inside the anchor window. A test checks that the logged log-std stays at the reset value
 #   through the anchor window (up to what the policy gradient itself does).
 # * **"Noise only on the selected experts" is weighted by use.** After each update epoch, expert

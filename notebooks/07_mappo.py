@@ -91,8 +91,8 @@
 # the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
 # the resolved device is part of the run's identity (its hash).
 #
-# **What it buys, and where it stops.** `make bench` measures it (figures in the README, commit
-# `8ca3ef6`): on one core, a 16-member PE-MAMoE population at the paper preset trains 3,039
+# **What it buys, and where it stops.** `make bench` measures it (figures in the README; the rates
+# with the training code of `8ca3ef6`, the profile with the benchmark of `be55e3e`): on one core, a 16-member PE-MAMoE population at the paper preset trains 3,039
 # member environment steps per second, 3.7x a lone run, well short of the 10,000 the population
 # issue asked for. The same benchmark profiles a 16-member iteration: the matrix products alone
 # take 29 % of it, so even with every other cost removed the population could not pass about
@@ -199,8 +199,9 @@ from pemamoe.train_config import (  # re-export (public names only)
 # `TrainConfig` holds every number of a run. Four presets come from `TrainConfig.for_scale`:
 #
 # * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
-# * **small**: the budget of `make figures`: about forty runs (four methods × three seeds,
-#   the ablations and the noise sweep) in under an hour on two cores with two worker processes.
+# * **small**: the budget of `make figures`: 39 runs (four methods × three seeds, the ablations
+#   and the noise sweep); the sweep took 18 min 34 s on two cores with two worker processes
+#   (measured at `dc5e4d6`, README).
 #   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts
 #   60 iterations (540 iterations, 276k environment steps in all) and the update runs 4 epochs of
 #   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
@@ -213,7 +214,8 @@ from pemamoe.train_config import (  # re-export (public names only)
 #   phase length lets every method get close to its plateau. The study also picks the update
 #   settings: per compute second the small ones and the paper's (64 environments, 8 epochs x 32
 #   minibatches) are close, but the paper's cost about twice as much per environment step and level
-#   off no higher, and a phase is counted in environment steps. Two cycles instead of the paper's
+#   off no higher (`paper_figures/learning_budget_compute.md` and `learning_budget.md`, study runs
+#   at `d02f78f`), and a phase is counted in environment steps. Two cycles instead of the paper's
 #   three, because a third would add half again to a sweep that already runs several times over
 #   its two-hour budget (README); two cycles still show every switch the paper is about: each phase
 #   is entered cold, left, and entered again.
@@ -1199,19 +1201,16 @@ pd.concat(_summary).round(3)
 # controller's KL weight, LR drop and log-std reset appear in the logged columns), and that every
 # column the figures need is produced.
 #
-# At `small` scale (nine phases of 60 iterations, 276k environment steps, one seed) the run we
-# made while writing this notebook showed the following. The return curve is a staircase that
-# follows the phases, mostly because the class reward per served user rises from phase to phase
-# (5, 10, 20), so raw returns are comparable only *within* a phase. Within each phase type the
-# policies do improve from one cycle to the next (phase-0 blocks: about 380 → 445 → 480 for the
-# MLP, 345 → 400 → 455 for PE-MAMoE), and served users climb inside most phases. The PPO
-# statistics are calm: approximate KL around 0.002 per iteration, clip fractions of a few per cent,
-# the KL early stop never fires at the paper's 0.1 budget, and the critic explains only 10-20 % of
-# the return variance. With this seed and budget **the MLP is ahead of PE-MAMoE** in most phase
-# blocks; the expert rank panel is not a like-for-like comparison either (the MLP's single
-# trunk against the mean of three experts). None of this is evidence for or against the paper's
-# claims: it is one seed of a run eighty times shorter than the paper's. The method
-# comparison, over seeds and with IQM confidence intervals, is notebook 09's job.
+# At the larger scales the table above is the place to look, phase by phase. Two things help in
+# reading it. Raw returns compare only *within* a phase type: the class reward per served user
+# rises from phase to phase (5, 10, 20), so the return curve is a staircase that follows the
+# phases whether or not the policy improves. And the PPO statistics say whether the updates are
+# healthy (an approximate KL far below the early-stop budget and clip fractions of a few per cent
+# mean small, stable steps; an explained variance near 0 means the critic has not yet learned the
+# return). The expert-rank panel is not a like-for-like comparison (the MLP's single trunk against
+# the mean of three experts). One seed shows what a run looks like, not which method is better:
+# the comparison over seeds, with IQM intervals and each phase's plateau as the yardstick, is
+# notebook 09's.
 #
 # Quick checks of the invariants the trainer promises (they also live in `tests/test_mappo.py`):
 

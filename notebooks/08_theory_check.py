@@ -699,8 +699,10 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # ## 4 · What these checks show, and what they cannot
 #
 # *(The numbers quoted here are those of the `small` run, and so of the `medium` one, which uses the
-# same problem sizes in this notebook; the cells above print the values of whatever scale the notebook
-# was run at.)*
+# same problem sizes in this notebook. Slopes, intervals and Lipschitz constants come from
+# `paper_figures/theory_noise_fit.md`, `theory_regret_fit.md` and `theory_lipschitz.md`; the rest
+# (twin distances, gate spreads, steady-state and excess regret) were read from the cells' output
+# at `838f9df`. The cells above print the values of whatever scale the notebook was run at.)*
 #
 # **Noise energy.** The identity $\sum_t\gamma_t^2 = \gamma^2KN$ is exact for disjoint windows
 # (bit for bit, tested), and an upper bound otherwise. The shipped controller adds one pulse at the
@@ -708,8 +710,8 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # `noise_schedule` with a window of $N+1$ slot for slot in every run. The drift of a noisy run from
 # its same-seed twin grows with the energy but **much more slowly than** $\sqrt{\text{energy}}$:
 # the probe-distance slope against $\sqrt{\sum\gamma^2}$ is 0.48 [0.46, 0.50] in the $\gamma$ sweep
-# (0.51 [0.44, 0.58] for the MLP, so routing is not the cause), and $\sum_t|\Delta J_t|$ has slope
-# 0.49 [0.42, 0.55]. The reason shows in the reference line: at $\gamma = 0.04$ the twin is
+# (0.51 [0.44, 0.57] for the MLP, so routing is not the cause), and $\sum_t|\Delta J_t|$ has slope
+# 0.49 [0.42, 0.54]. The reason shows in the reference line: at $\gamma = 0.04$ the twin is
 # as far away (0.10) as a run with a *different seed* (0.12). A paired PPO run amplifies any small
 # perturbation until it reaches the learner's own seed-to-seed spread, so this distance saturates
 # and does not isolate the conditional mean that the lemma's martingale sum is centred on. The
@@ -736,7 +738,7 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # For the hard top-1 policy that is deployed it holds only piecewise, away from the boundaries,
 # which the paper's phrase "piecewise smooth" concedes but its Lipschitz inequality does not.
 #
-# **Dynamic regret.** With $V_T$ fixed ($K = 3$) the regret grows like $T^{0.21}$ [0.17, 0.26]
+# **Dynamic regret.** With $V_T$ fixed ($K = 3$) the regret grows like $T^{0.21}$ [0.17, 0.25]
 # for PE-MAMoE (SMoE 0.21, MLP 0.28), far below $T^{3/4}$. The implied constant
 # $R_T/(T^{3/4}V_T^{1/4})$ falls from 0.29 to 0.09 between $T = 100$ and $800$: in $T$ the bound
 # is loose and increasingly so. With a fixed phase length the regret is linear ($0.95$
@@ -750,7 +752,7 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # switches. The $T^{3/4}$ slack absorbs the steeper $V_T$ dependence. The noise term is not
 # detectable in the regret. The excess regret of the noisy runs is +1.1 % of the clean regret
 # (median, range −3 % to +7 %; MLP +3.0 %), and its slope against $\sqrt{\text{energy}}$ is 0.12
-# with an interval from $-0.47$ to $0.59$. In this toy, noise neither helps (no plasticity has
+# with an interval from $-0.46$ to $0.58$. In this toy, noise neither helps (no plasticity has
 # been lost in a few hundred iterations) nor measurably hurts.
 #
 # **What this cannot show.** A fitted slope over one decade of $T$ or $\gamma$ is not an

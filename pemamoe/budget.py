@@ -3,7 +3,7 @@
 
 __all__ = ['BLOCK_STEPS', 'block_steps', 'PLATEAU_TAIL', 'PLATEAU_FRACTION', 'update_setting', 'load_budget', 'budget_curves', 'plateau_table', 'seconds_to_reach', 'phase_learning']
 
-# %% notebooks/09b_learning_budget.py, cell 4 (line 55)
+# %% notebooks/09b_learning_budget.py, cell 4 (line 58)
 from pathlib import Path
 
 import numpy as np

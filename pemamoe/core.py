@@ -3,7 +3,7 @@
 
 __all__ = ['SCALES', 'check_scale', 'by_scale', 'KINDS', 'config_error', 'require', 'require_field', 'find_repo_root', 'REPO_ROOT', 'repo_path', 'current_umask', 'atomic_path', 'atomic_write_text', 'atomic_write_json', 'save_figure', 'write_table', 'run_notebook', 'PAPER_COUNTERPARTS', 'notebook_parameters', 'figure_notebooks', 'make_figures', 'write_figures_readme']
 
-# %% notebooks/00b_core.py, cell 5 (line 45)
+# %% notebooks/00b_core.py, cell 5 (line 48)
 import json
 import math
 import numbers
@@ -35,7 +35,7 @@ def by_scale(scale: str, *, ci, small, paper, medium=_SAME_AS_SMALL):
     return {"ci": ci, "small": small, "medium": medium, "paper": paper}[check_scale(scale)]
 
 
-# %% notebooks/00b_core.py, cell 7 (line 110)
+# %% notebooks/00b_core.py, cell 7 (line 113)
 KINDS = ("int", "real", "bool", "choice", "str", "reals")
 
 
@@ -81,7 +81,7 @@ def require_field(obj, field: str, kind: str, allowed=None, **rules):
     return value
 
 
-# %% notebooks/00b_core.py, cell 8 (line 157)
+# %% notebooks/00b_core.py, cell 8 (line 160)
 def _show(value) -> str:
     # NumPy 2 reprs numpy scalars as np.float64(...): show the number and, if not plain, its type.
     if isinstance(value, (bool, int, float, str)) or value is None:
@@ -182,7 +182,7 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
     return True, tuple(out)
 
 
-# %% notebooks/00b_core.py, cell 10 (line 273)
+# %% notebooks/00b_core.py, cell 10 (line 276)
 def _is_checkout(folder: Path) -> bool:
     pyproject = folder / "pyproject.toml"
     if not (pyproject.is_file() and (folder / "notebooks").is_dir()):
@@ -218,7 +218,7 @@ def repo_path(path) -> Path:
     return path if path.is_absolute() else REPO_ROOT / path
 
 
-# %% notebooks/00b_core.py, cell 12 (line 322)
+# %% notebooks/00b_core.py, cell 12 (line 325)
 def current_umask() -> int:
     """The process umask (read from /proc where possible: setting it to read it is not
     thread-safe)."""
@@ -262,7 +262,7 @@ def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 14 (line 375)
+# %% notebooks/00b_core.py, cell 14 (line 378)
 def save_figure(fig, name: str, figures_dir, dpi: int = 150) -> None:
     """Write `fig` as `<figures_dir>/<name>.png` and `.pdf`, atomically (a relative figures_dir is
     under the repository root)."""
@@ -279,7 +279,7 @@ def write_table(df, name: str, figures_dir, floatfmt: str = ".4g") -> None:
     atomic_write_text(folder / f"{name}.csv", df.to_csv(index=False))
 
 
-# %% notebooks/00b_core.py, cell 15 (line 393)
+# %% notebooks/00b_core.py, cell 15 (line 396)
 def _markdown_table(df, floatfmt: str) -> str:
     # A tiny renderer, so tables do not depend on the optional `tabulate` package.
     def fmt(v):
@@ -293,7 +293,7 @@ def _markdown_table(df, floatfmt: str) -> str:
     return "\n".join([header, rule, *rows])
 
 
-# %% notebooks/00b_core.py, cell 17 (line 430)
+# %% notebooks/00b_core.py, cell 17 (line 433)
 def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1800, cwd=None,
                  stream: bool = False):
     """Execute `notebook` (a notebooks/*.py file) with papermill; return the executed notebook.
@@ -335,7 +335,7 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
     )
 
 
-# %% notebooks/00b_core.py, cell 18 (line 473)
+# %% notebooks/00b_core.py, cell 18 (line 476)
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -351,7 +351,7 @@ def _kernel_manager_config():
     return config
 
 
-# %% notebooks/00b_core.py, cell 20 (line 504)
+# %% notebooks/00b_core.py, cell 20 (line 507)
 # Paper counterpart of each output, by file stem. Stems not listed are illustrations of a model
 # that the paper describes in equations only.
 PAPER_COUNTERPARTS = {
@@ -483,7 +483,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 637)
+# %% notebooks/00b_core.py, cell 21 (line 640)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -3,7 +3,7 @@
 
 __all__ = ['FLOAT_INFO', 'INT_INFO', 'UAV_INFO', 'KernelParams', 'kernel_params', 'step_kernel', 'score_kernel', 'CompiledStep']
 
-# %% notebooks/04b_engine.py, cell 9 (line 266)
+# %% notebooks/04b_engine.py, cell 9 (line 268)
 import math
 from typing import NamedTuple
 
@@ -154,7 +154,7 @@ def kernel_params(cfg) -> KernelParams:
     )
 
 
-# %% notebooks/04b_engine.py, cell 11 (line 422)
+# %% notebooks/04b_engine.py, cell 11 (line 424)
 @numba.njit(cache=True)
 def _reflect(x, area):
     """Mirror x into [0, area]; returns (position, flipped). See mobility.reflect_into_area."""
@@ -240,7 +240,7 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
             user_vel[b, n, d] = -v_new if flipped else v_new
 
 
-# %% notebooks/04b_engine.py, cell 13 (line 514)
+# %% notebooks/04b_engine.py, cell 13 (line 516)
 @numba.njit(cache=True)
 def _required_power(p, rate, band, gain, interference):
     """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
@@ -413,7 +413,7 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
     int_info[2, i] = admitted_n
 
 
-# %% notebooks/04b_engine.py, cell 15 (line 692)
+# %% notebooks/04b_engine.py, cell 15 (line 694)
 @numba.njit(cache=True)
 def _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state):
     """Write environment b's observations and global state into row i (see build_observations)."""
@@ -509,7 +509,7 @@ def score_kernel(p, rows, uav_xy, battery_j, user_xy, demand, rate_frac, serving
         _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state)
 
 
-# %% notebooks/04b_engine.py, cell 17 (line 799)
+# %% notebooks/04b_engine.py, cell 17 (line 801)
 _NOT_NEEDED = np.zeros((1, 1))  # placeholder for the kernel's nakagami argument when m = 1
 
 # The keys of info, in the order the numpy reference's info has them.

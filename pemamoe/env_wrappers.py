@@ -3,7 +3,7 @@
 
 __all__ = ['UAVVectorEnv', 'vector_seeds', 'UAVParallelEnv', 'compile_step_kernels', 'CLASS_COLOURS', 'render_frame', 'random_policy', 'hover_policy', 'kmeans_policy', 'HEURISTICS', 'rollout_heuristic']
 
-# %% notebooks/04b_engine.py, cell 21 (line 918)
+# %% notebooks/04b_engine.py, cell 21 (line 920)
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
@@ -64,7 +64,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04b_engine.py, cell 23 (line 996)
+# %% notebooks/04b_engine.py, cell 23 (line 998)
 # Info keys that only a step produces, and their value at a reset: (per agent?, value).
 _STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, False),
                    "battery_depleted": (True, False), "phase_switch": (False, False)}
@@ -191,7 +191,7 @@ def compile_step_kernels() -> None:
     env.step(np.zeros((2, env.n_agents, 2)))
 
 
-# %% notebooks/04b_engine.py, cell 25 (line 1130)
+# %% notebooks/04b_engine.py, cell 25 (line 1132)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -228,7 +228,7 @@ def render_frame(core: "UAVBatchCore", b: int = 0, size_px: int = 480) -> np.nda
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04b_engine.py, cell 27 (line 1178)
+# %% notebooks/04b_engine.py, cell 27 (line 1180)
 def random_policy(core: "UAVBatchCore", rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

@@ -46,13 +46,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     _is_int, _plain, resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 10 (line 265)
+# %% notebooks/07_mappo.py, cell 10 (line 267)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 294)
+# %% notebooks/07_mappo.py, cell 12 (line 296)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -85,7 +85,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 350)
+# %% notebooks/07_mappo.py, cell 16 (line 352)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -128,7 +128,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 407)
+# %% notebooks/07_mappo.py, cell 18 (line 409)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -217,7 +217,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 538)
+# %% notebooks/07_mappo.py, cell 20 (line 540)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -376,7 +376,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 712)
+# %% notebooks/07_mappo.py, cell 22 (line 714)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -482,7 +482,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 826)
+# %% notebooks/07_mappo.py, cell 24 (line 828)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -739,7 +739,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1091)
+# %% notebooks/07_mappo.py, cell 26 (line 1093)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:
