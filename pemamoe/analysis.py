@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import re
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -71,7 +72,7 @@ def load_runs(run_dirs) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 15 (line 415)
+# %% notebooks/09_experiments.py, cell 15 (line 416)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -109,11 +110,15 @@ def _rliable_seeded(seed: int):
     """rliable 1.2.0's stratified bootstraps draw their resampling indices from numpy's global
     generator (`np.random.choice`), not from the `random_state` they are given, so without this
     a second `make figures` printed other intervals. Seed the global generator for the call and
-    put its state back afterwards."""
+    put its state back afterwards. rliable hands the RandomState on to arch's bootstrap, which
+    warns that the argument is deprecated: that one warning is silenced here, since rliable 1.2.0
+    offers no other way to seed it."""
     saved = np.random.get_state()
     np.random.seed(seed)
     try:
-        yield np.random.RandomState(seed)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="random_state is deprecated", category=FutureWarning)
+            yield np.random.RandomState(seed)
     finally:
         np.random.set_state(saved)
 
@@ -181,7 +186,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 541)
+# %% notebooks/09_experiments.py, cell 17 (line 546)
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -233,7 +238,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 608)
+# %% notebooks/09_experiments.py, cell 19 (line 613)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 
