@@ -323,6 +323,93 @@ except RuntimeError as err:
     print(err)
 
 # %% [markdown]
+# ## Where a long sweep stands
+#
+# A `medium` sweep trains for hours, across interruptions. `sweep_status` says where it stands
+# without training anything: it groups the unfinished runs into the populations `run_sweep` would
+# start now (the same `group_specs` call) and reads each member's `metrics.parquet`, which grows at
+# every checkpoint. Per population it reports the iteration every member has reached, the seconds
+# one iteration of the whole population took (the median over its last 200 logged iterations, so a
+# paused sweep's one very long iteration does not count) and the hours left at that rate. A
+# population that has not logged anything yet has no rate, and the total says how many such
+# populations it leaves out. With W workers the sweep needs at least the larger of (hours left)/W
+# and the longest population's hours. `python -m pemamoe sweep ... --status` prints it.
+
+# %%
+#| export
+STATUS_WINDOW = 200  # logged iterations whose median gives a population's seconds per iteration
+
+
+def _logged_progress(run_dir: Path) -> tuple:
+    """(iterations logged, median seconds per iteration over the last STATUS_WINDOW, or None)."""
+    from pemamoe.runs import read_parquet
+
+    path = run_dir / "metrics.parquet"
+    if not path.is_file():
+        return 0, None
+    m = read_parquet(path)
+    if m.empty:
+        return 0, None
+    tail = m.tail(STATUS_WINDOW)
+    per_iteration = tail["rollout_time"] + tail["update_time"] + tail["diag_time"]
+    return len(m), float(per_iteration.median())
+
+
+def sweep_status(specs, results_dir="results", population: int | None = None, workers: int = 2):
+    """Where a sweep stands, without training: one row per population `run_sweep` would start now
+    (methods, members, iteration reached by all, of how many, seconds per population iteration,
+    hours left), and the number of finished runs as `DataFrame.attrs["finished"]`."""
+    import pandas as pd
+
+    from pemamoe.runs import verify_done
+    from pemamoe.sweep import DEFAULT_POPULATION, group_specs  # the sweep imports this module
+
+    results_dir = Path(results_dir)
+    by_folder = {}
+    for spec in specs:
+        by_folder.setdefault(spec.run_dir(results_dir), spec)
+    todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+    rows = []
+    for i, group in enumerate(group_specs(todo, population or DEFAULT_POPULATION, workers)):
+        total = group[0].to_config().iterations
+        progress = [_logged_progress(spec.run_dir(results_dir)) for spec in group]
+        reached = min(n for n, _ in progress)
+        rates = [r for _, r in progress if r is not None]
+        seconds = max(rates) if rates else None
+        rows.append({"population": i, "methods": "+".join(sorted({s.method for s in group})), "members": len(group),
+                     "iteration": reached, "of": total, "s_per_iteration": seconds,
+                     "hours_left": None if seconds is None else (total - reached) * seconds / 3600})
+    table = pd.DataFrame(rows, columns=["population", "methods", "members", "iteration", "of", "s_per_iteration",
+                                        "hours_left"])
+    table.attrs["finished"] = len(by_folder) - len(todo)
+    table.attrs["runs"] = len(by_folder)
+    return table
+
+
+def status_summary(table, workers: int) -> str:
+    """One paragraph for `sweep_status`'s table: finished runs, hours left, a lower bound on the wall time."""
+    known = table.dropna(subset=["hours_left"])
+    unknown = len(table) - len(known)
+    hours = float(known.hours_left.sum())
+    longest = float(known.hours_left.max()) if len(known) else 0.0
+    text = (f"{table.attrs['finished']} of {table.attrs['runs']} runs finished; {len(table)} populations to run "
+            f"({int(table.members.sum())} runs). Measured rates leave {hours:.2f} worker-hours")
+    if unknown:
+        text += f", plus {unknown} population{'s' if unknown != 1 else ''} that ha{'ve' if unknown != 1 else 's'} not logged an iteration yet"
+    return text + (f"; on {workers} worker{'s' if workers != 1 else ''} at least "
+                   f"{max(hours / workers, longest):.2f} h of wall time.")
+
+# %% [markdown]
+# The status of this scale's `main` experiment (nothing is trained here):
+
+# %%
+from pemamoe.sweep import experiment_specs
+
+_status = sweep_status(experiment_specs("main", scale), workers=2)
+print(status_summary(_status, workers=2))
+_status
+
+# %% [markdown]
 # ## Command line
 #
 # `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
@@ -354,6 +441,8 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--results-dir", default="results")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
+    parser.add_argument("--status", action="store_true",
+                        help="print where the sweep stands (populations, iterations, hours left) and train nothing")
     args = parser.parse_args(argv)
     try:
         check_scale(args.scale)
@@ -363,6 +452,14 @@ def sweep_cli(argv=None) -> int:
         parser.error("--results-dir must be a folder path")
     methods = tuple(args.methods) if args.methods else tuple(METHOD_REGISTRY)
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
+    if args.status:
+        import pandas as pd
+
+        table = sweep_status(specs, args.results_dir, args.population, args.workers)
+        with pd.option_context("display.width", 120, "display.max_columns", 10):
+            print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+        print(status_summary(table, args.workers))
+        return 0
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
                   population=args.population)

@@ -15,6 +15,7 @@ import pytest
 
 from pemamoe.mappo import train
 from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.execution import status_summary, sweep_status
 from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep, sweep_cli
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -227,3 +228,24 @@ def test_a_large_compatible_set_splits_into_near_equal_populations():
     assert by_method == {"mlp": [3], "moe": [12], "smoe": [3], "pemamoe": [11, 10]}
     assert [s for g in groups for s in g if s.method == "pemamoe"] == [s for s in unique if s.method == "pemamoe"]
     assert [len(g) for g in group_specs([s for s in unique if s.method == "pemamoe"], 4, 1)] == [4, 4, 4, 3, 3, 3]
+
+
+def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys):
+    specs = [RunSpec("mlp", 0, "ci"), RunSpec("smoe", 0, "ci"), RunSpec("smoe", 1, "ci"), RunSpec("moe", 0, "ci")]
+    train(specs[0].to_config(), specs[0].run_dir(tmp_path))  # finished
+    train(specs[1].to_config(), specs[1].run_dir(tmp_path), max_iterations=4)  # stopped after a checkpoint
+    train(specs[2].to_config(), specs[2].run_dir(tmp_path), max_iterations=2)
+    before = sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
+    table = sweep_status(specs, tmp_path, workers=2)
+    assert table.attrs == {"finished": 1, "runs": 4}
+    smoe, moe = (table[table.methods == m].iloc[0] for m in ("smoe", "moe"))
+    # the two SMoE runs form one population that resumes from the lagging member's iteration
+    assert (smoe.members, smoe.iteration, smoe.of) == (2, 2, 6)
+    assert smoe.s_per_iteration > 0 and smoe.hours_left == pytest.approx(4 * smoe.s_per_iteration / 3600)
+    assert (moe.members, moe.iteration) == (1, 0) and np.isnan(moe.s_per_iteration)
+    text = status_summary(table, workers=2)
+    assert text.startswith("1 of 4 runs finished; 2 populations to run (3 runs)") and "1 population that has not" in text
+    assert sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*")) == before  # nothing trained or written
+    assert sweep_cli(["--experiment", "main", "--scale", "ci", "--seeds", "0", "--methods", "mlp", "smoe", "moe",
+                      "--results-dir", str(tmp_path), "--status"]) == 0
+    assert "1 of 3 runs finished" in capsys.readouterr().out
