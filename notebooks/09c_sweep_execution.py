@@ -388,6 +388,8 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
 
 def status_summary(table, workers: int) -> str:
     """One paragraph for `sweep_status`'s table: finished runs, hours left, a lower bound on the wall time."""
+    if table.empty:
+        return f"{table.attrs['finished']} of {table.attrs['runs']} runs finished; nothing left to train."
     known = table.dropna(subset=["hours_left"])
     unknown = len(table) - len(known)
     hours = float(known.hours_left.sum())
@@ -403,9 +405,10 @@ def status_summary(table, workers: int) -> str:
 # The status of this scale's `main` experiment (nothing is trained here):
 
 # %%
+from pemamoe.core import repo_path
 from pemamoe.sweep import experiment_specs
 
-_status = sweep_status(experiment_specs("main", scale), workers=2)
+_status = sweep_status(experiment_specs("main", scale), repo_path("results"), workers=2)
 print(status_summary(_status, workers=2))
 _status
 

@@ -286,6 +286,8 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
 
 def status_summary(table, workers: int) -> str:
     """One paragraph for `sweep_status`'s table: finished runs, hours left, a lower bound on the wall time."""
+    if table.empty:
+        return f"{table.attrs['finished']} of {table.attrs['runs']} runs finished; nothing left to train."
     known = table.dropna(subset=["hours_left"])
     unknown = len(table) - len(known)
     hours = float(known.hours_left.sum())
@@ -298,7 +300,7 @@ def status_summary(table, workers: int) -> str:
                    f"{max(hours / workers, longest):.2f} h of wall time.")
 
 
-# %% notebooks/09c_sweep_execution.py, cell 16 (line 421)
+# %% notebooks/09c_sweep_execution.py, cell 16 (line 424)
 def sweep_cli(argv=None) -> int:
     import argparse
 
