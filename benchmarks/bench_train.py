@@ -143,6 +143,53 @@ def gpu_main(sizes, methods) -> int:
     return 0
 
 
+def checkpoint_cost(scale: str) -> dict:
+    """Seconds one member spends writing its last checkpoint of a `scale` run (the checkpoint
+    holds every log row so far), with the rows stored as lists (checkpoint format 2) and packed
+    into one pickled bytes object (format 3), and the two parquet logs written beside it. The rows
+    have the shape and types of real ones: the keys of a real ci run's rows, distinct numbers."""
+    import io
+    import random
+    import tempfile
+
+    import pandas as pd
+
+    from pemamoe.bookkeeping import _pack_rows, _write_parquet_atomic
+    from pemamoe.mappo import train
+
+    cfg = TrainConfig.for_scale(scale)
+    with tempfile.TemporaryDirectory() as tmp:
+        ci = train(TrainConfig.for_scale("ci", method="pemamoe"), Path(tmp) / "ci", progress=False)
+        metric_row, episode_row = ci.metrics.iloc[-1].to_dict(), ci.episodes.iloc[-1].to_dict()
+    rng = random.Random(0)
+
+    def rows(template, n):
+        out = []
+        for i in range(n):
+            row = {}
+            for k, v in template.items():  # same types as the template: python floats, ints, bools
+                row[k] = (v if isinstance(v, bool) else i if isinstance(v, int) else rng.random()) \
+                    if isinstance(v, (bool, int, float)) else v
+            out.append(row)
+        return out
+
+    episodes_per_iteration = cfg.num_envs * cfg.rollout_steps / cfg.env_config().episode_steps
+    metrics = rows({k: (v.item() if hasattr(v, "item") else v) for k, v in metric_row.items()}, cfg.iterations)
+    episodes = rows({k: (v.item() if hasattr(v, "item") else v) for k, v in episode_row.items()},
+                    int(cfg.iterations * episodes_per_iteration))
+    out = {"metric_rows": len(metrics), "episode_rows": len(episodes), "checkpoints": cfg.iterations // cfg.checkpoint_every}
+    for name, pack in (("lists", lambda r: r), ("packed", _pack_rows)):
+        start = time.perf_counter()
+        torch.save({"metrics_rows": pack(metrics), "episode_rows": pack(episodes)}, io.BytesIO())
+        out[name] = time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        _write_parquet_atomic(metrics, Path(tmp) / "metrics.parquet")
+        _write_parquet_atomic(episodes, Path(tmp) / "episodes.parquet")
+        out["parquet"] = time.perf_counter() - start
+    return out
+
+
 def main() -> int:
     import argparse
 
@@ -200,6 +247,16 @@ def main() -> int:
         c = matmul_ceiling(method, 16)
         print(f"{method} R = 16: matrix products take {c['share']:.0%} of an iteration (profiled); with every "
               f"other cost removed the throughput would be at most {c['ceiling']:.0f} member env steps/s", flush=True)
+
+    for scale in ("medium", "paper"):
+        c = checkpoint_cost(scale)
+        # the rows grow linearly over a run, so the whole run's checkpoints cost about half the last one's, times their number
+        run = {k: c[k] * c["checkpoints"] / 2 for k in ("lists", "packed", "parquet")}
+        print(f"checkpoint of one member at the end of a {scale} run ({c['metric_rows']:,} metric rows, "
+              f"{c['episode_rows']:,} episode rows): rows as lists {c['lists']:.2f} s, packed {c['packed']:.2f} s "
+              f"({c['lists'] / c['packed']:.1f}x less), plus {c['parquet']:.2f} s for the parquet logs; over the run's "
+              f"{c['checkpoints']} checkpoints about {(run['lists'] + run['parquet']) / 60:.1f} min per member with lists, "
+              f"{(run['packed'] + run['parquet']) / 60:.1f} min packed", flush=True)
 
     gib = rss_child(16)
     print(f"peak RSS of a 16-member paper-preset PE-MAMoE population: {gib:.2f} GiB "

@@ -4,7 +4,9 @@
 __all__ = ['EpisodeTracker', 'explained_variance', 'split_env_state', 'merge_env_states']
 
 # %% notebooks/07c_config_and_bookkeeping.py, cell 13 (line 453)
+import io
 import os
+import pickle
 import sys
 from pathlib import Path
 
@@ -94,7 +96,7 @@ class EpisodeTracker:
         self.load_member_state(0, state)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 14 (line 544)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 14 (line 546)
 def explained_variance(pred, target) -> float:
     """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
     pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
@@ -143,7 +145,7 @@ def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
                 leave=True)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 648)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 660)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -165,6 +167,25 @@ def _decode(obj):
     if isinstance(obj, (list, tuple)):
         return type(obj)(_decode(v) for v in obj)
     return obj
+
+
+class _PlainUnpickler(pickle.Unpickler):
+    """Unpickles plain data only: any class or function in the stream is refused."""
+
+    def find_class(self, module, name):
+        raise pickle.UnpicklingError(f"checkpoint log rows may hold only plain data, found {module}.{name}")
+
+
+def _pack_rows(rows: list) -> bytes:
+    """Log rows (dicts of plain numbers, strings and booleans) as one pickled bytes object."""
+    return pickle.dumps(rows, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _unpack_rows(packed) -> list:
+    """The rows `_pack_rows` packed; a list (checkpoint format 2) is returned as a new list."""
+    if isinstance(packed, (bytes, bytearray)):
+        return _PlainUnpickler(io.BytesIO(packed)).load()
+    return list(packed)
 
 
 def _torch_save_atomic(obj, path: Path) -> None:
@@ -198,7 +219,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 703)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 734)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

@@ -21,7 +21,8 @@ import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
     EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
-    _torch_save_atomic, _write_parquet_atomic, explained_variance, merge_env_states, split_env_state)
+    _pack_rows, _torch_save_atomic, _unpack_rows, _write_parquet_atomic, explained_variance, merge_env_states,
+    split_env_state)
 from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
@@ -46,13 +47,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     _is_int, _plain, resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 10 (line 267)
+# %% notebooks/07_mappo.py, cell 10 (line 268)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 296)
+# %% notebooks/07_mappo.py, cell 12 (line 297)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -85,7 +86,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 352)
+# %% notebooks/07_mappo.py, cell 16 (line 353)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -128,7 +129,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 409)
+# %% notebooks/07_mappo.py, cell 18 (line 410)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -217,7 +218,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 540)
+# %% notebooks/07_mappo.py, cell 20 (line 541)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -376,7 +377,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 714)
+# %% notebooks/07_mappo.py, cell 22 (line 715)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -482,7 +483,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 828)
+# %% notebooks/07_mappo.py, cell 24 (line 829)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -620,7 +621,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             generators[r].set_state(ck["torch_rng"])
             rngs[r].bit_generator.state = ck["numpy_rng"]
             global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
-            metrics_rows[r], episode_rows[r] = list(ck["metrics_rows"]), list(ck["episode_rows"])
+            metrics_rows[r], episode_rows[r] = _unpack_rows(ck["metrics_rows"]), _unpack_rows(ck["episode_rows"])
             torch_threads[r].update(ck.get("torch_threads", ()))
             start = resumed_from = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
@@ -631,7 +632,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             return
         env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
         _torch_save_atomic({
-            "format": 2, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
+            "format": 3, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
             "elapsed": elapsed[r] + time.perf_counter() - wall_start,
             "actor": actor.member(r, singles[r][0]).state_dict(), "critic": critic.member(r, singles[r][1]).state_dict(),
             "optimizer": {"actor": actor_opt.member_state(r), "critic": critic_opt.member_state(r)},
@@ -639,7 +640,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "tracker": tracker.member_state(r), "env": _encode(env_state),
             "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
             "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
-            "metrics_rows": metrics_rows[r], "episode_rows": episode_rows[r], "torch_threads": sorted(torch_threads[r]),
+            "metrics_rows": _pack_rows(metrics_rows[r]), "episode_rows": _pack_rows(episode_rows[r]),
+            "torch_threads": sorted(torch_threads[r]),
         }, run_dirs[r] / "checkpoint.pt")
         _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet")
         _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet")
@@ -739,7 +741,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1093)
+# %% notebooks/07_mappo.py, cell 26 (line 1095)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

@@ -208,6 +208,34 @@ def test_resume_continues_exactly(method, tmp_path):
             assert na == nb and torch.equal(pa, pb), na
 
 
+def test_checkpoints_pack_log_rows_and_still_resume_from_the_older_format(tmp_path):
+    """Format 3 stores the log rows as one pickled bytes object (torch.save pickled each number
+    through its Python-level pickler: seconds per checkpoint late in a long run); a format-2
+    checkpoint, rows as lists, must still resume to the same run."""
+    import pickle
+
+    from pemamoe.bookkeeping import _pack_rows, _unpack_rows
+
+    cfg = ci("smoe", iterations=6, checkpoint_every=2)
+    straight = train(cfg, tmp_path / "straight")
+    train(cfg, tmp_path / "old", max_iterations=4)
+    path = tmp_path / "old" / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    assert ck["format"] == 3 and isinstance(ck["metrics_rows"], bytes)
+    rows = _unpack_rows(ck["metrics_rows"])
+    assert [r["iteration"] for r in rows] == [0, 1, 2, 3]
+    pd.testing.assert_frame_equal(pd.DataFrame(rows), pd.read_parquet(tmp_path / "old" / "metrics.parquet"))
+    ck.update(format=2, metrics_rows=rows, episode_rows=_unpack_rows(ck["episode_rows"]))
+    torch.save(ck, path)  # as the previous trainer wrote it
+    resumed = train(cfg, tmp_path / "old", resume=True)
+    assert resumed.resumed_from == 4
+    pd.testing.assert_frame_equal(_comparable(straight.metrics), _comparable(resumed.metrics))
+    pd.testing.assert_frame_equal(straight.episodes, resumed.episodes)
+    pd.testing.assert_frame_equal(pd.DataFrame(_unpack_rows(_pack_rows(rows))), pd.DataFrame(rows))
+    with pytest.raises(pickle.UnpicklingError, match="only plain data, found numpy"):
+        _unpack_rows(pickle.dumps([{"x": np.float32(1.0)}]))
+
+
 def test_run_dir_files_are_complete_and_atomic(tmp_path):
     cfg = ci("smoe", iterations=4, checkpoint_every=2)
     res = train(cfg, tmp_path)
