@@ -329,75 +329,83 @@ except RuntimeError as err:
 # without training anything: it groups the unfinished runs into the populations `run_sweep` would
 # start now (the same `group_specs` call) and reads each member's `metrics.parquet`, which grows at
 # every checkpoint. Per population it reports the iteration every member has reached, the seconds
-# one iteration of the whole population took (the median over its last 200 logged iterations, so a
-# paused sweep's one very long iteration does not count) and the hours left at that rate. A
-# population that has not logged anything yet has no rate, and the total says how many such
-# populations it leaves out. With W workers the sweep needs at least the larger of (hours left)/W
-# and the longest population's hours. `python -m pemamoe sweep ... --status` prints it.
+# one iteration of the whole population takes and the hours left at that rate. The rate comes from
+# the logged `wall_time` (the run's own clock, which stops between sessions) over the last 500
+# iterations, so it includes the checkpoints, whose cost grows with the logs; a gap of more than
+# ten minutes between two iterations is a paused process, not work, and is left out. A population
+# that has not logged anything yet has no rate, and the summary says how many it leaves out. With
+# W workers the sweep needs at least the larger of (hours left)/W and the longest population's
+# hours. `python -m pemamoe sweep ... --status` prints it.
 
 # %%
 #| export
-STATUS_WINDOW = 200  # logged iterations whose median gives a population's seconds per iteration
+STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
+STATUS_PAUSE_S = 600.0  # a longer gap between two logged iterations is a paused process, not work
 
 
 def _logged_progress(run_dir: Path) -> tuple:
-    """(iterations logged, median seconds per iteration over the last STATUS_WINDOW, or None)."""
+    """(iterations logged, wall seconds per iteration over the last STATUS_WINDOW, or None)."""
     from pemamoe.runs import read_parquet
 
     path = run_dir / "metrics.parquet"
     if not path.is_file():
         return 0, None
     m = read_parquet(path)
-    if m.empty:
-        return 0, None
-    tail = m.tail(STATUS_WINDOW)
-    per_iteration = tail["rollout_time"] + tail["update_time"] + tail["diag_time"]
-    return len(m), float(per_iteration.median())
+    if len(m) < 2 or "wall_time" not in m:
+        return len(m), None
+    steps = m["wall_time"].tail(STATUS_WINDOW + 1).diff().dropna()
+    steps = steps[steps < STATUS_PAUSE_S]
+    return len(m), (float(steps.mean()) if len(steps) else None)
 
 
 def sweep_status(specs, results_dir="results", population: int | None = None, workers: int = 2):
     """Where a sweep stands, without training: one row per population `run_sweep` would start now
-    (methods, members, iteration reached by all, of how many, seconds per population iteration,
-    hours left), and the number of finished runs as `DataFrame.attrs["finished"]`."""
+    (its methods, members, the iteration all have reached, of how many, wall seconds per population
+    iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
     import pandas as pd
 
     from pemamoe.runs import verify_done
     from pemamoe.sweep import DEFAULT_POPULATION, group_specs  # the sweep imports this module
 
+    population = DEFAULT_POPULATION if population is None else population
+    for name, value in (("population", population), ("workers", workers)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     results_dir = Path(results_dir)
     by_folder = {}
     for spec in specs:
         by_folder.setdefault(spec.run_dir(results_dir), spec)
     todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
     rows = []
-    for i, group in enumerate(group_specs(todo, population or DEFAULT_POPULATION, workers)):
+    for i, group in enumerate(group_specs(todo, population, workers)):
         total = group[0].to_config().iterations
         progress = [_logged_progress(spec.run_dir(results_dir)) for spec in group]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
-        seconds = max(rates) if rates else None
-        rows.append({"population": i, "methods": "+".join(sorted({s.method for s in group})), "members": len(group),
+        seconds = max(rates) if rates else float("nan")
+        rows.append({"group": i, "methods": "+".join(sorted({s.method for s in group})), "members": len(group),
                      "iteration": reached, "of": total, "s_per_iteration": seconds,
-                     "hours_left": None if seconds is None else (total - reached) * seconds / 3600})
-    table = pd.DataFrame(rows, columns=["population", "methods", "members", "iteration", "of", "s_per_iteration",
+                     "hours_left": (total - reached) * seconds / 3600})
+    table = pd.DataFrame(rows, columns=["group", "methods", "members", "iteration", "of", "s_per_iteration",
                                         "hours_left"])
-    table.attrs["finished"] = len(by_folder) - len(todo)
-    table.attrs["runs"] = len(by_folder)
+    table.attrs.update(finished=len(by_folder) - len(todo), runs=len(by_folder))
     return table
 
 
 def status_summary(table, workers: int) -> str:
     """One paragraph for `sweep_status`'s table: finished runs, hours left, a lower bound on the wall time."""
+    done = f"{table.attrs['finished']} of {table.attrs['runs']} runs finished"
     if table.empty:
-        return f"{table.attrs['finished']} of {table.attrs['runs']} runs finished; nothing left to train."
+        return f"{done}; nothing left to train."
     known = table.dropna(subset=["hours_left"])
     unknown = len(table) - len(known)
-    hours = float(known.hours_left.sum())
-    longest = float(known.hours_left.max()) if len(known) else 0.0
-    text = (f"{table.attrs['finished']} of {table.attrs['runs']} runs finished; {len(table)} populations to run "
-            f"({int(table.members.sum())} runs). Measured rates leave {hours:.2f} worker-hours")
+    text = f"{done}; {len(table)} populations to run ({int(table.members.sum())} runs)."
+    if known.empty:
+        return text + " None has logged an iteration yet, so there is no measured rate."
+    hours, longest = float(known.hours_left.sum()), float(known.hours_left.max())
+    text += f" Measured rates leave {hours:.2f} worker-hours"
     if unknown:
-        text += f", plus {unknown} population{'s' if unknown != 1 else ''} that ha{'ve' if unknown != 1 else 's'} not logged an iteration yet"
+        text += f", plus {unknown} population{'s' if unknown != 1 else ''} with no rate yet"
     return text + (f"; on {workers} worker{'s' if workers != 1 else ''} at least "
                    f"{max(hours / workers, longest):.2f} h of wall time.")
 

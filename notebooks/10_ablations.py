@@ -286,20 +286,21 @@ def verdict_in_words(headline: pd.DataFrame, learned: pd.DataFrame, heuristic: p
     groups = {"reproduced": [], "contradicted": [], "not resolved": [], "undefined": []}
     for _, r in headline.iterrows():
         kind = r.verdict.split(" (", 1)[0]
-        groups[kind].append(f"*{r.claim}* (paper {r['paper %']:+.1f} %, ours {r['ours %']:+.1f} % "
-                            f"[{r.ci_low:+.1f}, {r.ci_high:+.1f}] against {r['compared with']})")
+        ours = (f"ours {r['ours %']:+.1f} % [{r.ci_low:+.1f}, {r.ci_high:+.1f}]" if np.isfinite(r["ours %"])
+                else "no finite estimate of ours")
+        groups[kind].append(f"*{r.claim}* (paper {r['paper %']:+.1f} %, {ours} against {r['compared with']})")
     lines = [f"**Scale `{scale}`, {n_seeds} seed{'s' if n_seeds != 1 else ''} per method, "
              f"{run_cfg.total_env_steps:,} environment steps per run.**", ""]
     sentences = {"reproduced": "Reproduced (our interval lies on the paper's side of zero)",
                  "contradicted": "Contradicted (our interval lies wholly on the other side)",
                  "not resolved": "Not resolved (our interval contains zero, or there is none)",
-                 "undefined": "Undefined (no finite estimate)"}
+                 "undefined": "Undefined (no finite estimate, or a paper value of 0 gives no direction)"}
     for kind, items in groups.items():
         if items:
             lines.append(f"* {sentences[kind]}: " + "; ".join(items) + ".")
-    best = learned.coverage.idxmax()
-    gap = "above" if learned.coverage.max() > heuristic.coverage else "below"
-    lines += ["", f"The best learned coverage ({method_label(best)}, {learned.coverage.max():.2f}) is {gap} "
+    best, top = learned.coverage.idxmax(), learned.coverage.max()
+    gap = "above" if top > heuristic.coverage else "below" if top < heuristic.coverage else "equal to"
+    lines += ["", f"The best learned coverage ({method_label(best)}, {top:.2f}) is {gap} "
               f"the k-means heuristic's ({heuristic.coverage:.2f}), which does not learn."]
     return "\n".join(lines)
 

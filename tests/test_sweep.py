@@ -244,7 +244,9 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
     assert smoe.s_per_iteration > 0 and smoe.hours_left == pytest.approx(4 * smoe.s_per_iteration / 3600)
     assert (moe.members, moe.iteration) == (1, 0) and np.isnan(moe.s_per_iteration)
     text = status_summary(table, workers=2)
-    assert text.startswith("1 of 4 runs finished; 2 populations to run (3 runs)") and "1 population that has not" in text
+    assert text.startswith("1 of 4 runs finished; 2 populations to run (3 runs)") and "1 population with no rate yet" in text
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        sweep_status(specs, tmp_path, workers=0)
     assert sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*")) == before  # nothing trained or written
     assert sweep_cli(["--experiment", "main", "--scale", "ci", "--seeds", "0", "--methods", "mlp", "smoe", "moe",
                       "--results-dir", str(tmp_path), "--status"]) == 0
