@@ -628,7 +628,9 @@ pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminat
 # The log rows are the bulk of a late checkpoint (a `medium` run's reach 12,000 metric rows of 112
 # numbers and some 190,000 episode rows), and `torch.save` pickles every one of those millions of
 # numbers through its Python-level pickler: about 3 s per member per checkpoint at 7,000
-# iterations, so a 12-member population spent 40 s of every 100 iterations writing checkpoints.
+# iterations, so a 12-member population spent 40 s of every 100 iterations writing checkpoints
+# (read from the medium sweep's checkpoint of MoE at iteration 7,100 and its logged wall clock, for
+# `5a5f133`; `benchmarks/bench_train.py` times both forms side by side).
 # `_pack_rows` pickles the rows once with the standard C pickler into one `bytes` object (0.2 s),
 # which `torch.save` stores as it is; `_unpack_rows` reads them back with an unpickler that refuses
 # every class and function, so the rows (plain dicts of numbers, strings and booleans) come back as

@@ -145,7 +145,7 @@ def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
                 leave=True)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 660)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 662)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -219,7 +219,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 734)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 736)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)
