@@ -30,16 +30,19 @@
 # | III-B channel model | `01_channel.py` | `pemamoe/channel.py` | `channel_*` figures |
 # | III-C energy model | `02_energy.py` | `pemamoe/energy.py` | `energy_power_vs_speed` |
 # | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
-# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py`, `pemamoe/env_kernel.py` | reward anatomy table |
+# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py` | reward anatomy table |
+# | (appendix to III-E) the compiled step engine, the random streams, the PettingZoo wrappers | `04b_engine.py` | `pemamoe/env_kernel.py`, `pemamoe/streams.py`, `pemamoe/env_wrappers.py` | |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
 # | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
+# | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
 # | (appendix to IV-B) the run's configuration, presets' code, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
+# | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
@@ -55,7 +58,9 @@
 # * `make figures` (default `SCALE=small`) executes every notebook headlessly with papermill and
 #   writes the figures and tables into `paper_figures/`, printing which notebook of how many is
 #   running, the time spent, and the notebooks' own progress output. `SCALE=ci` is a smoke run in
-#   seconds; `SCALE=paper` uses the paper's training budget.
+#   seconds; `SCALE=medium` trains each phase long enough to learn in (hours; notebook 09b says
+#   why this length); `SCALE=paper` uses the paper's training budget. The README gives the
+#   measured cost of each.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks. A notebook run there
 #   (kernel in `notebooks/`) still writes its figures to the repository's `paper_figures/`.
 # * `python -m pemamoe sweep --experiment all --scale paper --backend ray --address auto` runs the
