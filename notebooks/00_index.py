@@ -41,7 +41,7 @@
 # | (appendix to IV-B) the run's configuration, presets' code, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
-# | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
+# | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py`, `pemamoe/analysis.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |

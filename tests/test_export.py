@@ -191,3 +191,24 @@ def test_star_imports_bring_the_appendix_names_the_main_modules_reexport():
     # private helpers of the marked imports and incidental imports stay out of __all__
     for ns in (mappo_ns, sweep_ns):
         assert not {"_plain", "_progress", "np", "Path", "SCALES", "METHOD_REGISTRY"} & ns.keys()
+
+
+def test_the_index_maps_every_notebook_and_the_modules_it_exports():
+    """00_index's map from the paper to the code names every other notebook and, for each, every
+    module that notebook exports (a reader looking for a module finds its notebook there)."""
+    from pemamoe.core import figure_notebooks
+
+    index = (ROOT / "notebooks" / "00_index.py").read_text(encoding="utf-8")
+    rows = {}
+    for line in index.splitlines():
+        columns = [c.strip() for c in line[1:].strip().strip("|").split("|")] if line.startswith("# |") else []
+        if len(columns) == 4 and columns[1].strip("`").endswith(".py"):  # paper | notebook | module(s) | regenerates
+            rows[columns[1].strip("`")] = columns[2]
+    for nb in figure_notebooks(ROOT):
+        if nb.name == "00_index.py":
+            continue
+        assert nb.name in rows, f"notebooks/00_index.py's map has no row for {nb.name}"
+        rel = nb.relative_to(ROOT).as_posix()
+        modules = literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel)
+        for module in modules:
+            assert f"pemamoe/{module}.py" in rows[nb.name], f"00_index's row for {nb.name} does not name pemamoe/{module}.py"
