@@ -168,6 +168,16 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
 
 
+def pending_runs(specs, results_dir) -> tuple:
+    """({run folder: spec}, the specs whose folder holds no verified finished run). Two specs can
+    resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
+    point): keyed by run folder, such a run is trained once, not twice at once."""
+    by_folder = {}
+    for spec in specs:
+        by_folder.setdefault(spec.run_dir(Path(results_dir)), spec)
+    return by_folder, [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+
+
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
               threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
               population: int = DEFAULT_POPULATION) -> list:
@@ -189,12 +199,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
     results_dir = Path(results_dir)
-    # Two specs can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's
-    # gamma = 0.005 point): key by run folder so that such a run is trained once, not twice at once.
-    by_folder = {}
-    for spec in specs:
-        by_folder.setdefault(spec.run_dir(results_dir), spec)
-    todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+    by_folder, todo = pending_runs(specs, results_dir)
     groups = group_specs(todo, population, workers)
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "

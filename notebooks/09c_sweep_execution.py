@@ -364,18 +364,14 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
     iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
     import pandas as pd
 
-    from pemamoe.runs import verify_done
-    from pemamoe.sweep import DEFAULT_POPULATION, group_specs  # the sweep imports this module
+    from pemamoe.sweep import DEFAULT_POPULATION, group_specs, pending_runs  # the sweep imports this module
 
     population = DEFAULT_POPULATION if population is None else population
     for name, value in (("population", population), ("workers", workers)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     results_dir = Path(results_dir)
-    by_folder = {}
-    for spec in specs:
-        by_folder.setdefault(spec.run_dir(results_dir), spec)
-    todo = [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+    by_folder, todo = pending_runs(specs, results_dir)
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
         total = group[0].to_config().iterations
