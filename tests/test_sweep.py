@@ -251,3 +251,18 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
     assert sweep_cli(["--experiment", "main", "--scale", "ci", "--seeds", "0", "--methods", "mlp", "smoe", "moe",
                       "--results-dir", str(tmp_path), "--status"]) == 0
     assert "1 of 3 runs finished" in capsys.readouterr().out
+
+
+def test_status_rate_counts_checkpoints_but_not_pauses(tmp_path):
+    """The rate is the logged wall clock per iteration: a slow checkpoint iteration counts (it is
+    work), a gap longer than STATUS_PAUSE_S (a paused process) does not."""
+    import pandas as pd
+
+    from pemamoe.execution import STATUS_PAUSE_S, _logged_progress
+
+    steps = [1.0] * 99 + [41.0] + [1.0] * 50 + [STATUS_PAUSE_S + 1] + [1.0] * 49  # a checkpoint, then a pause
+    wall = np.cumsum([0.0] + steps)
+    pd.DataFrame({"iteration": range(len(wall)), "wall_time": wall}).to_parquet(tmp_path / "metrics.parquet")
+    n, rate = _logged_progress(tmp_path)
+    assert n == 201 and rate == pytest.approx((198 * 1.0 + 41.0) / 199)  # 199 working steps, the pause left out
+    assert _logged_progress(tmp_path / "missing") == (0, None)
