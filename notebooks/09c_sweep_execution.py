@@ -331,20 +331,23 @@ except RuntimeError as err:
 # every checkpoint. Per population it reports the iteration every member has reached, the seconds
 # one iteration of the whole population takes and the hours left at that rate. The rate comes from
 # the logged `wall_time` (the run's own clock, which stops between sessions) over the last 500
-# iterations, so it includes the checkpoints, whose cost grows with the logs; a gap of more than
-# ten minutes between two iterations is a paused process, not work, and is left out. A population
-# that has not logged anything yet has no rate, and the summary says how many it leaves out. With
-# W workers the sweep needs at least the larger of (hours left)/W and the longest population's
+# iterations, so it includes the checkpoints, whose cost grows with the logs. A process that was
+# paused (`kill -STOP`, a suspended laptop) shows up as one very long step; a step longer than five
+# times the typical checkpoint step (the median of the largest steps, about two per checkpoint in
+# the window) and longer than a minute is taken for a pause and left out. A population that has
+# not logged anything yet has no rate, and the summary says how many it leaves out. With W workers
+# the sweep needs at least the larger of (hours left)/W and the longest population's
 # hours. `python -m pemamoe sweep ... --status` prints it.
 
 # %%
 #| export
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
-STATUS_PAUSE_S = 600.0  # a longer gap between two logged iterations is a paused process, not work
+STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
 
-def _logged_progress(run_dir: Path) -> tuple:
-    """(iterations logged, wall seconds per iteration over the last STATUS_WINDOW, or None)."""
+def _logged_progress(run_dir: Path, checkpoint_every: int) -> tuple:
+    """(iterations logged, wall seconds per iteration over the last STATUS_WINDOW, pauses left
+    out, or None when fewer than two iterations are logged)."""
     from pemamoe.runs import read_parquet
 
     path = run_dir / "metrics.parquet"
@@ -354,8 +357,10 @@ def _logged_progress(run_dir: Path) -> tuple:
     if len(m) < 2 or "wall_time" not in m:
         return len(m), None
     steps = m["wall_time"].tail(STATUS_WINDOW + 1).diff().dropna()
-    steps = steps[steps < STATUS_PAUSE_S]
-    return len(m), (float(steps.mean()) if len(steps) else None)
+    # members checkpoint one after another, so a checkpoint lengthens two steps of each member's log
+    typical_big = steps.nlargest(2 * (len(steps) // checkpoint_every) + 1).median()
+    kept = steps[steps <= max(STATUS_MIN_PAUSE_S, 5 * typical_big)]
+    return len(m), float(kept.mean())
 
 
 def sweep_status(specs, results_dir="results", population: int | None = None, workers: int = 2):
@@ -375,7 +380,8 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
         total = group[0].to_config().iterations
-        progress = [_logged_progress(spec.run_dir(results_dir)) for spec in group]
+        every = group[0].to_config().checkpoint_every
+        progress = [_logged_progress(spec.run_dir(results_dir), every) for spec in group]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
         seconds = max(rates) if rates else float("nan")

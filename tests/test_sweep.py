@@ -254,15 +254,17 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
 
 
 def test_status_rate_counts_checkpoints_but_not_pauses(tmp_path):
-    """The rate is the logged wall clock per iteration: a slow checkpoint iteration counts (it is
-    work), a gap longer than STATUS_PAUSE_S (a paused process) does not."""
+    """The rate is the logged wall clock per iteration: checkpoint steps count (they are work), a
+    step far longer than the typical checkpoint step (a paused process) does not."""
     import pandas as pd
 
-    from pemamoe.execution import STATUS_PAUSE_S, _logged_progress
+    from pemamoe.execution import _logged_progress
 
-    steps = [1.0] * 99 + [41.0] + [1.0] * 50 + [STATUS_PAUSE_S + 1] + [1.0] * 49  # a checkpoint, then a pause
+    steps = [1.0] * 200
+    steps[99] = steps[199] = 41.0  # two checkpoints
+    steps[150] = 590.0  # the sweep paused for ten minutes in the middle of an iteration
     wall = np.cumsum([0.0] + steps)
     pd.DataFrame({"iteration": range(len(wall)), "wall_time": wall}).to_parquet(tmp_path / "metrics.parquet")
-    n, rate = _logged_progress(tmp_path)
-    assert n == 201 and rate == pytest.approx((198 * 1.0 + 41.0) / 199)  # 199 working steps, the pause left out
-    assert _logged_progress(tmp_path / "missing") == (0, None)
+    n, rate = _logged_progress(tmp_path, checkpoint_every=100)
+    assert n == 201 and rate == pytest.approx((197 * 1.0 + 2 * 41.0) / 199)  # 199 working steps, the pause left out
+    assert _logged_progress(tmp_path / "missing", 100) == (0, None)
