@@ -164,6 +164,7 @@ def checkpoint_cost(scale: str) -> dict:
     rng = random.Random(0)
 
     def rows(template, n):
+        template = {k: (v.item() if hasattr(v, "item") else v) for k, v in template.items()}  # numpy -> python
         out = []
         for i in range(n):
             row = {}
@@ -174,9 +175,8 @@ def checkpoint_cost(scale: str) -> dict:
         return out
 
     episodes_per_iteration = cfg.num_envs * cfg.rollout_steps / cfg.env_config().episode_steps
-    metrics = rows({k: (v.item() if hasattr(v, "item") else v) for k, v in metric_row.items()}, cfg.iterations)
-    episodes = rows({k: (v.item() if hasattr(v, "item") else v) for k, v in episode_row.items()},
-                    int(cfg.iterations * episodes_per_iteration))
+    metrics = rows(metric_row, cfg.iterations)
+    episodes = rows(episode_row, int(cfg.iterations * episodes_per_iteration))
     out = {"metric_rows": len(metrics), "episode_rows": len(episodes), "checkpoints": cfg.iterations // cfg.checkpoint_every}
     for name, pack in (("lists", lambda r: r), ("packed", _pack_rows)):
         start = time.perf_counter()

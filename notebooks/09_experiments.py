@@ -168,6 +168,13 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
 
 
+def check_counts(**counts) -> None:
+    """Each keyword must be an integer >= 1 (a bool is not): `name must be an integer >= 1, got X`."""
+    for name, value in counts.items():
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+
 def pending_runs(specs, results_dir) -> tuple:
     """({run folder: spec}, the specs whose folder holds no verified finished run). Two specs can
     resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
@@ -189,12 +196,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     no queued one and raise SweepInterrupted (rerun to resume)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    if not isinstance(threads_per_run, int) or isinstance(threads_per_run, bool) or threads_per_run < 1:
-        raise ValueError(f"threads_per_run must be an integer >= 1, got {threads_per_run!r}")
-    if not isinstance(population, int) or isinstance(population, bool) or population < 1:
-        raise ValueError(f"population must be an integer >= 1, got {population!r}")
+    check_counts(workers=workers, threads_per_run=threads_per_run, population=population)
     if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
         raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)

@@ -263,19 +263,17 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
     iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
     import pandas as pd
 
-    from pemamoe.sweep import DEFAULT_POPULATION, group_specs, pending_runs  # the sweep imports this module
+    from pemamoe.sweep import DEFAULT_POPULATION, check_counts, group_specs, pending_runs  # the sweep imports this module
 
     population = DEFAULT_POPULATION if population is None else population
-    for name, value in (("population", population), ("workers", workers)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    check_counts(population=population, workers=workers)
     results_dir = Path(results_dir)
     by_folder, todo = pending_runs(specs, results_dir)
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
-        total = group[0].to_config().iterations
-        every = group[0].to_config().checkpoint_every
-        progress = [_logged_progress(spec.run_dir(results_dir), every) for spec in group]
+        config = group[0].to_config()
+        total = config.iterations
+        progress = [_logged_progress(spec.run_dir(results_dir), config.checkpoint_every) for spec in group]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
         seconds = max(rates) if rates else float("nan")
@@ -306,7 +304,7 @@ def status_summary(table, workers: int) -> str:
                    f"{max(hours / workers, longest):.2f} h of wall time.")
 
 
-# %% notebooks/09c_sweep_execution.py, cell 16 (line 434)
+# %% notebooks/09c_sweep_execution.py, cell 16 (line 432)
 def sweep_cli(argv=None) -> int:
     import argparse
 
