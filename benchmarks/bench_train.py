@@ -145,8 +145,10 @@ def gpu_main(sizes, methods) -> int:
 
 def checkpoint_cost(scale: str) -> dict:
     """Seconds one member spends writing its last checkpoint of a `scale` run (the checkpoint
-    holds every log row so far), with the rows stored as lists (checkpoint format 2) and packed
-    into one pickled bytes object (format 3), and the two parquet logs written beside it. The rows
+    holds every log row so far), with the rows stored as lists (checkpoint format 2), packed
+    into one pickled bytes object (format 3) and as a RowLog's chunks, of which only the last
+    checkpoint's rows are new (format 4), and the two parquet logs written beside it, converting
+    every row (as the final, sealed write does) or only the new ones (every other write). The rows
     have the shape and types of real ones: the keys of a real ci run's rows, distinct numbers."""
     import io
     import random
@@ -154,7 +156,7 @@ def checkpoint_cost(scale: str) -> dict:
 
     import pandas as pd
 
-    from pemamoe.bookkeeping import _pack_rows, _write_parquet_atomic
+    from pemamoe.bookkeeping import RowLog, _pack_rows, _write_parquet_atomic
     from pemamoe.mappo import train
 
     cfg = TrainConfig.for_scale(scale)
@@ -182,11 +184,22 @@ def checkpoint_cost(scale: str) -> dict:
         start = time.perf_counter()
         torch.save({"metrics_rows": pack(metrics), "episode_rows": pack(episodes)}, io.BytesIO())
         out[name] = time.perf_counter() - start
+    # RowLogs that have encoded every row but the last checkpoint's (as they have in a run)
+    new_metrics, new_episodes = cfg.checkpoint_every, int(cfg.checkpoint_every * episodes_per_iteration)
+    logs = [RowLog(metrics[:-new_metrics]), RowLog(episodes[:-new_episodes])]
+    for log in logs:
+        log.packed(), log.frame()
+    logs[0] += metrics[-new_metrics:]
+    logs[1] += episodes[-new_episodes:]
+    start = time.perf_counter()
+    torch.save({"metrics_rows": logs[0].packed(), "episode_rows": logs[1].packed()}, io.BytesIO())
+    out["chunks"] = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        _write_parquet_atomic(metrics, Path(tmp) / "metrics.parquet")
-        _write_parquet_atomic(episodes, Path(tmp) / "episodes.parquet")
-        out["parquet"] = time.perf_counter() - start
+        for name, final in (("parquet", True), ("parquet_new_rows", False)):
+            start = time.perf_counter()
+            _write_parquet_atomic(logs[0], Path(tmp) / "metrics.parquet", final)
+            _write_parquet_atomic(logs[1], Path(tmp) / "episodes.parquet", final)
+            out[name] = time.perf_counter() - start
     return out
 
 
@@ -252,11 +265,17 @@ def main() -> int:
         c = checkpoint_cost(scale)
         # the rows grow linearly over a run, so the whole run's checkpoints cost about half the last one's, times their number
         run = {k: c[k] * c["checkpoints"] / 2 for k in ("lists", "packed", "parquet")}
+        # format 4: the rows' chunk costs the same at every checkpoint; the parquet write of the new
+        # rows still writes the whole table, which grows (half its last cost on average, an upper
+        # bound: the conversion part does not grow); plus one final write converting every row
+        chunked = c["checkpoints"] * (c["chunks"] + c["parquet_new_rows"] / 2) + c["parquet"]
         print(f"checkpoint of one member at the end of a {scale} run ({c['metric_rows']:,} metric rows, "
               f"{c['episode_rows']:,} episode rows): rows as lists {c['lists']:.2f} s, packed {c['packed']:.2f} s "
-              f"({c['lists'] / c['packed']:.1f}x less), plus {c['parquet']:.2f} s for the parquet logs; over the run's "
-              f"{c['checkpoints']} checkpoints about {(run['lists'] + run['parquet']) / 60:.1f} min per member with lists, "
-              f"{(run['packed'] + run['parquet']) / 60:.1f} min packed", flush=True)
+              f"({c['lists'] / c['packed']:.1f}x less), new rows only {c['chunks']:.3f} s; parquet logs "
+              f"{c['parquet']:.2f} s converting every row, {c['parquet_new_rows']:.2f} s converting the new ones "
+              f"({c['parquet'] / c['parquet_new_rows']:.1f}x less); over the run's {c['checkpoints']} checkpoints about "
+              f"{(run['lists'] + run['parquet']) / 60:.1f} min per member with lists, "
+              f"{(run['packed'] + run['parquet']) / 60:.1f} min packed, {chunked / 60:.1f} min with new rows only", flush=True)
 
     gib = rss_child(16)
     print(f"peak RSS of a 16-member paper-preset PE-MAMoE population: {gib:.2f} GiB "

@@ -130,8 +130,8 @@ import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
     EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
-    _pack_rows, _torch_save_atomic, _unpack_rows, _write_parquet_atomic, explained_variance, merge_env_states,
-    split_env_state)
+    RowLog, _pack_rows, _torch_save_atomic, _unpack_rows, _write_parquet_atomic, explained_variance,
+    merge_env_states, split_env_state)
 from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
@@ -944,7 +944,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     venv.set_phase(np.repeat(member_phase, B) if fixed else clock.phase_at(0))
     obs, state, _ = venv.reset()
     start, global_step, resumed_from = 0, 0, None
-    metrics_rows, episode_rows, elapsed = [[] for _ in range(R)], [[] for _ in range(R)], [0.0] * R
+    metrics_rows, episode_rows, elapsed = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)], [0.0] * R
     torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
 
     if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
@@ -965,7 +965,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             generators[r].set_state(ck["torch_rng"])
             rngs[r].bit_generator.state = ck["numpy_rng"]
             global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
-            metrics_rows[r], episode_rows[r] = _unpack_rows(ck["metrics_rows"]), _unpack_rows(ck["episode_rows"])
+            metrics_rows[r] = RowLog.from_checkpoint(ck["metrics_rows"])
+            episode_rows[r] = RowLog.from_checkpoint(ck["episode_rows"])
             torch_threads[r].update(ck.get("torch_threads", ()))
             start = resumed_from = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
@@ -976,7 +977,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             return
         env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
         _torch_save_atomic({
-            "format": 3, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
+            "format": 4, "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
             "elapsed": elapsed[r] + time.perf_counter() - wall_start,
             "actor": actor.member(r, singles[r][0]).state_dict(), "critic": critic.member(r, singles[r][1]).state_dict(),
             "optimizer": {"actor": actor_opt.member_state(r), "critic": critic_opt.member_state(r)},
@@ -984,11 +985,12 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "tracker": tracker.member_state(r), "env": _encode(env_state),
             "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
             "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
-            "metrics_rows": _pack_rows(metrics_rows[r]), "episode_rows": _pack_rows(episode_rows[r]),
+            "metrics_rows": metrics_rows[r].packed(), "episode_rows": episode_rows[r].packed(),
             "torch_threads": sorted(torch_threads[r]),
         }, run_dirs[r] / "checkpoint.pt")
-        _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet")
-        _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet")
+        final = iteration == configs[r].iterations  # the logs done.json seals: every row converted at once
+        _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet", final)
+        _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet", final)
 
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
     label = c0.method if R == 1 else f"{c0.method} x{R}"

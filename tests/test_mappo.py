@@ -208,32 +208,51 @@ def test_resume_continues_exactly(method, tmp_path):
             assert na == nb and torch.equal(pa, pb), na
 
 
-def test_checkpoints_pack_log_rows_and_still_resume_from_the_older_format(tmp_path):
-    """Format 3 stores the log rows as one pickled bytes object (torch.save pickled each number
-    through its Python-level pickler: seconds per checkpoint late in a long run); a format-2
-    checkpoint, rows as lists, must still resume to the same run."""
+def test_checkpoints_pack_only_new_log_rows_and_still_resume_from_older_formats(tmp_path):
+    """Format 4 stores the log rows as pickled chunks, one per checkpoint, each pickled once (format
+    3 pickled every row at every checkpoint, format 2 stored them as lists, which torch.save pickled
+    number by number); checkpoints of formats 3 and 2 must still resume to the same run, and the
+    finished logs must be the same bytes however the run was checkpointed or resumed."""
     import pickle
 
-    from pemamoe.bookkeeping import _pack_rows, _unpack_rows
+    from pemamoe.bookkeeping import RowLog, _pack_rows, _unpack_rows
 
     cfg = ci("smoe", iterations=6, checkpoint_every=2)
     straight = train(cfg, tmp_path / "straight")
-    train(cfg, tmp_path / "old", max_iterations=4)
-    path = tmp_path / "old" / "checkpoint.pt"
-    ck = torch.load(path, weights_only=True)
-    assert ck["format"] == 3 and isinstance(ck["metrics_rows"], bytes)
-    rows = _unpack_rows(ck["metrics_rows"])
-    assert [r["iteration"] for r in rows] == [0, 1, 2, 3]
-    pd.testing.assert_frame_equal(pd.DataFrame(rows), pd.read_parquet(tmp_path / "old" / "metrics.parquet"))
-    ck.update(format=2, metrics_rows=rows, episode_rows=_unpack_rows(ck["episode_rows"]))
-    torch.save(ck, path)  # as the previous trainer wrote it
-    resumed = train(cfg, tmp_path / "old", resume=True)
-    assert resumed.resumed_from == 4
-    pd.testing.assert_frame_equal(_comparable(straight.metrics), _comparable(resumed.metrics))
-    pd.testing.assert_frame_equal(straight.episodes, resumed.episodes)
+    for old_format in (3, 2):
+        folder = tmp_path / f"format{old_format}"
+        train(cfg, folder, max_iterations=4)
+        path = folder / "checkpoint.pt"
+        ck = torch.load(path, weights_only=True)
+        assert ck["format"] == 4 and len(ck["metrics_rows"]) == 2  # a chunk per checkpoint: iterations 0-1, 2-3
+        assert all(torch.is_tensor(chunk) and chunk.dtype == torch.uint8 for chunk in ck["metrics_rows"])
+        rows = _unpack_rows(ck["metrics_rows"])
+        assert [r["iteration"] for r in rows] == [0, 1, 2, 3]
+        # the unfinished run's log, made from concatenated pieces, holds the same table
+        pd.testing.assert_frame_equal(pd.DataFrame(rows), pd.read_parquet(folder / "metrics.parquet"))
+        episodes = _unpack_rows(ck["episode_rows"])
+        if old_format == 3:
+            ck.update(format=3, metrics_rows=_pack_rows(rows), episode_rows=_pack_rows(episodes))
+        else:
+            ck.update(format=2, metrics_rows=rows, episode_rows=episodes)
+        torch.save(ck, path)  # as an earlier trainer wrote it
+        resumed = train(cfg, folder, resume=True)
+        assert resumed.resumed_from == 4
+        pd.testing.assert_frame_equal(_comparable(straight.metrics), _comparable(resumed.metrics))
+        pd.testing.assert_frame_equal(straight.episodes, resumed.episodes)
+        # episodes carry no timing column: the sealed final log is the straight run's bytes
+        assert (folder / "episodes.parquet").read_bytes() == (tmp_path / "straight" / "episodes.parquet").read_bytes()
+    log = RowLog(rows[:2])
+    first = log.packed()
+    log += rows[2:]
+    assert log.packed()[0] is first[0] and len(log.packed()) == 2  # earlier chunks are kept as they were
+    pd.testing.assert_frame_equal(pd.DataFrame(_unpack_rows(log.packed())), pd.DataFrame(rows))  # (NaN != NaN in dicts)
+    pd.testing.assert_frame_equal(log.frame(), pd.DataFrame(rows))
     pd.testing.assert_frame_equal(pd.DataFrame(_unpack_rows(_pack_rows(rows))), pd.DataFrame(rows))
     with pytest.raises(pickle.UnpicklingError, match="only plain data, found numpy"):
         _unpack_rows(pickle.dumps([{"x": np.float32(1.0)}]))
+    with pytest.raises(pickle.UnpicklingError, match="only plain data, found numpy"):
+        _unpack_rows([torch.frombuffer(bytearray(pickle.dumps([{"x": np.float32(1.0)}])), dtype=torch.uint8)])
 
 
 def test_run_dir_files_are_complete_and_atomic(tmp_path):
