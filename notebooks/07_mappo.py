@@ -130,8 +130,7 @@ import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
     EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
-    RowLog, _pack_rows, _torch_save_atomic, _unpack_rows, _write_parquet_atomic, explained_variance,
-    merge_env_states, split_env_state)
+    RowLog, _torch_save_atomic, _write_parquet_atomic, explained_variance, merge_env_states, split_env_state)
 from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
@@ -991,6 +990,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         final = iteration == configs[r].iterations  # the logs done.json seals: every row converted at once
         _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet", final)
         _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet", final)
+        if final:
+            metrics_rows[r].release(), episode_rows[r].release()
 
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
     label = c0.method if R == 1 else f"{c0.method} x{R}"

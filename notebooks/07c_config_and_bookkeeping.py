@@ -631,11 +631,11 @@ pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminat
 # iterations, so a 12-member population spent 40 s of every 100 iterations writing checkpoints
 # (read from the medium sweep's checkpoint of MoE at iteration 7,100 and its logged wall clock, for
 # `5a5f133`; `benchmarks/bench_train.py` times both forms side by side).
-# `_pack_rows` pickles the rows once with the standard C pickler into one `bytes` object (0.2 s),
-# which `torch.save` stores as it is; `_unpack_rows` reads them back with an unpickler that refuses
-# every class and function, so the rows (plain dicts of numbers, strings and booleans) come back as
-# the very objects they were and the file still holds no code. Checkpoints of format 2 (rows stored
-# as lists) are still read.
+# Format 3 (`5a5f133`) had `_pack_rows` pickle the rows with the standard C pickler into one
+# `bytes` object (0.2 s), cutting that to about 1 s; `_unpack_rows` reads pickled rows back with an
+# unpickler that refuses every class and function, so the rows (plain dicts of numbers, strings and
+# booleans) come back as the very objects they were and the file still holds no code. Checkpoints
+# of formats 3 and 2 (rows stored as lists) are still read.
 #
 # Packing all rows at every checkpoint still makes a run's checkpoints cost grow with the square of
 # its length: a `medium` run rewrites its rows 120 times, the last time 12,000 metric and some
@@ -646,7 +646,7 @@ pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminat
 # `bytes` object through a latin-1 string, about 6x slower. Likewise each log flush turns only the
 # new rows into a table and appends it to the table made before: building a `DataFrame` from row
 # dicts is most of a parquet write. At the end of a `medium` run this takes one member's
-# checkpoint from about 0.9 s to 0.07 s for the rows and its logs from about 2.0 s to 0.6 s
+# checkpoint from about 1.0 s to 0.07 s for the rows and its logs from about 2.0 s to 0.6-0.9 s
 # (`make bench`, the checkpoint line, which times all the forms side by side; code at the commit
 # that introduced format 4). The last write of a finished run, the one `done.json` seals,
 # converts all rows at once as before, so a run's final logs are the same bytes however often it
@@ -734,6 +734,16 @@ class RowLog(list):
 
     def __init__(self, rows=()):
         super().__init__(rows)
+        self._chunks, self._n_packed = [], 0
+        self._frame, self._n_framed = pd.DataFrame(), 0
+
+    def _append_only(self, *args, **kwargs):
+        raise TypeError("a RowLog is append-only: its encoded rows would go stale")
+
+    __setitem__ = __delitem__ = insert = pop = remove = clear = sort = reverse = _append_only
+
+    def release(self) -> None:
+        """Drop the cached encodings (after the last write of a run: they are as large as the rows)."""
         self._chunks, self._n_packed = [], 0
         self._frame, self._n_framed = pd.DataFrame(), 0
 

@@ -207,6 +207,16 @@ class RowLog(list):
         self._chunks, self._n_packed = [], 0
         self._frame, self._n_framed = pd.DataFrame(), 0
 
+    def _append_only(self, *args, **kwargs):
+        raise TypeError("a RowLog is append-only: its encoded rows would go stale")
+
+    __setitem__ = __delitem__ = insert = pop = remove = clear = sort = reverse = _append_only
+
+    def release(self) -> None:
+        """Drop the cached encodings (after the last write of a run: they are as large as the rows)."""
+        self._chunks, self._n_packed = [], 0
+        self._frame, self._n_framed = pd.DataFrame(), 0
+
     @classmethod
     def from_checkpoint(cls, packed) -> "RowLog":
         """The rows of a checkpoint's "metrics_rows" or "episode_rows"; format 4's chunks are kept."""
@@ -265,7 +275,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 797)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 807)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

@@ -21,8 +21,7 @@ import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
     EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
-    RowLog, _pack_rows, _torch_save_atomic, _unpack_rows, _write_parquet_atomic, explained_variance,
-    merge_env_states, split_env_state)
+    RowLog, _torch_save_atomic, _write_parquet_atomic, explained_variance, merge_env_states, split_env_state)
 from pemamoe.core import SCALES
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
@@ -47,13 +46,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     _is_int, _plain, resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 10 (line 268)
+# %% notebooks/07_mappo.py, cell 10 (line 267)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 12 (line 297)
+# %% notebooks/07_mappo.py, cell 12 (line 296)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -86,7 +85,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 353)
+# %% notebooks/07_mappo.py, cell 16 (line 352)
 class RunningNorm:
     """Running mean / variance of scalar targets (float64); identity when enabled=False."""
 
@@ -129,7 +128,7 @@ class RunningNorm:
         self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 410)
+# %% notebooks/07_mappo.py, cell 18 (line 409)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -218,7 +217,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 20 (line 541)
+# %% notebooks/07_mappo.py, cell 20 (line 540)
 class ValueNorms:
     """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
 
@@ -377,7 +376,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 22 (line 715)
+# %% notebooks/07_mappo.py, cell 22 (line 714)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -483,7 +482,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 829)
+# %% notebooks/07_mappo.py, cell 24 (line 828)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -647,6 +646,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         final = iteration == configs[r].iterations  # the logs done.json seals: every row converted at once
         _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet", final)
         _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet", final)
+        if final:
+            metrics_rows[r].release(), episode_rows[r].release()
 
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
     label = c0.method if R == 1 else f"{c0.method} x{R}"
@@ -743,7 +744,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1097)
+# %% notebooks/07_mappo.py, cell 26 (line 1098)
 @torch.no_grad()
 def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
                     num_envs: int | None = None, temperature: float = 1.0) -> pd.DataFrame:

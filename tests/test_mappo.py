@@ -251,8 +251,28 @@ def test_checkpoints_pack_only_new_log_rows_and_still_resume_from_older_formats(
     pd.testing.assert_frame_equal(pd.DataFrame(_unpack_rows(_pack_rows(rows))), pd.DataFrame(rows))
     with pytest.raises(pickle.UnpicklingError, match="only plain data, found numpy"):
         _unpack_rows(pickle.dumps([{"x": np.float32(1.0)}]))
+    with pytest.raises(TypeError, match="append-only"):
+        log[0] = {}
+    with pytest.raises(TypeError, match="append-only"):
+        log.pop()
     with pytest.raises(pickle.UnpicklingError, match="only plain data, found numpy"):
         _unpack_rows([torch.frombuffer(bytearray(pickle.dumps([{"x": np.float32(1.0)}])), dtype=torch.uint8)])
+
+
+def test_a_checkpoint_before_any_episode_ended_resumes(tmp_path):
+    """Format 4 with no episode row yet (an empty list of chunks) reads back as no rows."""
+    from pemamoe.bookkeeping import RowLog
+
+    cfg = ci("mlp", iterations=3, checkpoint_every=1)
+    straight = train(cfg, tmp_path / "straight")
+    train(cfg, tmp_path / "cut", max_iterations=1)
+    ck = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
+    assert ck["format"] == 4 and ck["episode_rows"] == [] and len(ck["metrics_rows"]) == 1
+    assert RowLog.from_checkpoint(ck["episode_rows"]) == []
+    resumed = train(cfg, tmp_path / "cut", resume=True)
+    assert resumed.resumed_from == 1
+    pd.testing.assert_frame_equal(_comparable(straight.metrics), _comparable(resumed.metrics))
+    pd.testing.assert_frame_equal(straight.episodes, resumed.episodes)
 
 
 def test_run_dir_files_are_complete_and_atomic(tmp_path):

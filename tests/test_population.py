@@ -43,7 +43,7 @@ def _assert_same(x, y, path=""):
     if isinstance(x, dict):
         assert set(x) == set(y), path
         for k in x:
-            if k in _PACKED:  # log rows, pickled once per checkpoint: compare the rows, timing columns aside
+            if k in _PACKED:  # log rows, chunked as checkpoints fell: compare the rows, timing columns aside
                 _assert_same(_unpack_rows(x[k]), _unpack_rows(y[k]), f"{path}/{k}")
             elif k not in _VOLATILE:
                 _assert_same(x[k], y[k], f"{path}/{k}")
