@@ -632,7 +632,8 @@ pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminat
 # (read from the medium sweep's checkpoint of MoE at iteration 7,100 and its logged wall clock, for
 # `5a5f133`; `benchmarks/bench_train.py` times both forms side by side).
 # Format 3 (`5a5f133`) had `_pack_rows` pickle the rows with the standard C pickler into one
-# `bytes` object (0.2 s), cutting that to about 1 s; `_unpack_rows` reads pickled rows back with an
+# `bytes` object (0.2 s of pickling; with `torch.save` storing that object, about 1 s per member at
+# the end of a `medium` run, against 4-6 s as lists); `_unpack_rows` reads pickled rows back with an
 # unpickler that refuses every class and function, so the rows (plain dicts of numbers, strings and
 # booleans) come back as the very objects they were and the file still holds no code. Checkpoints
 # of formats 3 and 2 (rows stored as lists) are still read.
@@ -716,9 +717,14 @@ def _unpack_rows(packed) -> list:
     bytes object (format 3, `_pack_rows`) or a plain list of rows (format 2); always a new list."""
     if isinstance(packed, (bytes, bytearray)):
         return _PlainUnpickler(io.BytesIO(packed)).load()
-    if packed and all(torch.is_tensor(chunk) for chunk in packed):
+    if _is_chunks(packed):
         return [row for chunk in packed for row in _PlainUnpickler(io.BytesIO(chunk.numpy().tobytes())).load()]
     return list(packed)
+
+
+def _is_chunks(packed) -> bool:
+    """Whether a checkpoint's rows are format 4's chunks (an empty list reads the same either way)."""
+    return isinstance(packed, list) and bool(packed) and all(torch.is_tensor(chunk) for chunk in packed)
 
 
 def _chunk(rows: list) -> torch.Tensor:
@@ -734,8 +740,7 @@ class RowLog(list):
 
     def __init__(self, rows=()):
         super().__init__(rows)
-        self._chunks, self._n_packed = [], 0
-        self._frame, self._n_framed = pd.DataFrame(), 0
+        self.release()
 
     def _append_only(self, *args, **kwargs):
         raise TypeError("a RowLog is append-only: its encoded rows would go stale")
@@ -743,7 +748,8 @@ class RowLog(list):
     __setitem__ = __delitem__ = insert = pop = remove = clear = sort = reverse = _append_only
 
     def release(self) -> None:
-        """Drop the cached encodings (after the last write of a run: they are as large as the rows)."""
+        """Drop the cached encodings (after the last write of a run: they are as large as the rows);
+        the next `packed()` and `frame()` encode every row afresh."""
         self._chunks, self._n_packed = [], 0
         self._frame, self._n_framed = pd.DataFrame(), 0
 
@@ -751,7 +757,7 @@ class RowLog(list):
     def from_checkpoint(cls, packed) -> "RowLog":
         """The rows of a checkpoint's "metrics_rows" or "episode_rows"; format 4's chunks are kept."""
         log = cls(_unpack_rows(packed))
-        if isinstance(packed, list) and packed and all(torch.is_tensor(c) for c in packed):
+        if _is_chunks(packed):
             log._chunks, log._n_packed = list(packed), len(log)
         return log
 
@@ -779,7 +785,7 @@ def _torch_save_atomic(obj, path: Path) -> None:
 def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:
     """rows (a list, or a RowLog whose cached tables serve a non-final write) -> a parquet file.
     final: convert every row at once, so that the file does not depend on how it was built."""
-    frame = rows.frame() if not final and isinstance(rows, RowLog) else pd.DataFrame(list(rows))
+    frame = rows.frame() if not final and isinstance(rows, RowLog) else pd.DataFrame(rows)
     with atomic_path(path) as tmp:
         frame.to_parquet(tmp, engine="pyarrow", index=False)
 

@@ -145,7 +145,7 @@ def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
                 leave=True)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 677)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 18 (line 678)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -186,9 +186,14 @@ def _unpack_rows(packed) -> list:
     bytes object (format 3, `_pack_rows`) or a plain list of rows (format 2); always a new list."""
     if isinstance(packed, (bytes, bytearray)):
         return _PlainUnpickler(io.BytesIO(packed)).load()
-    if packed and all(torch.is_tensor(chunk) for chunk in packed):
+    if _is_chunks(packed):
         return [row for chunk in packed for row in _PlainUnpickler(io.BytesIO(chunk.numpy().tobytes())).load()]
     return list(packed)
+
+
+def _is_chunks(packed) -> bool:
+    """Whether a checkpoint's rows are format 4's chunks (an empty list reads the same either way)."""
+    return isinstance(packed, list) and bool(packed) and all(torch.is_tensor(chunk) for chunk in packed)
 
 
 def _chunk(rows: list) -> torch.Tensor:
@@ -204,8 +209,7 @@ class RowLog(list):
 
     def __init__(self, rows=()):
         super().__init__(rows)
-        self._chunks, self._n_packed = [], 0
-        self._frame, self._n_framed = pd.DataFrame(), 0
+        self.release()
 
     def _append_only(self, *args, **kwargs):
         raise TypeError("a RowLog is append-only: its encoded rows would go stale")
@@ -213,7 +217,8 @@ class RowLog(list):
     __setitem__ = __delitem__ = insert = pop = remove = clear = sort = reverse = _append_only
 
     def release(self) -> None:
-        """Drop the cached encodings (after the last write of a run: they are as large as the rows)."""
+        """Drop the cached encodings (after the last write of a run: they are as large as the rows);
+        the next `packed()` and `frame()` encode every row afresh."""
         self._chunks, self._n_packed = [], 0
         self._frame, self._n_framed = pd.DataFrame(), 0
 
@@ -221,7 +226,7 @@ class RowLog(list):
     def from_checkpoint(cls, packed) -> "RowLog":
         """The rows of a checkpoint's "metrics_rows" or "episode_rows"; format 4's chunks are kept."""
         log = cls(_unpack_rows(packed))
-        if isinstance(packed, list) and packed and all(torch.is_tensor(c) for c in packed):
+        if _is_chunks(packed):
             log._chunks, log._n_packed = list(packed), len(log)
         return log
 
@@ -249,7 +254,7 @@ def _torch_save_atomic(obj, path: Path) -> None:
 def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:
     """rows (a list, or a RowLog whose cached tables serve a non-final write) -> a parquet file.
     final: convert every row at once, so that the file does not depend on how it was built."""
-    frame = rows.frame() if not final and isinstance(rows, RowLog) else pd.DataFrame(list(rows))
+    frame = rows.frame() if not final and isinstance(rows, RowLog) else pd.DataFrame(rows)
     with atomic_path(path) as tmp:
         frame.to_parquet(tmp, engine="pyarrow", index=False)
 
@@ -275,7 +280,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 807)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 19 (line 813)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)
