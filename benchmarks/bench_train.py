@@ -16,8 +16,10 @@ process. Diagnostics are switched off while timing (they run every 50 iterations
 their cost is printed separately at R = 1).
 
 Run with `python benchmarks/bench_train.py` (about 8 minutes on the 2-core machine);
-`--device cuda [--methods ..] [--sizes ..]` measures only the rates, on a GPU
-(benchmarks/device_check.sh).
+`--device cuda [--methods ..] [--sizes ..]` measures only the rates, on a GPU, and `--rates-only`
+does the same on the CPU (benchmarks/device_check.sh and its CPU rehearsal,
+benchmarks/device_rehearsal.sh). The rates go to build/bench_train_<device>.json as
+{"<method>/R<R>": {"throughput": member env steps/s, "per_run_sps": ..., "iteration_s": ...}}.
 """
 
 import json
@@ -106,14 +108,14 @@ def sweep_groups(scale: str) -> list:
     return [(g[0].method, len(g)) for g in group_specs(list(unique.values()), 16, 2)]
 
 
-def rate_table(methods, sizes, device: str) -> dict:
+def rate_table(methods, sizes, device: str, scale: str = "paper") -> dict:
     """Measure and print each method at each population size; {(method, R): measure(...)}."""
     print(f"{'method':8s} {'R':>3s} {'rollout s':>9s} {'update s':>9s} {'throughput':>11s} {'x R=1':>6s} {'per-run SPS':>11s}")
     rates = {}
     for method in methods:
         base = None
         for R in sizes:
-            r = measure(method, R, device=device)
+            r = measure(method, R, scale, device=device)
             base = base or r["throughput"]
             rates[(method, R)] = r
             print(f"{method:8s} {R:3d} {r['rollout_s']:9.2f} {r['update_s']:9.2f} {r['throughput']:11.0f} "
@@ -121,25 +123,29 @@ def rate_table(methods, sizes, device: str) -> dict:
     return rates
 
 
-def report_target(rates: dict, json_name: str, where: str = "") -> None:
-    """Print the PE-MAMoE R = 16 throughput against the target; keep the rates in build/."""
-    thr = rates[("pemamoe", 16)]["throughput"]
-    print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
-          f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'}){where}")
+def report_target(rates: dict, json_name: str, where: str = "", scale: str = "paper") -> None:
+    """Print the PE-MAMoE R = 16 throughput against the target (a paper-preset figure, so only
+    there, and only where it was measured); keep the rates in build/."""
+    if scale == "paper" and ("pemamoe", 16) in rates:
+        thr = rates[("pemamoe", 16)]["throughput"]
+        print(f"target: PE-MAMoE throughput at R = 16 >= {TARGET_THROUGHPUT}: {thr:.0f} "
+              f"({'met' if thr >= TARGET_THROUGHPUT else 'NOT met'}){where}")
     out = Path(__file__).resolve().parents[1] / "build" / json_name
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({f"{m}/R{R}": v for (m, R), v in rates.items()}, indent=1))
 
 
-def gpu_main(sizes, methods) -> int:
-    """`--device cuda`: the same per-member rates with the networks and the update on the GPU (the
-    environment stays on the CPU, one torch thread). No projections or CPU-only figures."""
+def rates_main(sizes, methods, device: str = "cuda", scale: str = "paper") -> int:
+    """`--device cuda` (or `--rates-only`): the per-member rates alone, with the networks and the
+    update on `device` (the environment stays on the CPU, one torch thread). No projections or
+    CPU-only figures. Writes build/bench_train_<device>.json."""
     torch.set_num_threads(1)
-    print(f"device: {torch.cuda.get_device_name(0)}; paper preset, 1 CPU torch thread for the environment side")
-    rates = rate_table(methods, sizes, "cuda")
-    print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
-    if ("pemamoe", 16) in rates:
-        report_target(rates, "bench_train_cuda.json", " on the GPU")
+    name = torch.cuda.get_device_name(0) if device == "cuda" else "cpu"
+    print(f"device: {name}; {scale} preset, 1 CPU torch thread for the environment side")
+    rates = rate_table(methods, sizes, device, scale)
+    if device == "cuda":
+        print(f"peak GPU memory: {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
+    report_target(rates, f"bench_train_{device}.json", " on the GPU" if device == "cuda" else "", scale)
     return 0
 
 
@@ -209,13 +215,17 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                         help="cuda: the population rates on a GPU only (benchmarks/device_check.sh)")
-    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="population sizes (cuda; default 1 4 16)")
-    parser.add_argument("--methods", nargs="+", default=None, choices=METHODS, help="methods (cuda; default all)")
+    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="population sizes (cuda or --rates-only; default 1 4 16)")
+    parser.add_argument("--methods", nargs="+", default=None, choices=METHODS, help="methods (cuda or --rates-only; default all)")
+    parser.add_argument("--rates-only", action="store_true",
+                        help="only the population rates, as --device cuda does (on the CPU: the device check's rehearsal)")
+    parser.add_argument("--scale", default="paper", choices=("ci", "small", "medium", "paper"),
+                        help="preset of the rates with --device cuda or --rates-only (default paper)")
     args = parser.parse_args()
-    if args.device == "cuda":
-        if not torch.cuda.is_available():
+    if args.device == "cuda" or args.rates_only:
+        if args.device == "cuda" and not torch.cuda.is_available():
             parser.error("--device cuda: torch sees no CUDA device on this machine")
-        return gpu_main(args.sizes or list(SIZES), args.methods or list(METHODS))
+        return rates_main(args.sizes or list(SIZES), args.methods or list(METHODS), args.device, args.scale)
     torch.set_num_threads(1)
     print("paper preset: 64 envs x 32 slots = 2048 env steps/iteration, 8 epochs x 32 minibatches, 1 torch thread")
     rates = rate_table(METHODS, SIZES, "cpu")

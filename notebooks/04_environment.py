@@ -664,11 +664,12 @@ class UAVBatchCore:
 #   core with B = 1: agents `uav_0 … uav_{U-1}`, Gymnasium `Box` spaces, `state()` for the
 #   centralised critic and, with `render_mode="rgb_array"`, an RGB `render()`. `aec_env(**overrides)`
 #   (alias `raw_env`) is the same environment as an AEC env, through PettingZoo's `parallel_to_aec`.
+#
+# Only the second needs PettingZoo and Gymnasium: `pemamoe.env`, and with it the trainer, imports
+# without them (appendix 04b says how), and `make_env` says what to install where they are missing.
 
 # %%
 #| export
-from pettingzoo.utils.conversions import parallel_to_aec
-
 def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
     """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
     return UAVParallelEnv(EnvConfig.from_overrides(**overrides), render_mode=render_mode)
@@ -681,6 +682,8 @@ def parallel_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
 
 def aec_env(render_mode: str | None = None, **overrides):
     """The environment as a PettingZoo AEC env (agents act in turn), via PettingZoo's parallel_to_aec."""
+    from pettingzoo.utils.conversions import parallel_to_aec  # here, not at load: the trainer needs no PettingZoo
+
     return parallel_to_aec(make_env(render_mode, **overrides))
 
 

@@ -920,8 +920,6 @@ for name, s in seconds.items():
 # %%
 #| export env_wrappers
 import numpy as np
-from gymnasium import spaces
-from pettingzoo import ParallelEnv
 
 from pemamoe.phases import phase_values
 
@@ -994,18 +992,43 @@ def vector_seeds(seed, num_envs: int) -> list:
 # `render()` before the first `reset()` raise an error that says to call `reset()` first. Actions
 # outside [-1, 1] are clipped and flagged in `info["action_clipped"]`; a NaN or infinite action, and
 # an action for an agent that does not exist, raise an error naming the agent.
+#
+# PettingZoo and Gymnasium are needed by this environment only. The trainer, the sweeps and the
+# benchmarks never build it, so they must import without either package: a GPU machine's own Python
+# has torch but neither of them (`benchmarks/device_check.sh` runs there). The class is therefore
+# defined in every case, and its base is PettingZoo's `ParallelEnv` where PettingZoo imports, a
+# plain `object` where it is not installed; building one without it raises an `ImportError` that
+# says what to install. Gymnasium's `Box` spaces are imported when an environment is built. We
+# chose this over creating the class on first access (a module `__getattr__`): the class stays one
+# object, defined at load, so `pemamoe.env` re-exports it as before, star imports, `isinstance` and
+# pickling behave as usual, and there is no second path to keep in step.
 
 # %%
 #| export env_wrappers
+try:  # PettingZoo (which brings Gymnasium) is optional for everything but this environment
+    from pettingzoo import ParallelEnv as _ParallelEnvBase
+
+    _PETTINGZOO_MISSING = None
+except ModuleNotFoundError as error:
+    if (error.name or "").split(".")[0] not in ("pettingzoo", "gymnasium"):
+        raise  # a broken install of something else: say so, do not hide it
+    _ParallelEnvBase, _PETTINGZOO_MISSING = object, error
+
 # Info keys that only a step produces, and their value at a reset: (per agent?, value).
 _STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, False),
                    "battery_depleted": (True, False), "phase_switch": (False, False)}
 
 
-class UAVParallelEnv(ParallelEnv):
+class UAVParallelEnv(_ParallelEnvBase):
     metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
     def __init__(self, cfg: "EnvConfig | None" = None, render_mode: str | None = None):
+        if _PETTINGZOO_MISSING is not None:
+            raise ImportError("the PettingZoo environment needs pettingzoo and gymnasium "
+                              "(pip install pettingzoo gymnasium); the trainer and the vector env "
+                              "(make_vector_env) do not") from _PETTINGZOO_MISSING
+        from gymnasium import spaces
+
         # imported when an environment is built, not at load: pemamoe.env imports this module
         from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
 

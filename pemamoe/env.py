@@ -519,9 +519,7 @@ class UAVBatchCore:
         return obs, state, info
 
 
-# %% notebooks/04_environment.py, cell 16 (line 668)
-from pettingzoo.utils.conversions import parallel_to_aec
-
+# %% notebooks/04_environment.py, cell 16 (line 671)
 def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
     """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
     return UAVParallelEnv(EnvConfig.from_overrides(**overrides), render_mode=render_mode)
@@ -534,6 +532,8 @@ def parallel_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
 
 def aec_env(render_mode: str | None = None, **overrides):
     """The environment as a PettingZoo AEC env (agents act in turn), via PettingZoo's parallel_to_aec."""
+    from pettingzoo.utils.conversions import parallel_to_aec  # here, not at load: the trainer needs no PettingZoo
+
     return parallel_to_aec(make_env(render_mode, **overrides))
 
 

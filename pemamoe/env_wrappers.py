@@ -5,8 +5,6 @@ __all__ = ['UAVVectorEnv', 'vector_seeds', 'UAVParallelEnv', 'compile_step_kerne
 
 # %% notebooks/04b_engine.py, cell 21 (line 920)
 import numpy as np
-from gymnasium import spaces
-from pettingzoo import ParallelEnv
 
 from pemamoe.phases import phase_values
 
@@ -64,16 +62,31 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04b_engine.py, cell 23 (line 998)
+# %% notebooks/04b_engine.py, cell 23 (line 1006)
+try:  # PettingZoo (which brings Gymnasium) is optional for everything but this environment
+    from pettingzoo import ParallelEnv as _ParallelEnvBase
+
+    _PETTINGZOO_MISSING = None
+except ModuleNotFoundError as error:
+    if (error.name or "").split(".")[0] not in ("pettingzoo", "gymnasium"):
+        raise  # a broken install of something else: say so, do not hide it
+    _ParallelEnvBase, _PETTINGZOO_MISSING = object, error
+
 # Info keys that only a step produces, and their value at a reset: (per agent?, value).
 _STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, False),
                    "battery_depleted": (True, False), "phase_switch": (False, False)}
 
 
-class UAVParallelEnv(ParallelEnv):
+class UAVParallelEnv(_ParallelEnvBase):
     metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
     def __init__(self, cfg: "EnvConfig | None" = None, render_mode: str | None = None):
+        if _PETTINGZOO_MISSING is not None:
+            raise ImportError("the PettingZoo environment needs pettingzoo and gymnasium "
+                              "(pip install pettingzoo gymnasium); the trainer and the vector env "
+                              "(make_vector_env) do not") from _PETTINGZOO_MISSING
+        from gymnasium import spaces
+
         # imported when an environment is built, not at load: pemamoe.env imports this module
         from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
 
@@ -191,7 +204,7 @@ def compile_step_kernels() -> None:
     env.step(np.zeros((2, env.n_agents, 2)))
 
 
-# %% notebooks/04b_engine.py, cell 25 (line 1132)
+# %% notebooks/04b_engine.py, cell 25 (line 1155)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -228,7 +241,7 @@ def render_frame(core: "UAVBatchCore", b: int = 0, size_px: int = 480) -> np.nda
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04b_engine.py, cell 27 (line 1180)
+# %% notebooks/04b_engine.py, cell 27 (line 1203)
 def random_policy(core: "UAVBatchCore", rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

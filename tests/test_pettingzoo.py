@@ -33,6 +33,14 @@ def test_module_level_constructors():
     assert aec.unwrapped.cfg.n_users == 12
 
 
+def test_make_env_is_a_pettingzoo_parallel_env_where_pettingzoo_is_installed():
+    # its base class falls back to object only where pettingzoo is missing (tests/test_device_check.py)
+    from pettingzoo import ParallelEnv
+
+    assert issubclass(E.UAVParallelEnv, ParallelEnv)
+    assert isinstance(pemamoe.make_env(), ParallelEnv) and isinstance(E.aec_env().unwrapped, ParallelEnv)
+
+
 # -- infos -------------------------------------------------------------------------------------
 def _spec(infos):
     """Per agent: key -> (Python type, shape, numpy dtype) of each info value."""
