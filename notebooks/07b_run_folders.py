@@ -35,9 +35,24 @@
 #    done" test, `analysis.load_runs`). A marker from another run, a garbage marker, or logs changed
 #    after the seal (e.g. a marker copied beside a run stopped half-way) raise `RunFolderError`.
 #    We never guess which file is right.
+#    The marker also has to seal a whole run: `write_done` refuses, and `verify_done` rejects, a
+#    `metrics.parquet` whose row count (read from the parquet footer, not the rows) is not the
+#    run's number of iterations, so a run stopped half-way never counts as finished.
 # 4. **Unreadable files are named.** A 0-byte or truncated checkpoint, a garbage `config.json`, a
-#    truncated parquet file: each raises `RunFolderError` with the folder, the file and the cause
-#    (instead of a bare `EOFError`, `JSONDecodeError` or `ArrowInvalid`).
+#    truncated parquet file, a folder where a file should be: each raises `RunFolderError` with the
+#    folder, the file and the cause (instead of a bare `EOFError`, `JSONDecodeError`,
+#    `ArrowInvalid` or `IsADirectoryError`).
+# 5. **A checkpoint is sealed with its own sha256.** `torch.load` does not check the zip's CRCs, so
+#    flipped bytes inside a tensor load without complaint. `seal_checkpoint` stores the sha256 of
+#    the file as `torch.save` wrote it in the zip archive's comment (the last bytes of the file,
+#    which zip readers, torch's included, skip); `load_checkpoint` recomputes it and refuses a
+#    mismatch, naming the file. Checkpoints of format 4 and older carry no seal and are read as
+#    before. A checkpoint also records the `TRAINING_NUMERICS` version it was computed under
+#    (appendix 07c; absent means version 1): resuming it under another version would splice two
+#    arithmetics into one run, so `load_checkpoint` refuses, naming both versions.
+# 6. **Errors survive a process pool.** `RunFolderError` and `RunLockedError` pickle with their
+#    message and attributes intact, so a sweep worker's error reaches the parent as itself instead
+#    of a `BrokenProcessPool`.
 #
 # Results are read with `read_parquet` (pyarrow's `read_table(...).to_pandas()`, single-threaded):
 # a script that imports torch and then reads a run with `pandas.read_parquet` sometimes aborted at
@@ -67,16 +82,32 @@ LOCK_NAME = ".lock"
 _START_OVER = "delete the folder, or train with resume=False to start it over"
 
 
-class RunFolderError(ValueError):
+class _PicklableError:
+    """Mixin: an exception whose constructor takes other arguments than its message pickles as its
+    message (`args`) and attributes, without calling the constructor again (the default pickling
+    calls `cls(*args)`, which fails or, in a process pool, breaks the pool)."""
+
+    def __reduce__(self):
+        return _rebuild_error, (type(self), self.args, dict(self.__dict__))
+
+
+def _rebuild_error(cls, args, state):
+    err = cls.__new__(cls, *args)
+    err.args = args
+    err.__dict__.update(state)
+    return err
+
+
+class RunFolderError(_PicklableError, ValueError):
     """A file of a run folder cannot be used as it is. The message names the folder, the file and
     what is wrong; `path` is the file."""
 
     def __init__(self, path, problem: str, hint: str = _START_OVER):
-        self.path = Path(path)
+        self.path, self.problem, self.hint = Path(path), problem, hint
         super().__init__(f"run folder {self.path.parent}: {self.path.name} {problem}" + (f"; {hint}" if hint else ""))
 
 
-class RunLockedError(RuntimeError):
+class RunLockedError(_PicklableError, RuntimeError):
     """Another live process (its PID in `pid`, None when unknown) is writing this run folder."""
 
     def __init__(self, run_dir, pid):
@@ -106,6 +137,10 @@ def read_json(path) -> dict:
         obj = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise RunFolderError(path, "is missing") from None
+    except IsADirectoryError:
+        raise RunFolderError(path, "is a directory, not a file") from None
+    except OSError as err:
+        raise RunFolderError(path, f"cannot be read ({type(err).__name__}: {err})") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise RunFolderError(path, f"is not valid JSON ({err})") from None
     if not isinstance(obj, dict):
@@ -120,9 +155,7 @@ def read_parquet(path):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    path = Path(path)
-    if not path.is_file():
-        raise RunFolderError(path, "is missing")
+    path = _existing_file(path)
     try:
         return pq.read_table(path, use_threads=False).to_pandas(use_threads=False)
     except (pa.ArrowException, OSError) as err:
@@ -139,32 +172,120 @@ def read_config(path, cls=None):
 
 def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
     """`torch.load(path, weights_only=True)`, checked: a readable dict with a `config` and an
-    `iteration`; with `config`, the stored config must have the same identity (see
-    `check_stored_config`) and at most `config.iterations` iterations; with `iteration`, exactly
-    that many."""
+    `iteration`, whose bytes match the sha256 sealed into it (`seal_checkpoint`; checkpoints of
+    format 4 and older have none); with `config`, the stored config must have the same identity
+    (see `check_stored_config`), the checkpoint must come from this code's `TRAINING_NUMERICS`
+    (absent: version 1) and hold at most `config.iterations` iterations; with `iteration`,
+    exactly that many."""
+    import io
     import pickle
     import zipfile
 
     import torch
 
-    path = Path(path)
-    if not path.is_file():
-        raise RunFolderError(path, "is missing")
-    if path.stat().st_size == 0:
-        raise RunFolderError(path, "is empty (0 bytes)")
+    path = _existing_file(path)
     try:
-        ck = torch.load(path, weights_only=True)
+        data = path.read_bytes()
+    except OSError as err:
+        raise RunFolderError(path, f"cannot be read ({type(err).__name__}: {err})") from None
+    if not data:
+        raise RunFolderError(path, "is empty (0 bytes)")
+    sealed = _check_seal(data, path)
+    try:
+        ck = torch.load(io.BytesIO(data), weights_only=True)
     except (EOFError, RuntimeError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as err:
         raise RunFolderError(path, f"cannot be read as a checkpoint ({type(err).__name__}: {err})") from None
     if not isinstance(ck, dict) or not isinstance(ck.get("config"), dict) or "iteration" not in ck:
         raise RunFolderError(path, "is not a training checkpoint (no 'config' and 'iteration')")
+    fmt = ck.get("format", 1)  # the first checkpoints recorded none
+    if not sealed and not (isinstance(fmt, int) and fmt < SEALED_FORMAT):
+        raise RunFolderError(path, f"has format {fmt!r} but no content seal (checkpoints of format "
+                             f"{SEALED_FORMAT} and later carry one): it was rewritten or damaged, so it cannot be trusted")
     if config is not None:
         check_stored_config(ck["config"], config, path)
+        from pemamoe.train_config import TRAINING_NUMERICS
+
+        if ck.get("numerics", 1) != TRAINING_NUMERICS:
+            raise RunFolderError(path, f"was computed under training numerics version {ck.get('numerics', 1)!r}, "
+                                 f"but this code computes version {TRAINING_NUMERICS}: resuming it would mix two "
+                                 "arithmetics in one run")
         if not 0 <= int(ck["iteration"]) <= config.iterations:
             raise RunFolderError(path, f"is at iteration {ck['iteration']}, outside 0..{config.iterations}")
     if iteration is not None and int(ck["iteration"]) != iteration:
         raise RunFolderError(path, f"is at iteration {ck['iteration']}, but the run finished at {iteration}")
     return ck
+
+
+# %% [markdown]
+# ## The checkpoint's seal
+#
+# A zip archive ends with its end-of-central-directory record, whose last two bytes give the length
+# of an archive comment that follows it; `torch.save` writes no comment. `seal_checkpoint` hashes
+# the file as `torch.save` left it and appends `pemamoe-sha256:<64 hex digits>` as the comment, so
+# the checkpoint is still one file, renamed into place in one step, and `torch.load` reads it as
+# before. `_check_seal` takes the comment off again, recomputes the hash of what is left and
+# compares. Hashing costs a fraction of what writing the file costs (sha256 reads some 1 GB/s).
+
+# %%
+#| export
+SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07c); every later one has it too
+CHECKPOINT_SEAL = b"pemamoe-sha256:"  # the zip comment of a sealed checkpoint: this, then the 64 hex digits
+
+
+def seal_checkpoint(path) -> str:
+    """Seal a file just written by `torch.save` (a zip archive without comment) with the sha256
+    of its bytes, stored as the archive's comment; returns the digest. Call it before the file is
+    renamed into place."""
+    path = Path(path)
+    with open(path, "r+b") as f:
+        f.seek(0, os.SEEK_END)
+        if f.tell() < 22:
+            raise ValueError(f"{path} is too short to be a zip archive; cannot seal it")
+        f.seek(-22, os.SEEK_END)
+        end = f.read(22)
+        if end[:4] != b"PK\x05\x06" or end[20:] != b"\x00\x00":
+            raise ValueError(f"{path} does not end in a zip end-of-central-directory record without comment "
+                             "(not written by torch.save?); cannot seal it")
+        f.seek(0)
+        h = hashlib.sha256()
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+        comment = CHECKPOINT_SEAL + h.hexdigest().encode()
+        f.seek(-2, os.SEEK_END)
+        f.write(len(comment).to_bytes(2, "little") + comment)
+    return h.hexdigest()
+
+
+# %%
+#| exporti
+_SEAL_LEN = len(CHECKPOINT_SEAL) + 64
+
+
+def _check_seal(data: bytes, path) -> bool:
+    """Whether `data` (a checkpoint's bytes) carries a seal; RunFolderError naming `path` when the
+    seal does not match the bytes."""
+    tail = data[-(_SEAL_LEN + 2):]
+    if len(data) < _SEAL_LEN + 24 or tail[:2] != _SEAL_LEN.to_bytes(2, "little") or \
+            not tail[2:].startswith(CHECKPOINT_SEAL):
+        return False
+    recorded = tail[2 + len(CHECKPOINT_SEAL):].decode("ascii", errors="replace")
+    h = hashlib.sha256(memoryview(data)[:-(_SEAL_LEN + 2)])
+    h.update(b"\x00\x00")  # the comment length as torch.save wrote it
+    if h.hexdigest() != recorded:
+        raise RunFolderError(path, f"fails its content check (sha256 {h.hexdigest()[:12]}... now, {recorded[:12]}... "
+                             "when it was written): the file was damaged after it was written (disk, copy or "
+                             "edit), and a resumed run would continue from wrong numbers")
+    return True
+
+
+def _existing_file(path) -> Path:
+    """`path` as a Path; RunFolderError when it is missing or not a regular file."""
+    path = Path(path)
+    if path.is_dir():
+        raise RunFolderError(path, "is a directory, not a file")
+    if not path.is_file():
+        raise RunFolderError(path, "is missing")
+    return path
 
 
 # %% [markdown]
@@ -239,8 +360,14 @@ def file_digest(path) -> str:
 
 def write_done(run_dir, config, **record) -> dict:
     """Seal a finished run: write done.json with the config hash, the number of iterations and the
-    sha256 of each log file, plus `record` (e.g. env_steps, torch_threads, wall_time_s)."""
+    sha256 of each log file, plus `record` (e.g. env_steps, torch_threads, wall_time_s).
+    RunFolderError when metrics.parquet does not hold one row per iteration (a partial run)."""
     run_dir = Path(run_dir)
+    rows = parquet_rows(run_dir / "metrics.parquet")
+    if rows != config.iterations:
+        raise RunFolderError(run_dir / "done.json", f"cannot seal this run: metrics.parquet holds {rows} rows, "
+                             f"the config asks for {config.iterations} iterations (the run is not finished)",
+                             "train it to the end, and it writes done.json itself")
     marker = {**record, "format": DONE_FORMAT, "finished": True, "config_hash": config.config_hash(),
               "iterations": int(config.iterations),
               "digests": {name: file_digest(run_dir / name) for name in LOG_FILES}}
@@ -277,12 +404,28 @@ def verify_done(run_dir, config=None) -> dict | None:
     for name in LOG_FILES:
         log = run_dir / name
         if not log.is_file():
-            raise RunFolderError(path, f"seals {name}, which is missing")
+            raise RunFolderError(path, f"seals {name}, which is missing" + (" (a directory)" if log.is_dir() else ""))
         if marker["digests"].get(name) != file_digest(log):
             raise RunFolderError(path, f"seals a different {name} (sha256 {str(marker['digests'].get(name))[:12]}... "
                                  f"recorded, {file_digest(log)[:12]}... on disk): the logs changed after the "
                                  "run finished, or the marker was copied from elsewhere")
+    rows = parquet_rows(run_dir / "metrics.parquet")
+    if rows != config.iterations:
+        raise RunFolderError(path, f"seals a metrics.parquet of {rows} rows, but the run has {config.iterations} "
+                             "iterations: it was sealed before the run finished")
     return marker
+
+
+def parquet_rows(path) -> int:
+    """The number of rows of a parquet file, from its footer (no row is read)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = _existing_file(path)
+    try:
+        return int(pq.read_metadata(path).num_rows)
+    except (pa.ArrowException, OSError) as err:
+        raise RunFolderError(path, f"cannot be read as parquet ({type(err).__name__}: {err})") from None
 
 
 def prepare_run_dir(run_dir, config, resume: bool) -> None:
@@ -294,6 +437,11 @@ def prepare_run_dir(run_dir, config, resume: bool) -> None:
     if resume and cfg_path.exists():
         check_stored_config(read_json(cfg_path), config, cfg_path)
         return
+    if resume and (run_dir / "checkpoint.pt").exists():  # no config.json: the checkpoint says whose folder it is
+        load_checkpoint(run_dir / "checkpoint.pt", config)  # refuses another run's before anything is written
+    for name in ("config.json", "done.json", "checkpoint.pt", *LOG_FILES):
+        if (run_dir / name).is_dir():
+            raise RunFolderError(run_dir / name, "is a directory, not a file", "remove it by hand")
     if not resume:
         for name in ("done.json", "checkpoint.pt", *LOG_FILES):  # the marker first: never a seal on new files
             (run_dir / name).unlink(missing_ok=True)
@@ -383,8 +531,8 @@ def holder_pid(run_dir) -> int | None:
 # %% [markdown]
 # ## Demonstration
 #
-# A folder locked twice, a stale temporary file cleared, and a done marker that no longer matches
-# its logs.
+# A folder locked twice, a stale temporary file cleared, an empty checkpoint, a sealed checkpoint
+# with one flipped byte, and an error that crosses a process boundary (a pickle round trip).
 
 # %%
 import tempfile
@@ -408,3 +556,19 @@ with tempfile.TemporaryDirectory() as tmp:
         load_checkpoint(folder / "checkpoint.pt")
     except RunFolderError as err:
         print("empty checkpoint:", err)
+    import pickle
+
+    import torch
+
+    torch.save({"config": {}, "iteration": 0, "format": SEALED_FORMAT, "w": torch.arange(64.0)},
+               folder / "checkpoint.pt")
+    print("sealed with sha256", seal_checkpoint(folder / "checkpoint.pt")[:12], "...")
+    data = bytearray((folder / "checkpoint.pt").read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte in the middle of the file
+    (folder / "checkpoint.pt").write_bytes(bytes(data))
+    try:
+        load_checkpoint(folder / "checkpoint.pt")
+    except RunFolderError as err:
+        print("flipped byte:", err)
+        again = pickle.loads(pickle.dumps(err))
+        assert type(again) is RunFolderError and str(again) == str(err) and again.path == err.path

@@ -103,11 +103,12 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 #| export
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
+SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
 # The version of the training arithmetic (see the identity above): bump it with any change that
 # alters the numbers a run computes for the same config, and refresh tests/numerics_fingerprint.json.
-TRAINING_NUMERICS = 1
+TRAINING_NUMERICS = 2  # 2: the controller is inert before the first switch; gating choices (notebook 05)
 # Columns that describe how a run was executed (speed, population size), not what it computed:
 # they differ between two executions of the same run and are left out of every comparison.
 TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
@@ -191,7 +192,8 @@ class TrainConfig:
                 pass
         require_field(self, "method", "choice", tuple(METHOD_REGISTRY))
         require_field(self, "device", "choice", DEVICES)
-        require_field(self, "seed", "int", ge=0)
+        require_field(self, "seed", "int", ge=0, lt=SEED_LIMIT,
+                      note="torch and numpy take 64-bit seeds, and each environment adds its index to the seed")
         for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
             require_field(self, name, "int", ge=1)
@@ -455,6 +457,7 @@ assert TrainConfig.for_scale("paper").controller == PhaseControllerConfig()
 import io
 import os
 import pickle
+import shutil
 import sys
 from pathlib import Path
 
@@ -463,7 +466,10 @@ import pandas as pd
 import torch
 
 from pemamoe.core import atomic_path
+from pemamoe.runs import seal_checkpoint
+from pemamoe.train_config import TRAINING_NUMERICS
 
+CHECKPOINT_FORMAT = 5  # 5: sealed with its sha256 and stamped with TRAINING_NUMERICS; 4: rows in chunks (below)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
 _EPISODE_MEANS = ("coverage", "served_users", "admitted_users", "uav_using_rate", "energy_rate_kj")
 
@@ -653,6 +659,15 @@ pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminat
 # converts all rows at once as before, so a run's final logs are the same bytes however often it
 # was checkpointed or resumed; only the logs of an unfinished run come from pieces.
 #
+# Format 5 keeps format 4's content and adds two safeguards (notebook 07b): `_torch_save_atomic`
+# stamps every checkpoint with `CHECKPOINT_FORMAT` and `TRAINING_NUMERICS`, the version of the
+# arithmetic that computed it, which `load_checkpoint` compares with the running code's before a
+# run resumes; and it seals the file with its sha256 before the rename (`seal_checkpoint`), which
+# `load_checkpoint` verifies, so bytes damaged on disk are refused instead of resumed. A
+# `RuntimeError` of torch's zip writer (what a full disk gives, with neither the file nor the
+# cause in its message) becomes an `OSError` that names the checkpoint and says the disk may be
+# full. Checkpoints of format 4 and older (no seal, numerics version 1) are still read.
+#
 # A population steps all of its members' environments as one vector environment, but each member
 # checkpoints alone, so that its folder is the same as if it had trained by itself.
 # `split_env_state` cuts the population's environment state down to one member's rows;
@@ -778,8 +793,31 @@ class RowLog(list):
 
 
 def _torch_save_atomic(obj, path: Path) -> None:
+    """Write a checkpoint: `obj` stamped with CHECKPOINT_FORMAT and TRAINING_NUMERICS, saved by
+    torch to a temporary file, sealed with its sha256 (pemamoe.runs.seal_checkpoint) and renamed
+    onto `path`. A failed write (a full disk, most often) raises OSError naming `path`."""
+    path = Path(path)
     with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+        try:
+            torch.save({**obj, "format": CHECKPOINT_FORMAT, "numerics": TRAINING_NUMERICS}, tmp)
+            seal_checkpoint(tmp)
+        except RuntimeError as err:  # torch's writer: "[enforce fail at inline_container.cc:...]", "file write failed"
+            if "inline_container" not in str(err) and "write" not in str(err).lower():
+                raise
+            raise OSError(f"cannot write the checkpoint {path}: torch.save failed ({err}); the disk may be full "
+                          f"(no space left on device: {_free_space(path.parent)} free there), or the folder is "
+                          "not writable. Free some space; the run resumes from its previous checkpoint") from err
+        except OSError as err:
+            message = (f"cannot write the checkpoint {path} ({err.strerror or err}); if the disk is full, free some "
+                       "space: the run resumes from its previous checkpoint")
+            raise (OSError(err.errno, message) if err.errno else OSError(message)) from err
+
+
+def _free_space(folder: Path) -> str:
+    try:
+        return f"{shutil.disk_usage(folder).free / 2**20:,.1f} MiB"
+    except OSError:
+        return "unknown"
 
 
 def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:

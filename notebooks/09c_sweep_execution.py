@@ -80,6 +80,9 @@ class SweepInterrupted(KeyboardInterrupt):
         self.signum = signum
         super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
 
+    def __reduce__(self):  # pickled with its signal number (a process pool sends exceptions back)
+        return type(self), (self.signum,)
+
 
 def execute_population(specs, results_dir, threads: int = 1) -> list:
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
@@ -437,7 +440,7 @@ def sweep_cli(argv=None) -> int:
     from pemamoe.sweep import DEFAULT_POPULATION, experiment_specs, run_sweep  # the sweep imports this module
 
     parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget"])
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
     parser.add_argument("--scale", default="small")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")

@@ -24,13 +24,15 @@ def main(argv=None) -> int:
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
     sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["train"]:  # its choices come from the trainer's modules (torch): import them only here
+    if argv[:1] == ["train"]:  # built only for train (its --without choices load the phase controller lazily)
         _add_train_parser(sub)
     else:
         sub.add_parser("train", help=TRAIN_HELP, add_help=False)
     sub.add_parser("export", help="write pemamoe/ from the notebooks' exported cells")
     sub.add_parser("check-export", help="fail if pemamoe/ differs from what the notebooks export")
     if argv[:1] == ["sweep"]:  # the sweep command owns its own options
+        if _option_value(argv[1:], "--backend") == "ray":
+            _require_extra("python -m pemamoe sweep --backend ray", RAY_MODULES, "ray", parser)
         from pemamoe.sweep import sweep_cli
 
         return sweep_cli(argv[1:])
@@ -47,6 +49,9 @@ def main(argv=None) -> int:
             check_scale(args.scale)
         except ValueError as err:
             parser.error(str(err))
+        _require_extra("python -m pemamoe figures", FIGURES_MODULES, "figures", parser)
+        if args.backend == "ray":
+            _require_extra("python -m pemamoe figures --backend ray", RAY_MODULES, "ray", parser)
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
@@ -57,6 +62,32 @@ def main(argv=None) -> int:
     if args.command == "train":
         return train_command(args, args.train_parser)
     return 2
+
+
+# -- optional dependencies (pyproject.toml's extras) --------------------------------------------
+FIGURES_MODULES = ("jupytext", "papermill", "ipykernel", "rliable")  # the extra "figures"
+RAY_MODULES = ("ray", "psutil")  # the extra "ray"
+
+
+def _require_extra(what: str, modules, extra: str, parser) -> None:
+    """Exit with a one-line error naming the extra to install when one of `modules` is missing."""
+    from importlib.util import find_spec
+
+    missing = [m for m in modules if find_spec(m) is None]
+    if missing:
+        parser.exit(2, f"{parser.prog}: error: {what} needs {', '.join(missing)}, which {'is' if len(missing) == 1 else 'are'} not installed: "
+                       f"pip install 'pemamoe[{extra}]' (or install environment.lock)\n")
+
+
+def _option_value(argv, option: str):
+    """The value given to `option` in argv (`--opt v` or `--opt=v`), the last one wins; None if absent."""
+    value = None
+    for i, arg in enumerate(argv):
+        if arg == option and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif arg.startswith(option + "="):
+            value = arg.split("=", 1)[1]
+    return value
 
 
 # -- train -------------------------------------------------------------------------------------
@@ -73,6 +104,34 @@ def _int_at_least(low: int):
     return parse
 
 
+class _LazyChoices:
+    """A parser's `choices` that are loaded on first use (a membership test, or the help that lists
+    them), so that building the parser, and every argument error, imports no heavy module."""
+
+    def __init__(self, load):
+        self._load, self._items = load, None
+
+    def _get(self) -> tuple:
+        if self._items is None:
+            self._items = tuple(self._load())
+        return self._items
+
+    def __contains__(self, item) -> bool:
+        return item in self._get()
+
+    def __iter__(self):
+        return iter(self._get())
+
+    def __len__(self) -> int:
+        return len(self._get())
+
+
+def _mechanisms() -> tuple:
+    from pemamoe.phase_controller import MECHANISMS  # imports torch: only when --without is used or --help shown
+
+    return MECHANISMS
+
+
 def _float_at_least_zero(text: str) -> float:
     try:
         value = float(text)
@@ -84,24 +143,27 @@ def _float_at_least_zero(text: str) -> float:
 
 
 def _add_train_parser(sub) -> argparse.ArgumentParser:
+    # Light modules only (no torch): an argument error must not wait for the trainer to import.
     from pemamoe.core import SCALES
-    from pemamoe.mappo import METHODS
-    from pemamoe.methods import method_spec, proposed_method
-    from pemamoe.phase_controller import MECHANISMS
+    from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
+    load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
+    methods = tuple(METHOD_REGISTRY)
     p = sub.add_parser("train", help=TRAIN_HELP, description=(
         "Train one MAPPO run with the same code path as pemamoe.mappo.train(config, run_dir). "
-        "A progress bar is shown when stderr is a terminal; a summary is printed at the end."))
+        "A progress bar is shown when stderr is a terminal; a summary is printed at the end. "
+        "Ctrl-C stops it; the same command resumes it from its last checkpoint."))
     default = proposed_method()
-    p.add_argument("--method", default=default, choices=METHODS,
+    p.add_argument("--method", default=default, choices=methods,
                    help=f"a registered method: network kind and plasticity method (default: {default})")
     p.add_argument("--scale", default="small", choices=SCALES, help="preset budget (default: small)")
-    p.add_argument("--seed", type=_int_at_least(0), default=0, help="random seed, an integer >= 0 (default: 0)")
+    p.add_argument("--seed", type=_int_at_least(0), default=0,
+                   help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="run directory (default: results/train/<method>-s<seed>-<config hash>)")
-    p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
-                   help="switch a phase-controller mechanism off (repeatable; methods with the phase controller only): "
-                        + ", ".join(MECHANISMS))
+    p.add_argument("--without", action="append", default=[], choices=_LazyChoices(_mechanisms), metavar="MECHANISM",
+                   help="switch a phase-controller mechanism off (repeatable; methods with the phase controller "
+                        "only): %(choices)s")
     p.add_argument("--noise-gamma", type=_float_at_least_zero, default=None, metavar="GAMMA",
                    help="expert noise scale of the phase controller (methods with the phase controller only; default: the preset's)")
     p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
@@ -115,7 +177,32 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
 
 
 def train_command(args, parser: argparse.ArgumentParser) -> int:
-    """Build the TrainConfig from the flags, run pemamoe.mappo.train, print a summary."""
+    """Build the TrainConfig from the flags, run pemamoe.mappo.train, print a summary. Errors of the
+    run folder (a lock held by another process, a damaged or foreign file, a failed write) and
+    Ctrl-C end it with one line on stderr and a non-zero status, not a traceback."""
+    from pemamoe.runs import RunFolderError, RunLockedError  # light: no torch
+
+    if args.out is not None and args.out.strip() == "":
+        parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
+    _check_out(args.out, parser)
+    try:
+        return _train(args, parser)
+    except KeyboardInterrupt:
+        where = f" in {args.run_dir}" if getattr(args, "run_dir", None) is not None else ""
+        print(f"\n{parser.prog}: interrupted; the run{where} can be resumed: run the same command again to "
+              "continue from its last checkpoint (--no-resume starts it over)", file=sys.stderr)
+        return 130
+    except (RunFolderError, RunLockedError, OSError) as err:
+        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+        return 1
+
+
+def _check_out(out, parser) -> None:
+    if out is not None and Path(out).exists() and not Path(out).is_dir():
+        parser.error(f"--out {out} is a file, not a folder; name a folder (it is created if missing)")
+
+
+def _train(args, parser: argparse.ArgumentParser) -> int:
     from pemamoe import mappo
     from pemamoe.mappo import METHODS
     from pemamoe.methods import method_spec
@@ -136,9 +223,11 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
                      f"uses; got --method {args.method}")
     try:
         config = mappo.TrainConfig.for_scale(args.scale, method=args.method, seed=args.seed, **overrides)
+        mappo.resolve_device(config.device)  # --device cuda on a machine whose torch sees no GPU
     except ValueError as err:
         parser.error(str(err))
     out = Path(args.out) if args.out is not None else Path("results") / "train" / config.run_name()
+    _check_out(out, parser)
     stored = out / "config.json"
     if not args.no_resume and stored.exists():
         try:
@@ -149,6 +238,7 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
             parser.error(f"--out {out} holds a run with a different config; choose another --out, "
                          f"or pass --no-resume to overwrite it")
     out.mkdir(parents=True, exist_ok=True)
+    args.run_dir = out  # named if the run is interrupted
     result = mappo.train(config, out, resume=not args.no_resume, progress=None)
     print_summary(result, out)
     return 0

@@ -30,6 +30,9 @@ class SweepInterrupted(KeyboardInterrupt):
         self.signum = signum
         super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
 
+    def __reduce__(self):  # pickled with its signal number (a process pool sends exceptions back)
+        return type(self), (self.signum,)
+
 
 def execute_population(specs, results_dir, threads: int = 1) -> list:
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
@@ -51,7 +54,7 @@ def execute_population(specs, results_dir, threads: int = 1) -> list:
     return [str(d) for d in dirs]
 
 
-# %% notebooks/09c_sweep_execution.py, cell 8 (line 118)
+# %% notebooks/09c_sweep_execution.py, cell 8 (line 121)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -234,7 +237,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 12 (line 342)
+# %% notebooks/09c_sweep_execution.py, cell 12 (line 345)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
@@ -304,14 +307,14 @@ def status_summary(table, workers: int) -> str:
                    f"{max(hours / workers, longest):.2f} h of wall time.")
 
 
-# %% notebooks/09c_sweep_execution.py, cell 16 (line 432)
+# %% notebooks/09c_sweep_execution.py, cell 16 (line 435)
 def sweep_cli(argv=None) -> int:
     import argparse
 
     from pemamoe.sweep import DEFAULT_POPULATION, experiment_specs, run_sweep  # the sweep imports this module
 
     parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget"])
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
     parser.add_argument("--scale", default="small")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")

@@ -6,11 +6,13 @@ import json
 import re
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 from types import SimpleNamespace
 
 import pandas as pd
 import pytest
+import torch
 
 from pemamoe import mappo
 from pemamoe.__main__ import main
@@ -114,7 +116,8 @@ def test_default_out_is_named_after_the_run(calls, tmp_path, monkeypatch):
 
 @pytest.mark.skipif("device" not in {f.name for f in dataclasses.fields(mappo.TrainConfig)},
                     reason="TrainConfig has no device field yet")
-@pytest.mark.parametrize("device", ["cpu", "cuda", "auto"])
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA GPU (without one, --device cuda is refused)")), "auto"])
 def test_device_flag_reaches_the_config(calls, tmp_path, device):
     main(["train", "--scale", "ci", "--device", device, "--out", str(tmp_path)])
     assert calls[0].config.device == device
@@ -167,3 +170,130 @@ def test_train_progress_bar_only_on_request_or_a_terminal(capsys):
     assert "2/2" in err and "phase=" in err and "sps=" in err
     mappo.train(config)  # progress=None: stderr is not a terminal here
     assert capsys.readouterr().err == ""
+
+
+# -- the rough edges of issue 28: each a one-line error, never a traceback ----------------------------
+def _one_line_error(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert "Traceback" not in err and len(lines) == 1, err
+    return lines[0]
+
+
+def test_an_empty_out_is_refused_and_nothing_is_written(calls, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for argv in (["--out="], ["--out", ""]):
+        with pytest.raises(SystemExit) as exit_:
+            main(["train", "--scale", "ci", *argv])
+        assert exit_.value.code == 2
+        assert "--out must name a folder, got an empty string" in capsys.readouterr().err
+    assert not calls and list(tmp_path.iterdir()) == []  # no training into the current directory
+
+
+def test_an_out_that_is_a_file_is_refused(calls, capsys, tmp_path):
+    target = tmp_path / "notes.txt"
+    target.write_text("mine")
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--out", str(target)])
+    assert exit_.value.code == 2 and not calls
+    assert f"--out {target} is a file, not a folder" in capsys.readouterr().err
+    assert target.read_text() == "mine"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the machine without a GPU")
+def test_device_cuda_without_a_gpu_is_one_line(calls, capsys, tmp_path):
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--device", "cuda", "--out", str(tmp_path / "run")])
+    assert exit_.value.code == 2 and not calls
+    assert "torch sees no CUDA device" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_seed_outside_the_range_is_refused_before_anything_is_written(calls, capsys, tmp_path):
+    seed = "12345678901234567890"  # 20 digits: > 2**63
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--seed", seed, "--out", str(tmp_path / "run")])
+    assert exit_.value.code == 2 and not calls
+    err = capsys.readouterr().err
+    assert f"TrainConfig.seed must be an integer in [0, {2**63})" in err and seed in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_lock_held_by_another_process_is_one_line(tmp_path, capsys):
+    out = tmp_path / "run"
+    script = textwrap.dedent(f"""
+        import time
+        from pemamoe.runs import lock_run
+        lock = lock_run({str(out)!r})
+        print("locked", flush=True)
+        time.sleep(120)
+    """)
+    holder = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        assert main(["train", "--scale", "ci", "--out", str(out)]) == 1
+    finally:
+        holder.kill()
+        holder.wait()
+    line = _one_line_error(capsys.readouterr().err)
+    assert f"error: run folder {out} is being written by process {holder.pid}" in line
+
+
+def test_a_bad_run_folder_and_a_failed_write_are_one_line(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    (out / "done.json").mkdir(parents=True)
+    assert main(["train", "--scale", "ci", "--out", str(out)]) == 1
+    assert "done.json is a directory, not a file" in _one_line_error(capsys.readouterr().err)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(f"cannot write the checkpoint {out / 'checkpoint.pt'}: ...; the disk may be full")
+
+    monkeypatch.setattr(mappo, "train", full_disk)
+    assert main(["train", "--scale", "ci", "--out", str(tmp_path / "other")]) == 1
+    assert "the disk may be full" in _one_line_error(capsys.readouterr().err)
+
+
+def test_ctrl_c_during_train_is_one_line_that_says_the_run_resumes(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "train", "--scale", "ci", "--method", "mlp",
+                             "--iterations", "100000", "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "checkpoint.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    line = _one_line_error(err)
+    assert "interrupted; the run in" in line and "can be resumed" in line
+    assert (out / "checkpoint.pt").is_file() and not (out / "done.json").exists()
+
+
+def test_an_argument_error_imports_neither_torch_nor_the_trainer():
+    code = textwrap.dedent("""
+        import sys
+        from pemamoe.__main__ import main
+        try:
+            main(["train", "--seed", "x"])
+        except SystemExit as exit_:
+            assert exit_.code == 2
+        print(sorted(m for m in ("torch", "numba", "pandas", "pemamoe.mappo", "pemamoe.phase_controller")
+                     if m in sys.modules))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+    assert "--seed: must be an integer >= 0, got 'x'" in proc.stderr
+
+
+def test_train_help_still_lists_the_mechanisms(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(m in text for m in MECHANISMS) and all(m in text for m in mappo.METHODS)

@@ -31,6 +31,9 @@ def _one_thread():
     torch.set_num_threads(old)
 
 
+RATIO_ROUNDING = 1e-5  # |log-ratio| allowed before the first step: float rounding, never a routing mismatch
+
+
 def ci(method="pemamoe", **kw):
     return TrainConfig.for_scale("ci", method=method, seed=3, **kw)
 
@@ -124,8 +127,9 @@ def test_each_method_trains_and_logs(method, tmp_path):
     assert len(m) == 3 and m["iteration"].tolist() == [0, 1, 2]
     missing = [c for c in EXPECTED if c not in m.columns]
     assert not missing, missing
-    # the ratio is exactly 1 before the first gradient step of every iteration (routing replayed)
-    assert (m["first_ratio_dev"] == 0.0).all()
+    # the ratio is 1 before the first gradient step of every iteration (routing replayed), up to the
+    # last bits a CPU's BLAS may change with the row count (see test_first_ratio_is_one_directly)
+    assert (m["first_ratio_dev"] <= RATIO_ROUNDING).all()
     assert (m["gradient_steps"] > 0).all()
     assert np.isfinite(m[["policy_loss", "value_loss", "approx_kl", "sps"]].to_numpy()).all()
     assert m["env_steps"].tolist() == [cfg.batch_env_steps * (i + 1) for i in range(3)]
@@ -135,7 +139,7 @@ def test_each_method_trains_and_logs(method, tmp_path):
     assert len(eps) > 0 and {"return", "phase", "served_users", "collisions", "env"} <= set(eps.columns)
 
 
-def test_first_ratio_is_exactly_one_directly():
+def test_first_ratio_is_one_directly():
     # the update's forward pass on a minibatch (other rows, another batch size) replays the
     # rollout's log-probabilities bit for bit, for every member of a population
     for method in METHODS:
@@ -162,7 +166,10 @@ def test_first_ratio_is_exactly_one_directly():
                                         r.temperature[rows, idx].reshape(R, -1))
         logp, *_ = actor.evaluate(ro.obs.reshape(R, N, U, -1)[rows, idx].reshape(R, -1, venv.obs_dim),
                                   ro.actions.reshape(R, N, U, -1)[rows, idx].reshape(R, -1, 2), route)
-        assert torch.equal(logp, ro.logprobs.reshape(R, N, U)[rows, idx].reshape(R, -1)), method
+        # Bit for bit on many CPUs; on some the BLAS kernel, and so the last bit of a product, depends
+        # on the number of rows (the rollout's pass and the minibatch's differ): about 1e-6 seen.
+        torch.testing.assert_close(logp, ro.logprobs.reshape(R, N, U)[rows, idx].reshape(R, -1), rtol=0,
+                                   atol=RATIO_ROUNDING, msg=method)
 
 
 # --- phase clock -----------------------------------------------------------------------------------
@@ -224,7 +231,7 @@ def test_checkpoints_pack_only_new_log_rows_and_still_resume_from_older_formats(
         train(cfg, folder, max_iterations=4)
         path = folder / "checkpoint.pt"
         ck = torch.load(path, weights_only=True)
-        assert ck["format"] == 4 and len(ck["metrics_rows"]) == 2  # a chunk per checkpoint: iterations 0-1, 2-3
+        assert ck["format"] == 5 and len(ck["metrics_rows"]) == 2  # a chunk per checkpoint: iterations 0-1, 2-3
         assert all(torch.is_tensor(chunk) and chunk.dtype == torch.uint8 for chunk in ck["metrics_rows"])
         rows = _unpack_rows(ck["metrics_rows"])
         assert [r["iteration"] for r in rows] == [0, 1, 2, 3]
@@ -267,7 +274,7 @@ def test_a_checkpoint_before_any_episode_ended_resumes(tmp_path):
     straight = train(cfg, tmp_path / "straight")
     train(cfg, tmp_path / "cut", max_iterations=1)
     ck = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=True)
-    assert ck["format"] == 4 and ck["episode_rows"] == [] and len(ck["metrics_rows"]) == 1
+    assert ck["format"] == 5 and ck["episode_rows"] == [] and len(ck["metrics_rows"]) == 1
     assert RowLog.from_checkpoint(ck["episode_rows"]) == []
     resumed = train(cfg, tmp_path / "cut", resume=True)
     assert resumed.resumed_from == 1

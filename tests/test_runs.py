@@ -108,6 +108,7 @@ def test_foreign_checkpoint_is_refused(copy, keep_config_json):
     with pytest.raises(ValueError, match=r"partial: checkpoint.pt holds a run with a different config "
                                          r"\(seed: stored 1, requested 0\)"):
         train(ci(), d)
+    assert (d / "config.json").exists() == keep_config_json  # refused before the requested config was written
 
 
 def test_other_config_in_config_json_names_the_keys(copy):
@@ -242,3 +243,191 @@ def test_appendix_notebook_runs(capsys):
     runpy.run_path(str(ROOT / "notebooks" / "07b_run_folders.py"), run_name="__main__")
     out = capsys.readouterr().out
     assert "(this process: one folder per run)" in out and "checkpoint.pt is empty (0 bytes)" in out
+
+
+# --- errors cross process boundaries (issue 28) -------------------------------------------------
+def _error_samples():
+    """Every exception class defined in the package, with constructor arguments for one instance."""
+    import importlib
+    import inspect
+    import signal
+
+    samples = {"RunFolderError": (ROOT / "results" / "run" / "done.json", "is broken", "a hint"),
+               "RunLockedError": (ROOT / "results" / "run", 4321),
+               "ExportError": ("notebooks/x.py: unknown directive",),
+               "SweepInterrupted": (signal.SIGTERM,)}
+    found = []
+    for path in sorted((ROOT / "pemamoe").glob("*.py")):
+        if path.stem == "__main__":
+            continue
+        module = importlib.import_module(f"pemamoe.{path.stem}" if path.stem != "__init__" else "pemamoe")
+        for name, cls in vars(module).items():
+            if inspect.isclass(cls) and issubclass(cls, BaseException) and cls.__module__ == module.__name__:
+                found.append(pytest.param(cls, samples.get(name), id=name))
+    return found
+
+
+@pytest.mark.parametrize("cls, args", _error_samples())
+def test_every_exception_of_the_package_survives_pickle(cls, args):
+    import pickle
+
+    assert args is not None, f"add constructor arguments for {cls.__name__} to _error_samples"
+    err = cls(*args)
+    again = pickle.loads(pickle.dumps(err))
+    assert type(again) is cls and str(again) == str(err) and again.args == err.args
+    assert vars(again) == vars(err)
+
+
+def _raise_run_folder_error(path):
+    from pemamoe.runs import RunFolderError
+
+    raise RunFolderError(path, "is damaged")
+
+
+def test_a_run_folder_error_in_a_process_pool_reaches_the_parent_as_itself(tmp_path):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pemamoe.runs import RunFolderError
+
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
+        error = pool.submit(_raise_run_folder_error, tmp_path / "checkpoint.pt").exception(timeout=60)
+    assert type(error) is RunFolderError and error.path == tmp_path / "checkpoint.pt"  # not BrokenProcessPool
+
+
+# --- the checkpoint's seal and numerics version (issue 28) ---------------------------------------
+def _rewrite(ck, path, seal=True):
+    """Save a changed checkpoint as the trainer would (sealed), or as an older trainer did."""
+    from pemamoe.runs import seal_checkpoint
+
+    torch.save(ck, path)
+    if seal:
+        seal_checkpoint(path)
+
+
+def test_checkpoints_are_format_5_sealed_and_stamped_with_the_numerics_version(copy):
+    import zipfile
+
+    from pemamoe.bookkeeping import CHECKPOINT_FORMAT
+    from pemamoe.train_config import TRAINING_NUMERICS
+
+    path = copy("partial") / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    assert ck["format"] == CHECKPOINT_FORMAT == 5 and ck["numerics"] == TRAINING_NUMERICS
+    assert zipfile.ZipFile(path).comment.startswith(b"pemamoe-sha256:")
+
+
+@pytest.mark.parametrize("name", ["partial", "finished"])
+def test_flipped_bytes_in_the_actor_weights_are_refused(copy, name):
+    from pemamoe.runs import load_checkpoint
+
+    d = copy(name)
+    path = d / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    key, weight = max(ck["actor"].items(), key=lambda kv: kv[1].numel())
+    data = bytearray(path.read_bytes())
+    at = data.find(weight.contiguous().numpy().tobytes())
+    assert at > 0 and weight.numel() * weight.element_size() >= 96
+    for i in range(at + 64, at + 80):  # 16 bytes inside the weights
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    damaged = torch.load(path, weights_only=True)  # the zip still reads: torch checks no CRC
+    assert not torch.equal(damaged["actor"][key], weight)
+    with pytest.raises(ValueError, match=rf"{name}: checkpoint.pt fails its content check"):
+        train(ci(), d)
+    with pytest.raises(ValueError, match=r"checkpoint.pt fails its content check"):
+        load_checkpoint(path)
+    if name == "partial":
+        assert not (d / "done.json").exists()  # nothing was resumed, nothing sealed
+
+
+def test_an_unsealed_checkpoint_is_read_only_in_the_formats_before_the_seal(copy, store):
+    from pemamoe.train_config import TRAINING_NUMERICS
+
+    d = copy("partial")
+    path = d / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    _rewrite(ck, path, seal=False)  # format 5 without its seal: rewritten by hand
+    with pytest.raises(ValueError, match=r"checkpoint.pt has format 5 but no content seal"):
+        train(ci(), d)
+    _rewrite({**ck, "format": 4, "numerics": TRAINING_NUMERICS}, path, seal=False)  # as format 4 was written
+    resumed = train(ci(), d)
+    assert resumed.resumed_from == 4 and resumed.finished
+    assert (d / "episodes.parquet").read_bytes() == (store / "finished" / "episodes.parquet").read_bytes()
+
+
+@pytest.mark.parametrize("stored", ["absent", "other"])
+def test_a_checkpoint_of_another_numerics_version_is_refused(copy, stored):
+    from pemamoe.train_config import TRAINING_NUMERICS
+
+    d = copy("partial")
+    path = d / "checkpoint.pt"
+    ck = torch.load(path, weights_only=True)
+    if stored == "absent":  # written before checkpoints recorded it: version 1
+        del ck["numerics"]
+        version = 1
+    else:
+        version = ck["numerics"] = TRAINING_NUMERICS + 1
+    _rewrite(ck, path)
+    if version == TRAINING_NUMERICS:
+        assert train(ci(), d).resumed_from == 4
+        return
+    with pytest.raises(ValueError, match=rf"partial: checkpoint.pt was computed under training numerics version "
+                                         rf"{version}, but this code computes version {TRAINING_NUMERICS}"):
+        train(ci(), d)  # run_dir given explicitly, config.json matching
+    assert not (d / "done.json").exists()
+
+
+# --- done.json seals whole runs only (issue 28) ---------------------------------------------------
+def test_a_partial_run_cannot_be_sealed_nor_pass_for_finished(copy):
+    from pemamoe.analysis import load_runs
+    from pemamoe.runs import LOG_FILES, file_digest, verify_done, write_done
+
+    d = copy("partial")  # 4 of 6 iterations
+    with pytest.raises(ValueError, match=r"partial: done.json cannot seal this run: metrics.parquet holds 4 rows, "
+                                         r"the config asks for 6 iterations"):
+        write_done(d, ci())
+    assert not (d / "done.json").exists()
+    # the marker write_done wrote before it checked: right hash, iterations and digests
+    marker = {"format": 2, "finished": True, "config_hash": ci().config_hash(), "iterations": 6,
+              "digests": {name: file_digest(d / name) for name in LOG_FILES}}
+    (d / "done.json").write_text(json.dumps(marker))
+    for read in (verify_done, load_run, load_runs, lambda d: train(ci(), d)):
+        with pytest.raises(ValueError, match=r"done.json seals a metrics.parquet of 4 rows, but the run has 6 "
+                                             r"iterations"):
+            read(d) if read is not load_runs else read([d])
+
+
+# --- a directory where a file should be (issue 28) ------------------------------------------------
+def test_a_directory_in_place_of_a_run_file_is_named(copy):
+    d = copy("finished")
+    (d / "done.json").unlink()
+    (d / "done.json").mkdir()
+    with pytest.raises(ValueError, match=r"finished: done.json is a directory, not a file"):
+        train(ci(), d)
+    with pytest.raises(ValueError, match=r"finished: done.json is a directory, not a file"):
+        load_run(d)
+    d = copy("partial")
+    (d / "checkpoint.pt").unlink()
+    (d / "checkpoint.pt").mkdir()
+    with pytest.raises(ValueError, match=r"partial: checkpoint.pt is a directory, not a file"):
+        train(ci(), d)
+    with pytest.raises(ValueError, match=r"partial: checkpoint.pt is a directory, not a file; remove it by hand"):
+        train(ci(), d, resume=False)
+
+
+# --- a failed checkpoint write (issue 28) ----------------------------------------------------------
+def test_a_full_disk_names_the_checkpoint_and_says_the_disk_may_be_full(tmp_path, monkeypatch):
+    import re
+
+    import pemamoe.bookkeeping as bookkeeping
+
+    def full_disk(obj, f, *args, **kwargs):  # what torch.save raised when the disk filled up
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 8823616 vs 8823510")
+
+    monkeypatch.setattr(bookkeeping.torch, "save", full_disk)
+    run = tmp_path / "run"
+    with pytest.raises(OSError, match=rf"cannot write the checkpoint {re.escape(str(run / 'checkpoint.pt'))}: "
+                                      r".*inline_container.*the disk may be full \(no space left on device"):
+        train(ci(iterations=2, checkpoint_every=1), run)
+    assert not (run / "checkpoint.pt").exists() and not list(run.glob(".*.tmp"))

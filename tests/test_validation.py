@@ -219,3 +219,24 @@ def test_rng_chunk_advice_is_what_actually_works(engine):
 def test_config_sections_must_be_their_config_classes():
     with pytest.raises(ValueError, match=r"EnvConfig\.channel must be a ChannelConfig, got \{"):
         E.EnvConfig(channel={"bandwidth_hz": 5e6})
+
+
+# ----------------------------------------------------------------------- the seed's range (issue 28)
+
+
+@pytest.mark.parametrize("seed", [2**63, 2**70, 10**20])
+def test_train_config_rejects_a_seed_that_torch_cannot_take_naming_value_and_range(seed):
+    from pemamoe.train_config import TrainConfig
+
+    with pytest.raises(ValueError, match=rf"TrainConfig\.seed must be an integer in \[0, {2**63}\) .*, got {seed}$"):
+        TrainConfig(seed=seed)
+    with pytest.raises(ValueError, match=r"TrainConfig\.seed must be an integer in"):
+        TrainConfig.for_scale("ci", seed=seed)
+
+
+def test_the_largest_seed_allowed_trains(tmp_path):
+    from pemamoe.mappo import TrainConfig, train
+
+    config = TrainConfig.for_scale("ci", "mlp", seed=2**63 - 1, iterations=1)
+    assert train(config, tmp_path / "run").finished
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["seed"] == 2**63 - 1
