@@ -520,6 +520,9 @@ PAPER_COUNTERPARTS = {
     "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
     "results_router_policy": "Fig. 'Policy-side expert routing probability'",
     "results_router_value": "Fig. 'Value-side expert routing probability'",
+    "results_routing_ran": "(ours) selected-expert shares and switch rate in the rollouts",
+    "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
+    "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
     "results_collisions": "Fig. 'Collisions per episode over training'",
     "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
     "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
@@ -568,7 +571,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     figures_dir: default paper_figures/ (a relative path is under the repository root).
     stream:      print progress lines and the notebooks' own output (False: silent).
     precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
-                 09 and 10, and the learning-budget study of 09b) as one sweep, so that compatible
+                 09 and 10, the learning-budget study of 09b, the gating comparison of 05c) as one sweep, so that compatible
                  runs of different experiments share populations, no notebook trains for hours
                  under its timeout, and the notebooks only read results (None: when all notebooks run).
     extra:       further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
@@ -584,7 +587,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         from pemamoe.sweep import experiment_specs, run_sweep  # the sweep imports core: import here
 
         say(f"[figures] training the {scale} sweep first (cached runs are skipped)")
-        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale),
+        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
                   extra.get("backend", "local"), extra.get("workers", 2),
                   repo_path(extra.get("results_dir", "results")), extra.get("ray_address"))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")

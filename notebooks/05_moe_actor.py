@@ -65,7 +65,7 @@ from pemamoe.methods import METHOD_REGISTRY, load_plugins
 # The batched machinery of appendix 05b, used by the classes below and re-exported from here:
 from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gaussian_entropy,  # re-export  # noqa: F401
                              gaussian_kl, gaussian_log_prob, loop_experts, masked_mixed, run_experts, run_gate,
-                             run_linear, run_load_balance)
+                             run_linear, run_load_balance, topk_weights)
 
 # %% [markdown]
 # ## Reading the architecture off the paper's parameter counts
@@ -131,8 +131,12 @@ from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gau
 #   initialisation, so a reset puts the policy back to exactly its initial spread.
 # * `load_balance_coef = 0.01`: the weight of the Switch-style balance loss (the value Switch
 #   Transformers use; the paper gives none). The actor reports the weighted term as `aux_loss`.
-# * `noisy_gating = True`: the SMoE and PE-MAMoE routers add input-dependent Gaussian noise to the
-#   logits while sampling. Turning it off gives plain top-k gating with the same parameters.
+# * Three gating choices the paper leaves open (the section "Top-1 gating: what the equations
+#   leave open" below explains them, and the comparison that chose the defaults):
+#   `top1_weight` (how the one kept expert is weighted), `routing_noise` (the Gaussian noise on
+#   the router's logits while sampling: `learned`, `fixed`, `annealed` or `off`, with `noise_std`
+#   and `noise_anneal_portion`), and `critic_gating` (the centralised critic of a gated method:
+#   `dense`, `gated` or `mlp`).
 # * `expert_impl = "auto"` and `masked_min_batch = 512`: how the expert bank is executed (next
 #   section). It changes speed, never the parameters or the outputs.
 # * Orthogonal initialisation gains (the usual PPO choices): $\sqrt2$ for hidden layers, 0.01 for
@@ -145,6 +149,9 @@ from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gau
 # %%
 #| export
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
+TOP1_WEIGHTS = ("straight_through", "switch", "paper")
+ROUTING_NOISES = ("learned", "fixed", "annealed", "off")
+CRITIC_GATINGS = ("dense", "gated", "mlp")
 ACTIVE_MODES = ("paper", "sampling", "eval")
 MAC_MODES = ("sampling", "eval")
 
@@ -166,7 +173,12 @@ class NetConfig:
     top_k: int = 1
     init_log_std: float = math.log(0.3)
     load_balance_coef: float = 0.01
-    noisy_gating: bool = True
+    # the gating readings (chosen by the comparison of appendix 05c; see "Top-1 gating" below)
+    top1_weight: str = "straight_through"
+    routing_noise: str = "off"
+    noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
+    noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
+    critic_gating: str = "dense"
     expert_impl: str = "auto"
     masked_min_batch: int = 512
     gain_hidden: float = math.sqrt(2.0)
@@ -180,11 +192,32 @@ class NetConfig:
         require_field(self, "top_k", "int", ge=1, le=self.n_experts)
         require_field(self, "init_log_std", "real")
         require_field(self, "load_balance_coef", "real", ge=0)
-        require_field(self, "noisy_gating", "bool")
+        require_field(self, "top1_weight", "choice", TOP1_WEIGHTS)
+        require_field(self, "routing_noise", "choice", ROUTING_NOISES)
+        require_field(self, "noise_std", "real", ge=0)
+        require_field(self, "noise_anneal_portion", "real", gt=0, le=1)
+        require_field(self, "critic_gating", "choice", CRITIC_GATINGS)
         require_field(self, "expert_impl", "choice", EXPERT_IMPLS)
         require_field(self, "masked_min_batch", "int", ge=1)
         for name in ("gain_hidden", "gain_policy", "gain_value", "gain_router"):
             require_field(self, name, "real", gt=0)
+
+
+# The paper's parameter counts include a noise gate (its SMoE actor has 534 = 3 x (177 + 1) more
+# parameters than its dense MoE): the paper's network had learned routing noise. Its cost table
+# is reproduced with this configuration, whatever our defaults.
+PAPER_NET = NetConfig(routing_noise="learned")
+
+
+def routing_noise_std(cfg: NetConfig, iteration: int, iterations: int) -> float:
+    """Sigma of the routing noise at `iteration` of a run of `iterations`: cfg.noise_std for
+    `fixed`, falling linearly to 0 over the first noise_anneal_portion of the run for `annealed`,
+    0 for `off` (and for `learned`, whose scale the network computes)."""
+    if cfg.routing_noise == "fixed":
+        return float(cfg.noise_std)
+    if cfg.routing_noise == "annealed":
+        return float(cfg.noise_std * max(0.0, 1.0 - iteration / (cfg.noise_anneal_portion * iterations)))
+    return 0.0
 
 
 # %% [markdown]
@@ -320,11 +353,12 @@ class ExpertBank(nn.Module):
 #
 # **The k = 1 gradient problem.** With one kept expert the renormalised weight is $g_j/g_j = 1$
 # for every input, and its derivative is zero: the policy loss would never reach the router,
-# which would only learn from the balance loss. We keep the forward value exactly 1 and give the
-# backward pass the Switch Transformer's gradient, by adding $g_j - \mathrm{sg}(g_j)$ (sg: stop
-# gradient). That term is exactly zero in value, and its derivative is $\partial g_j$, so the
-# router (and the noise gate, through $h$) learns how much the chosen expert helped. For
-# $k \ge 2$ the renormalised weights already carry a gradient and we leave them alone.
+# which would only learn from the balance loss. The `top1_weight` setting says what to do about
+# it (next section); the default keeps the forward value exactly 1 and gives the backward pass
+# the Switch Transformer's gradient, by adding $g_j - \mathrm{sg}(g_j)$ (sg: stop gradient). That
+# term is exactly zero in value, and its derivative is $\partial g_j$, so the router learns how
+# much the chosen expert helped. For $k \ge 2$ the renormalised weights already carry a gradient
+# and every setting leaves them alone.
 #
 # **Load balancing.** With $f_i$ the fraction of routing slots that went to expert $i$ and $P_i$
 # the batch-mean of $g_i$, the Switch loss is $E\sum_i f_i P_i$. It equals 1 when routing is
@@ -336,7 +370,8 @@ class ExpertBank(nn.Module):
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
-    noise (..., E): the standard-normal gate noise drawn (zeros when gating was noiseless);
+    noise (..., E): the gate noise drawn, per unit of the gate's noise_scale: standard normal for
+        `learned` noise, already times sigma for `fixed` and `annealed`, zeros when noiseless;
     experts (..., k): the selected expert indices (all E, in order, for the dense MoE);
     temperature (...,): the router temperature in force.
     Passing it back as `routing=` replays the pass exactly.
@@ -411,11 +446,13 @@ class GatedExperts(nn.Module):
         super().__init__()
         self.n_experts, self.sparse = cfg.n_experts, sparse
         self.k = cfg.top_k if sparse else cfg.n_experts
-        self.noisy = sparse and cfg.noisy_gating
+        self.noise = cfg.routing_noise if sparse else "off"  # the dense mixture is never noisy
+        self.noisy = self.noise != "off"
+        self.top1_weight, self.noise_std = cfg.top1_weight, cfg.noise_std
         self.router = nn.Linear(in_dim, cfg.n_experts)
         nn.init.orthogonal_(self.router.weight, cfg.gain_router)
         nn.init.zeros_(self.router.bias)
-        if self.noisy:
+        if self.noise == "learned":
             self.noise_gate = nn.Linear(in_dim, cfg.n_experts)
             nn.init.zeros_(self.noise_gate.weight)
             nn.init.zeros_(self.noise_gate.bias)
@@ -427,6 +464,14 @@ class GatedExperts(nn.Module):
 
     def gating_modules(self) -> list:
         return [m for m in (self.router, self.noise_gate) if m is not None]
+
+    def noise_scale(self, x) -> torch.Tensor:
+        """Per-row, per-expert multiplier of a stored noise draw (B, E): softplus of the noise
+        gate for `learned`; 1 for `fixed` and `annealed`, whose draws are stored already scaled
+        by their sigma; 0 when noiseless."""
+        if self.noise == "learned":
+            return F.softplus(self.noise_gate(x))
+        return x.new_full((x.shape[0], self.n_experts), 1.0 if self.noisy else 0.0)
 
     def forward(
         self,
@@ -447,10 +492,12 @@ class GatedExperts(nn.Module):
             noise = routing.noise.reshape(batch, n_exp).to(x.dtype)
         elif self.noisy and not deterministic_gate:
             noise = torch.randn(batch, n_exp, dtype=x.dtype, device=x.device)
+            if self.noise != "learned":  # stored scaled (the trainer passes the annealed sigma to the population)
+                noise = noise * self.noise_std
         else:
             noise = x.new_zeros(batch, n_exp)
         if self.noisy:
-            logits = logits + noise * F.softplus(self.noise_gate(x))
+            logits = logits + noise * self.noise_scale(x)
         probs = torch.softmax(logits, dim=-1)
 
         if not self.sparse:
@@ -464,14 +511,71 @@ class GatedExperts(nn.Module):
             experts = routing.experts.reshape(batch, self.k).long()
         else:
             experts = probs.topk(self.k, dim=-1).indices
-        kept = probs.gather(1, experts)
-        weights = kept / kept.sum(-1, keepdim=True)
-        if self.k == 1:  # value exactly 1, gradient of the kept probability (Switch-style)
-            weights = weights.detach() + (kept - kept.detach())
+        weights = topk_weights(probs.gather(1, experts), self.top1_weight)
         features = self.experts.mixed(x, experts, weights)
         lb = load_balance_loss(probs, experts, n_exp) if with_aux else None
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
+
+# %% [markdown]
+# ## Top-1 gating: what the equations leave open, and what we chose
+#
+# At $k = 1$ the paper's own equations do not pin down a trainable router. Its mixing weight
+# $w_j = g_j / \sum_{i \in \mathcal T_k} g_i$ is identically 1 for the one kept expert, so the
+# task loss has no path to the router. Its noisy gating ("softplus-scaled Gaussian noise") appears
+# only in the discussion, as in Shazeer et al. (2017), who used $k \ge 2$, where the renormalised
+# weights do carry a gradient. Switch Transformers (Fedus et al.) made $k = 1$ trainable by scaling
+# the expert's output by its probability. And the text says the centralised critic "remains
+# dense", while a figure caption mentions a critic MoE encoder. Three choices are therefore ours,
+# and `NetConfig` makes each explicit:
+#
+# * `top1_weight`: `straight_through` (value 1, gradient of the kept probability), `switch` (the
+#   kept probability as the weight), or `paper` (value 1, no gradient: only the balance loss moves
+#   the router);
+# * `routing_noise`: `learned` (a softplus noise gate per expert, trained with everything else),
+#   `fixed` (a constant $\sigma$), `annealed` ($\sigma$ falling linearly to 0), or `off`. With
+#   fixed or annealed noise the draws are stored already multiplied by $\sigma$, so the PPO update
+#   replays them without knowing the schedule;
+# * `critic_gating` for a gated actor: `dense` (the dense mixture of the MoE critic, with its own
+#   value router), `gated` (the actor's top-1 gating), or `mlp`.
+#
+# **What went wrong with the first reading.** Up to numerics version 1 the code used learned
+# noise, the straight-through weight and a gated critic. The straight-through term also hands
+# the noise gate a gradient, and nothing in the loss bounds it: in fixed-phase runs the noise scale
+# grew from softplus(0) = 0.69 to about 3, while the router's logits start near 0.005 (gain 0.01).
+# The noise then overrode the router's own choice on 56-61 % of the rollout's rows, and an agent's
+# selected expert changed between consecutive steps 64-66 % of the time, where uniformly random
+# routing over three experts gives 67 %. Each expert trained on a near-random third of the data,
+# and top-1 SMoE levelled off well below MLP although one expert is about MLP's size.
+#
+# **What we measured.** Appendix 05c trains twelve readings side by side (fixed phases 0 and 1, 700k
+# environment steps, 2 seeds, MLP beside them) and logs the routing that ran. Its table
+# (`paper_figures/gating_readings.md`, runs of the code at the commit its provenance row names)
+# says, in coverage over the last 10 % of the steps, phase 0 / phase 1:
+#
+# * MLP 0.652 / 0.391; the version-1 reading (`st/learned/gated`) 0.565 / 0.371.
+# * Turning the noise off is the largest single gain (`st/off/gated`: 0.608 / 0.403, switch rate
+#   about 0.2 instead of 0.65). Annealed noise ends where `off` starts and is no better
+#   (0.597 / 0.404).
+# * The Switch weight is no better than the straight-through one, and the paper's literal weight,
+#   which leaves the router to the balance loss, is the worst of the noiseless readings
+#   (0.569 / 0.359): the router needs the task's gradient.
+# * A dense critic helps in phase 0 and costs in phase 1 (noise off: 0.608 → 0.643 and
+#   0.403 → 0.379); with two seeds the phase-1 difference is at the edge of the seeds' spread.
+#
+# **What we chose.** `straight_through`, `off`, `dense`: the highest mean coverage of the gated
+# readings over the two phases, 90 % of the phase-0 gap to MLP closed at 700k steps (the version-1
+# reading closed none of it, by definition), the critic the paper's text describes, and a noise
+# scale that cannot grow because there is none. One consequence matters for PE-MAMoE: without
+# routing noise, dividing the logits by a temperature cannot change which expert is largest, so
+# the controller's temperature schedule no longer moves any routing decision (it still scales the
+# straight-through gradient). Appendix 05c also measures bounded fixed noise, the one reading that
+# keeps the temperature meaningful: $\sigma = 0.3$ and $\sigma = 1$ learn less than no noise in
+# both phases (0.600 / 0.350 and 0.588 / 0.361), because the router's logits stay small and even
+# $\sigma = 0.3$ overrides a quarter of its choices. The readings are all available:
+# `NetConfig(routing_noise="learned", critic_gating="gated")` is version 1's network, and the
+# paper's parameter counts (which include a noise gate) are reproduced with `PAPER_NET`, the
+# learned-noise reading.
 
 # %% [markdown]
 # ## The actors
@@ -728,10 +832,13 @@ class SMoEActor(MoEActor):
 # %% [markdown]
 # ## The critics
 #
-# The critic reads the global state and returns one scalar per sample. Each actor type has its
-# matching critic: an MLP state→32→32→1, or the same expert bank and gating as the actor with a
-# value head 32→1 and its **own** router (the paper plots the value router's probabilities next
-# to the policy router's). `value, aux = critic(state, temperature=None, deterministic_gate=False)`;
+# The critic reads the global state and returns one scalar per sample: an MLP state→32→32→1,
+# or an expert bank with a value head 32→1 and its **own** router (the paper plots the value
+# router's probabilities next to the policy router's). Which one trains beside a gated actor is
+# `critic_gating`: `gated` gives the critic the actor's own gating (top-1 for SMoE), `dense` the
+# dense softmax mixture of the MoE critic (the paper says the centralised critic "remains dense",
+# and still shows a value router), `mlp` the MLP critic. The MLP and MoE methods keep their own
+# critics under every setting. `value, aux = critic(state, temperature=None, deterministic_gate=False)`;
 # `aux` carries `router_probs`, `experts`, `load_balance` and `aux_loss`. The trainer chooses
 # whether the critic's gate is noisy: we suggest noiseless (`deterministic_gate=True`) when
 # computing the values that enter GAE, and the default noisy gate in the value-loss update.
@@ -878,11 +985,24 @@ def make_actor(kind: str, obs_dim: int, act_dim: int = 2, cfg: NetConfig | None 
     return NETWORKS[kind][0](obs_dim, act_dim, cfg or NetConfig())
 
 
-def make_critic(kind: str, state_dim: int, cfg: NetConfig | None = None) -> nn.Module:
-    """Centralised critic of network `kind` (or of a method's network) for global states (..., state_dim)."""
+def critic_kind(kind: str, cfg: NetConfig | None = None) -> str:
+    """The network kind of the critic that trains beside an actor of `kind`: its own kind when
+    cfg.critic_gating is "gated" (or the kind's critic is not sparse), the dense mixture "moe" for
+    a sparse critic under "dense" (the paper: the critic "remains dense"), "mlp" under "mlp"."""
     kind = network_kind(kind)
+    gating = (cfg or NetConfig()).critic_gating
+    if gating == "mlp":
+        return "mlp"
+    if gating == "dense" and getattr(NETWORKS[kind][1], "sparse", False):
+        return "moe"
+    return kind
+
+
+def make_critic(kind: str, state_dim: int, cfg: NetConfig | None = None) -> nn.Module:
+    """Centralised critic for global states (..., state_dim) beside an actor of network `kind`
+    (or of a method's network); cfg.critic_gating picks its kind (`critic_kind`)."""
     _check_dim("state_dim", state_dim)
-    return NETWORKS[kind][1](state_dim, cfg or NetConfig())
+    return NETWORKS[critic_kind(kind, cfg)][1](state_dim, cfg or NetConfig())
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -897,9 +1017,10 @@ def _executed(actor: GaussianActor, mode: str) -> dict:
         return {"router": 0, "noise_gate": 0, "one_expert": 1, "head": 1, "log_std": 1}
     gate = actor.gate
     experts = gate.k if sparse else gate.n_experts
-    noise = 0 if (mode == "eval" or not gate.noisy) else 1
+    learned = gate.noise == "learned"  # only learned noise runs a noise gate
+    noise = 0 if (mode == "eval" or not learned) else 1
     if mode == "paper":
-        noise = 1 if gate.noisy else 0
+        noise = 1 if learned else 0
     head = 0 if (mode == "paper" and sparse) else 1
     return {"router": 1, "noise_gate": noise, "one_expert": experts, "head": head, "log_std": head}
 
@@ -948,7 +1069,7 @@ print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 # parameter counts of freshly built actors at the paper's observation dimension.
 
 # %%
-cfg = NetConfig()
+cfg = PAPER_NET  # the paper's reading: learned routing noise, whose noise gate its counts include
 paper_actors = {name: make_actor(spec.network, PAPER_OBS_DIM, 2, cfg) for name, spec in METHOD_REGISTRY.items()}
 
 
@@ -990,8 +1111,12 @@ def draw_actor(ax, actor, method):
             _arrow(ax, 5, 9.05, x, 6.4, dashed=not chosen)
             _arrow(ax, x, 4.8, 5, 4.05, dashed=not chosen)
         lines = [f"router {d}→{e} ({parts['router'][0]})"]
-        if actor.gate.noisy:
+        if actor.gate.noise == "learned":
             lines += [f"noise gate {d}→{e} ({parts['noise_gate'][0]})", "z/τ + ε·softplus(z$_n$)", "softmax, keep top-1"]
+        elif actor.gate.noisy:
+            lines += [f"z/τ + σε ({actor.gate.noise} σ)", "softmax, keep top-1"]
+        elif sparse:
+            lines += ["softmax(z/τ)", "keep top-1"]
         else:
             lines += ["softmax(z/τ)", "mix all experts"]
         _box(ax, 9.5, 8.2, 3.1, 1.7, "\n".join(lines), "#fce5cd", fontsize=6.5)

@@ -355,16 +355,38 @@ def run_load_balance(probs, experts, n_experts):
     return n_experts * (f * probs.mean(1)).sum(-1)
 
 
+def topk_weights(kept, top1_weight: str):
+    """Mixing weights of the k selected experts from their router probabilities kept (..., k):
+    renormalised over the k (the paper's equation). At k = 1 that is exactly 1 and `top1_weight`
+    says what trains the router through it (notebook 05): "straight_through" keeps the value 1
+    with the gradient of the kept probability, "switch" uses the probability itself as the weight
+    (Switch Transformers), "paper" keeps 1 with no gradient (the balance loss alone trains the
+    router)."""
+    weights = kept / kept.sum(-1, keepdim=True)
+    if kept.shape[-1] != 1:
+        return weights
+    if top1_weight == "straight_through":
+        return weights.detach() + (kept - kept.detach())
+    if top1_weight == "switch":
+        return kept
+    return weights.detach()
+
+
+def run_noise_scale(p, prefix, x, gate):
+    """Multiplier of the stored noise draws (R, n, E), the batched GatedExperts.noise_scale."""
+    if gate.noise == "learned":
+        return F.softplus(run_linear(x, p[prefix + "noise_gate.weight"], p[prefix + "noise_gate.bias"]))
+    return x.new_full((*x.shape[:2], gate.n_experts), 1.0 if gate.noisy else 0.0)
+
+
 def run_gate(p, prefix, x, tau, noise, experts, gate):
     """Gated trunk of every member (the batched GatedExperts): x (R, n, in), tau (R, n),
     noise (R, n, E) or None (noiseless), experts (R, n, k) to replay or None ->
     (features (R, n, hidden), (probs (R, n, E), experts (R, n, k) or None, weights))."""
     sparse, k = gate.sparse, gate.k
-    noisy = gate.noisy and noise is not None
     logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
-    if noisy:
-        gate_scale = F.softplus(run_linear(x, p[prefix + "noise_gate.weight"], p[prefix + "noise_gate.bias"]))
-        logits = logits + noise * gate_scale
+    if gate.noisy and noise is not None:
+        logits = logits + noise * run_noise_scale(p, prefix, x, gate)
     probs = torch.softmax(logits, dim=-1)
     h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
                     p[prefix + "experts.b2"])  # (R, E, n, hidden)
@@ -373,10 +395,7 @@ def run_gate(p, prefix, x, tau, noise, experts, gate):
         return features, (probs, None, probs)
     if experts is None:
         experts = probs.topk(k, dim=-1).indices
-    kept = probs.gather(2, experts)
-    weights = kept / kept.sum(-1, keepdim=True)
-    if k == 1:  # value exactly 1, gradient of the kept probability (Switch-style), as notebook 05's GatedExperts
-        weights = weights.detach() + (kept - kept.detach())
+    weights = topk_weights(probs.gather(2, experts), gate.top1_weight)
     R, E, n, hid = h.shape
     picked = h.permute(0, 2, 1, 3).gather(2, experts.unsqueeze(-1).expand(R, n, k, hid))  # (R, n, k, hidden)
     features = (picked * weights.unsqueeze(-1)).sum(2)
@@ -397,6 +416,7 @@ class _Population:
         self.n_experts = 1 if gate is None else gate.n_experts
         self.k = 0 if gate is None else gate.k
         self.noisy = gate is not None and gate.noisy
+        self.noise_mode = "off" if gate is None else gate.noise
         self.gated = gate is not None
         self.lb_coef = self.template.cfg.load_balance_coef
 
@@ -428,9 +448,10 @@ class PopulationActor(_Population):
         return run_linear(feat, p["head.weight"], p["head.bias"]), p["log_std"], gate
 
     @torch.no_grad()
-    def act(self, obs, tau, generators, deterministic: bool = False):
+    def act(self, obs, tau, generators, deterministic: bool = False, noise_std=None):
         """Sample actions for every member. obs (R, n, obs_dim), tau (R,) router temperature,
-        generators: one torch.Generator per member (its gate noise, then its action noise).
+        generators: one torch.Generator per member (its gate noise, then its action noise),
+        noise_std (R,): sigma of `fixed` or `annealed` routing noise (None: the config's noise_std).
         Returns (action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None)."""
         from pemamoe.nets import RoutingSample  # here: pemamoe.nets imports this module while loading
 
@@ -439,6 +460,9 @@ class PopulationActor(_Population):
         noise = None
         if self.noisy and not deterministic:
             noise = torch.stack([torch.randn(n, self.n_experts, generator=g, device=obs.device) for g in generators])
+            if self.noise_mode != "learned":  # stored already scaled, so that replay needs no sigma
+                sigma = obs.new_full((R,), self.template.cfg.noise_std) if noise_std is None else noise_std
+                noise = noise * sigma.to(noise).reshape(R, 1, 1)
         mean, log_std, gate = self.mean_and_gate(obs, tau_rows, noise)
         if deterministic:
             action = mean
@@ -453,6 +477,36 @@ class PopulationActor(_Population):
             experts = gate[1] if gate[1] is not None else torch.arange(self.n_experts, device=obs.device).expand(R, n, -1)
             routing = RoutingSample(noise, experts, tau_rows)
         return action, logp, routing
+
+    @torch.no_grad()
+    def routing_readings(self, obs, routing, dones, noise_std=None) -> dict:
+        """The routing that ran in a rollout, per member, for a sparse gated actor ({} otherwise).
+        obs (R, T, B, U, obs_dim), routing with leading (R, T, B, U), dones (R, T, B) ->
+        {"rollout/switch_rate": share of an agent's consecutive steps (within an episode) whose
+        selected experts differ, "rollout/override_rate": share of rows where the noise changed
+        the noiseless choice, "rollout/noise_scale": mean std of the noise added to the logits
+        (noise_std (R,) as passed to `act`)}."""
+        if routing is None or not (self.gated and self.k < self.n_experts):
+            return {}
+        R, T, B, U, d = obs.shape
+        rows = obs.reshape(R, -1, d)
+        experts = routing.experts.reshape(R, T, B, U, -1).sort(-1).values
+        changed = (experts[:, 1:] != experts[:, :-1]).any(-1).double()  # (R, T-1, B, U)
+        same_episode = (~dones[:, :-1].bool()).to(changed).unsqueeze(-1).expand_as(changed)
+        steps = same_episode.sum((1, 2, 3)).clamp(min=1)
+        tau = routing.temperature.reshape(R, -1)
+        _, _, (_, quiet, _) = self.mean_and_gate(rows, tau)
+        chosen = routing.experts.reshape(R, -1, self.k).sort(-1).values
+        override = (quiet.sort(-1).values != chosen).any(-1).double().mean(1)
+        if self.noise_mode == "learned":
+            noise_scale = run_noise_scale(self.params(), "gate.", rows, self.template.gate).mean((1, 2))
+        elif self.noise_mode == "off":
+            noise_scale = rows.new_zeros(R)
+        else:
+            noise_scale = rows.new_full((R,), self.template.cfg.noise_std) if noise_std is None else noise_std
+        return {"rollout/switch_rate": ((changed * same_episode).sum((1, 2, 3)) / steps).cpu().numpy(),
+                "rollout/override_rate": override.cpu().numpy(),
+                "rollout/noise_scale": noise_scale.double().cpu().numpy()}
 
     def evaluate(self, obs, action, routing=None, flat=None):
         """PPO update pass with the stored routing replayed: (log_prob (R, n), entropy (R,),
@@ -531,7 +585,8 @@ import time
 import torch
 
 from pemamoe.methods import METHOD_REGISTRY
-from pemamoe.nets import GaussianActor, NetConfig, active_parameters, count_parameters, macs_per_step, make_actor
+from pemamoe.nets import (PAPER_NET, GaussianActor, NetConfig, active_parameters, count_parameters, macs_per_step,
+                          make_actor)
 
 
 def _median_us(fn, repeats: int, warmup: int) -> float:
@@ -578,10 +633,11 @@ def cost_table(
     """Per actor kind and per named observation dimension: parameters, ratio to the MLP, active
     parameters (paper / sampling / eval conventions), MACs per agent step, and measured `act`
     latency (median microseconds) at each batch size, timed with `threads` torch threads
-    (None: leave the current setting). Returns a pandas DataFrame."""
+    (None: leave the current setting); cfg None: the paper's reading (nets.PAPER_NET, learned
+    routing noise), whose counts the paper's table reports. Returns a pandas DataFrame."""
     import pandas as pd
 
-    cfg = cfg or NetConfig()
+    cfg = cfg or PAPER_NET
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)

@@ -302,17 +302,75 @@ def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), step
     return specs
 
 
+# The gating comparison (notebook 05c): readings of top-1 gating the paper leaves open, each in
+# fixed phases 0 and 1 for GATING_STEPS environment steps with the small update settings, beside
+# MLP. Every reading names every gating field (noise_std and noise_anneal_portion from GATING_NOISE
+# unless it sets them), so a later change of the NetConfig defaults leaves these runs' identities alone.
+GATING_STEPS = 700_000
+GATING_READINGS = {  # name -> (method, NetConfig overrides)
+    "mlp": ("mlp", {"top1_weight": "straight_through", "routing_noise": "off", "noise_std": 1.0,  # inert for MLP;
+                    "noise_anneal_portion": 1.0, "critic_gating": "dense"}),  # pinned, so its identity stays
+    "st/learned/gated": ("smoe", {"top1_weight": "straight_through", "routing_noise": "learned", "critic_gating": "gated"}),
+    "st/off/gated": ("smoe", {"top1_weight": "straight_through", "routing_noise": "off", "critic_gating": "gated"}),
+    "st/annealed/gated": ("smoe", {"top1_weight": "straight_through", "routing_noise": "annealed", "critic_gating": "gated"}),
+    "switch/learned/gated": ("smoe", {"top1_weight": "switch", "routing_noise": "learned", "critic_gating": "gated"}),
+    "st/learned/dense": ("smoe", {"top1_weight": "straight_through", "routing_noise": "learned", "critic_gating": "dense"}),
+    "st/off/dense": ("smoe", {"top1_weight": "straight_through", "routing_noise": "off", "critic_gating": "dense"}),
+    "switch/off/dense": ("smoe", {"top1_weight": "switch", "routing_noise": "off", "critic_gating": "dense"}),
+    "switch/annealed/dense": ("smoe", {"top1_weight": "switch", "routing_noise": "annealed", "critic_gating": "dense"}),
+    "paper/off/dense": ("smoe", {"top1_weight": "paper", "routing_noise": "off", "critic_gating": "dense"}),
+    # bounded noise that stays: the one reading under which the controller's temperature still moves routing
+    "st/fixed0.3/dense": ("smoe", {"top1_weight": "straight_through", "routing_noise": "fixed", "noise_std": 0.3,
+                                   "critic_gating": "dense"}),
+    "st/fixed1/dense": ("smoe", {"top1_weight": "straight_through", "routing_noise": "fixed", "noise_std": 1.0,
+                                 "critic_gating": "dense"}),
+}
+GATING_NOISE = {"noise_std": 1.0, "noise_anneal_portion": 0.5}  # sigma of "annealed": 1 -> 0 over half the run
+
+
+def gating_specs(scale: str, seeds=None, readings=None, phases=(0, 1), steps: int | None = None) -> list:
+    """The gating comparison's runs: every reading x phase x seed, fixed phase, small update
+    settings (a few iterations at ci). Each spec's tag is "gating/<reading>"."""
+    check_scale(scale)
+    preset = "ci" if scale == "ci" else "small"
+    seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
+    readings = tuple(GATING_READINGS) if readings is None else tuple(readings)
+    for name in readings:
+        if name not in GATING_READINGS:
+            raise ValueError(f"gating reading must be one of {', '.join(GATING_READINGS)}, got {name!r}")
+    steps = (64 * 4 if scale == "ci" else GATING_STEPS) if steps is None else steps
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"gating_specs: steps must be an integer >= 1, got {steps!r}")
+    base = TrainConfig.for_scale(preset)
+    iterations = -(-steps // base.batch_env_steps)
+    specs = []
+    for name in readings:
+        method, net = GATING_READINGS[name]
+        extra = {**(GATING_NOISE if method != "mlp" else {}), **net, "iterations": iterations,
+                 "phase_length_iters": iterations, "diag_every": max(1, min(100, iterations // 20)),
+                 "checkpoint_every": max(1, min(100, iterations))}
+        specs += [RunSpec(method, seed, preset, overrides=tuple({**extra, "fixed_phase": phase}.items()),
+                          tag=f"gating/{name}") for phase in phases for seed in seeds]
+    return specs
+
+
+EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating")
+
+
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
-    sweep), or of the learning-budget study ("budget", not part of "all")."""
+    sweep), of the learning-budget study ("budget") or of the gating comparison ("gating"; neither
+    is part of "all")."""
     makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":
         return [s for make in makers.values() for s in make()]
     if experiment == "budget":
         return budget_specs(scale, seeds, methods)
+    if experiment == "gating":
+        return gating_specs(scale, seeds)
     if experiment not in makers:
-        raise ValueError(f"experiment must be one of {', '.join([*makers, 'all', 'budget'])}, got {experiment!r}")
+        raise ValueError(f"experiment must be one of {', '.join(EXPERIMENTS)}, got {experiment!r}")
     return makers[experiment]()
 
 
@@ -683,9 +741,11 @@ def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=None, win
 def experts_by_usage(metrics: pd.DataFrame, side: str = "policy") -> pd.DataFrame:
     """Router probabilities of each run with its experts ordered by usage: usage_rank 1 is the
     expert with the highest mean probability of router/<side>/p<j> over the run (ties: lower j).
+    side="rollout": the share of the rollout's rows each expert was selected for
+    (rollout/expert_frac<j>, the routing that ran) instead of the probe's noiseless probabilities.
     Long frame: run, method, seed, iteration, usage_rank, expert (the run's own index), p.
     Runs with fewer than two experts (the MLP logs p0 = 1) are left out."""
-    pattern = re.compile(rf"router/{side}/p(\d+)")
+    pattern = re.compile(r"rollout/expert_frac(\d+)" if side == "rollout" else rf"router/{side}/p(\d+)")
     cols = sorted((c for c in metrics.columns if pattern.fullmatch(c)), key=lambda c: int(pattern.fullmatch(c)[1]))
     out = []
     for run, sub in metrics.groupby("run", sort=True):
@@ -721,7 +781,8 @@ import matplotlib.pyplot as plt
 
 from pemamoe.analysis import (REFERENCE_POLICIES, SUMMARY_METRICS, bootstrap_iqm, experts_by_usage, is_proposed,
                               load_runs, method_order, normalise_scores, plot_over_training,
-                              probability_of_improvement, provenance, reference_levels, run_scores)
+                              probability_of_improvement, provenance, reference_levels, run_scores,
+                              switch_iterations)
 from pemamoe.core import save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
 # Worker processes import what they run by module path, so the sweep must use the package's copies
@@ -859,6 +920,40 @@ for side in ("policy", "value"):
                  f"routing probability over the run (rank 1 = most used) before averaging over seeds\n{note}",
                  fontsize=9)
     save_figure(fig, f"results_router_{side}", figures_dir)
+    plt.show()
+
+# %% [markdown]
+# ## The routing that ran
+#
+# The router figures above show the noiseless preference of each router on a fixed probe batch.
+# Under noisy gating that is not the routing that generated the data. Here, for each top-1 routed
+# method: the share of the rollout's agent steps that each expert was selected for (experts
+# ordered by usage, as above), and the switch rate: the share of an agent's consecutive steps
+# within an episode on which its selected expert changed (2/3 would be random routing over three
+# experts; notebook 05c).
+
+# %%
+ranked = experts_by_usage(metrics, "rollout")
+routed = [m for m in method_list if m in set(ranked.method)]
+if routed:
+    fig, axes = plt.subplots(2, len(routed), figsize=(4 * len(routed), 5.6), sharex=True, sharey="row",
+                             squeeze=False, layout="constrained")
+    for col, method in enumerate(routed):
+        sub = ranked[ranked.method == method]
+        for rank in sorted(sub.usage_rank.unique()):
+            table = sub[sub.usage_rank == rank].pivot_table(index="iteration", columns="seed", values="p")
+            axes[0, col].plot(table.index, table.mean(axis=1), label=f"usage rank {rank}")
+            axes[0, col].fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.15, lw=0)
+        axes[0, col].set_title(method_label(method))
+        plot_over_training(axes[1, col], metrics, "rollout/switch_rate", [method])
+        axes[1, col].axhline(2 / 3, color="grey", ls=":", lw=1)
+        for t in switch_iterations(metrics[metrics.method == method]):
+            axes[0, col].axvline(t, color="0.5", ls="--", lw=0.7)
+    axes[0, 0].set_ylabel("share of rollout steps")
+    axes[1, 0].set_ylabel("switch rate (dotted: random)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"The routing that ran: selected-expert shares and switch rate in the rollouts\n{note}", fontsize=9)
+    save_figure(fig, "results_routing_ran", figures_dir)
     plt.show()
 
 # %% [markdown]

@@ -3,7 +3,7 @@
 
 __all__ = ['RUN_COLUMNS', 'method_order', 'is_proposed', 'run_labels', 'load_runs', 'SUMMARY_METRICS', 'iqm', 'run_scores', 'normalise_scores', 'bootstrap_iqm', 'probability_of_improvement', 'relative_change', 'claim_verdict', 'REFERENCE_POLICIES', 'CURVE_COLUMNS', 'heuristic_episodes', 'reference_levels', 'smooth', 'switch_iterations', 'phase_visits', 'phase_blocks', 'plot_reference_levels', 'plot_over_training', 'experts_by_usage', 'provenance']
 
-# %% notebooks/09_experiments.py, cell 13 (line 342)
+# %% notebooks/09_experiments.py, cell 13 (line 400)
 import dataclasses
 import hashlib
 import json
@@ -72,7 +72,7 @@ def load_runs(run_dirs) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 15 (line 423)
+# %% notebooks/09_experiments.py, cell 15 (line 481)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -186,7 +186,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 553)
+# %% notebooks/09_experiments.py, cell 17 (line 611)
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -238,7 +238,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 620)
+# %% notebooks/09_experiments.py, cell 19 (line 678)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 
@@ -303,9 +303,11 @@ def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=None, win
 def experts_by_usage(metrics: pd.DataFrame, side: str = "policy") -> pd.DataFrame:
     """Router probabilities of each run with its experts ordered by usage: usage_rank 1 is the
     expert with the highest mean probability of router/<side>/p<j> over the run (ties: lower j).
+    side="rollout": the share of the rollout's rows each expert was selected for
+    (rollout/expert_frac<j>, the routing that ran) instead of the probe's noiseless probabilities.
     Long frame: run, method, seed, iteration, usage_rank, expert (the run's own index), p.
     Runs with fewer than two experts (the MLP logs p0 = 1) are left out."""
-    pattern = re.compile(rf"router/{side}/p(\d+)")
+    pattern = re.compile(r"rollout/expert_frac(\d+)" if side == "rollout" else rf"router/{side}/p(\d+)")
     cols = sorted((c for c in metrics.columns if pattern.fullmatch(c)), key=lambda c: int(pattern.fullmatch(c)[1]))
     out = []
     for run, sub in metrics.groupby("run", sort=True):

@@ -3,14 +3,15 @@
 
 __all__ = ['time_forward', 'time_train_step', 'cost_table']
 
-# %% notebooks/05b_population_nets.py, cell 11 (line 526)
+# %% notebooks/05b_population_nets.py, cell 11 (line 580)
 import statistics
 import time
 
 import torch
 
 from pemamoe.methods import METHOD_REGISTRY
-from pemamoe.nets import GaussianActor, NetConfig, active_parameters, count_parameters, macs_per_step, make_actor
+from pemamoe.nets import (PAPER_NET, GaussianActor, NetConfig, active_parameters, count_parameters, macs_per_step,
+                          make_actor)
 
 
 def _median_us(fn, repeats: int, warmup: int) -> float:
@@ -57,10 +58,11 @@ def cost_table(
     """Per actor kind and per named observation dimension: parameters, ratio to the MLP, active
     parameters (paper / sampling / eval conventions), MACs per agent step, and measured `act`
     latency (median microseconds) at each batch size, timed with `threads` torch threads
-    (None: leave the current setting). Returns a pandas DataFrame."""
+    (None: leave the current setting); cfg None: the paper's reading (nets.PAPER_NET, learned
+    routing noise), whose counts the paper's table reports. Returns a pandas DataFrame."""
     import pandas as pd
 
-    cfg = cfg or NetConfig()
+    cfg = cfg or PAPER_NET
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)

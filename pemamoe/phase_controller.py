@@ -331,8 +331,9 @@ class PhaseController:
         kl = float(kl_anchor_coef(since, cfg)) if active and cfg.kl_anchor else 0.0
         if kl == 0.0:
             self.reference = None  # released (or never taken)
-        ent = float(entropy_coef(iteration, since_phase, b, cfg if on else None))
-        tau = float(temperature_text(since_phase, cfg)) if on and cfg.temperature_schedule else b.temperature
+        # inert before the first switch: the base schedule, as without the controller
+        ent = float(entropy_coef(iteration, since_phase, b, cfg if active else None))
+        tau = float(temperature_text(since_phase, cfg)) if active and cfg.temperature_schedule else b.temperature
         tau_pol = tau if cfg.temperature_routers in ("policy", "both") else b.temperature
         tau_val = tau if cfg.temperature_routers in ("value", "both") else b.temperature
 

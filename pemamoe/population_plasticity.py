@@ -322,14 +322,15 @@ class PhaseControllerMethod(NoPlasticity):
                 self.actor.flat[r, a:b] = cfg.log_std_value
 
     def member_settings(self, r: int, iteration: int) -> IterationSettings:
-        if not self.enabled[r]:
+        # Before the first switch (and in a run that never switches) the controller is inert: the
+        # member trains bit for bit as NoPlasticity, i.e. as the same network without the controller.
+        if not self.enabled[r] or self.last_switch[r] is None:
             return super().member_settings(r, iteration)
         b, cfg = self.bases[r], self.cfgs[r]
-        since = None if self.last_switch[r] is None else int(iteration) - self.last_switch[r]
-        if since is not None and since < 0:
+        since = int(iteration) - self.last_switch[r]
+        if since < 0:
             raise ValueError(f"iteration {iteration} is before the last switch {self.last_switch[r]}")
-        since_phase = int(iteration) if since is None else since
-        active = since is not None
+        since_phase, active = since, True
         mult = float(lr_multiplier(since, cfg)) if active and cfg.lr_drop else 1.0
         frozen = active and cfg.router_freeze and since < cfg.router_freeze_iters
         conservative = active and cfg.conservative_window and since < cfg.conservative_iters

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemamoe.nets import (
+    PAPER_NET,
     PAPER_ACTIVE_PARAMS,
     PAPER_ACTOR_PARAMS,
     PAPER_OBS_DIM,
@@ -40,7 +41,7 @@ def _seed():
 
 @pytest.mark.parametrize("impl", IMPLS)
 def test_paper_parameter_counts_reproduced_exactly(impl):
-    cfg = NetConfig(expert_impl=impl)
+    cfg = NetConfig(expert_impl=impl, routing_noise="learned")  # the paper's counts include a noise gate
     for kind in ACTOR_KINDS:
         actor = make_actor(kind, PAPER_OBS_DIM, 2, cfg)
         assert count_parameters(actor) == PAPER_ACTOR_PARAMS[kind]
@@ -55,7 +56,7 @@ def test_mlp_count_by_hand():
 
 
 def test_active_parameter_conventions():
-    smoe = make_actor("smoe", PAPER_OBS_DIM)
+    smoe = make_actor("smoe", PAPER_OBS_DIM, 2, PAPER_NET)  # the paper's reading: learned noise
     # paper: router 534 + noise gate 534 + one trunk 6752 (head 66 and log-std 2 left out)
     assert active_parameters(smoe, "paper") == 534 + 534 + 6752
     assert active_parameters(smoe, "sampling") == 7820 + 66 + 2
@@ -67,7 +68,7 @@ def test_active_parameter_conventions():
 
 
 def test_macs_per_step():
-    mlp, smoe, moe = (make_actor(k, PAPER_OBS_DIM) for k in ("mlp", "smoe", "moe"))
+    mlp, smoe, moe = (make_actor(k, PAPER_OBS_DIM, 2, PAPER_NET) for k in ("mlp", "smoe", "moe"))
     assert macs_per_step(mlp) == 177 * 32 + 32 * 32 + 32 * 2
     assert macs_per_step(smoe, "sampling") == 2 * 177 * 3 + 177 * 32 + 32 * 32 + 32 * 2
     assert macs_per_step(smoe, "eval") == 177 * 3 + 177 * 32 + 32 * 32 + 32 * 2
@@ -77,7 +78,7 @@ def test_macs_per_step():
 
 def test_pemamoe_matches_smoe_and_noiseless_smoe_matches_moe():
     assert count_parameters(make_actor("pemamoe", 50)) == count_parameters(make_actor("smoe", 50))
-    quiet = make_actor("smoe", PAPER_OBS_DIM, 2, NetConfig(noisy_gating=False))
+    quiet = make_actor("smoe", PAPER_OBS_DIM, 2, NetConfig(routing_noise="off"))
     assert count_parameters(quiet) == PAPER_ACTOR_PARAMS["moe"]
 
 
@@ -109,7 +110,7 @@ def test_replayed_routing_gives_ratio_exactly_one(kind, impl):
 
 @pytest.mark.parametrize("kind", tuple(n for n, sp in METHOD_REGISTRY.items() if sp.network == "smoe"))
 def test_noise_matters_without_replay(kind):
-    actor = make_actor(kind, 30)
+    actor = make_actor(kind, 30, 2, PAPER_NET)
     with torch.no_grad():  # make the gate noisy enough that a re-draw changes some routes
         actor.gate.noise_gate.bias.fill_(3.0)
     obs = torch.randn(256, 30)
@@ -164,7 +165,7 @@ def test_load_balance_is_one_whenever_dispatch_is_balanced(per_expert, e, seed):
 
 @pytest.mark.parametrize("kind", tuple(n for n, sp in METHOD_REGISTRY.items() if sp.network == "smoe"))
 def test_top1_router_gets_gradient_from_policy_loss(kind):
-    actor = make_actor(kind, 20)
+    actor = make_actor(kind, 20, 2, PAPER_NET)  # learned noise: the noise gate learns too
     obs = torch.randn(64, 20)
     action, _, routing = actor.act(obs)
     logp, _, aux = actor.evaluate(obs, action + 0.3, routing)
@@ -197,7 +198,7 @@ def test_aux_loss_is_weighted_load_balance():
 
 
 def test_temperature_spreads_noisy_top1_routing():
-    actor = make_actor("smoe", 20)
+    actor = make_actor("smoe", 20, 2, PAPER_NET)
     with torch.no_grad():
         actor.gate.router.bias.copy_(torch.tensor([2.0, 0.0, 0.0]))  # the router prefers expert 0
     obs = torch.randn(4000, 20)
@@ -310,7 +311,7 @@ def test_expert_bank_mixed_top2_agrees():
 
 @pytest.mark.parametrize("kind", ACTOR_KINDS)
 def test_param_groups_cover_every_parameter_once(kind):
-    actor = make_actor(kind, 14)
+    actor = make_actor(kind, 14, 2, PAPER_NET)  # with a noise gate, filed under the router
     groups = actor.param_groups()
     assert set(groups) == {"router", "experts", "head", "log_std"}
     ids = [id(p) for ps in groups.values() for p in ps]
@@ -347,7 +348,11 @@ def test_unknown_kind_rejected():
         ("top_k", 0),
         ("init_log_std", float("nan")),
         ("load_balance_coef", -0.1),
-        ("noisy_gating", 1),
+        ("top1_weight", "st"),
+        ("routing_noise", "gaussian"),
+        ("noise_std", -0.5),
+        ("noise_anneal_portion", 0.0),
+        ("critic_gating", "sparse"),
         ("expert_impl", "fused"),
         ("masked_min_batch", 0),
         ("gain_router", 0.0),

@@ -99,11 +99,12 @@ def test_training_arithmetic_matches_its_fingerprint():
 def test_a_numerics_bump_renames_every_run(monkeypatch):
     import pemamoe.train_config as tc
     cfg = TrainConfig.for_scale("ci", method="pemamoe")
-    before = cfg.config_hash()
-    assert "numerics" not in cfg.identity()  # version 1 keeps every existing run's folder:
-    assert TrainConfig.for_scale("medium", method="mlp", seed=0).config_hash() == "6525a5081389"  # as before the version
-    monkeypatch.setattr(tc, "TRAINING_NUMERICS", 2)
-    assert cfg.identity()["numerics"] == 2 and cfg.config_hash() != before
+    now = cfg.config_hash()
+    assert cfg.identity()["numerics"] == tc.TRAINING_NUMERICS > 1
+    monkeypatch.setattr(tc, "TRAINING_NUMERICS", tc.TRAINING_NUMERICS + 1)
+    assert cfg.identity()["numerics"] == tc.TRAINING_NUMERICS and cfg.config_hash() != now
+    monkeypatch.setattr(tc, "TRAINING_NUMERICS", 1)  # version 1 leaves the key out (runs made before it existed)
+    assert "numerics" not in cfg.identity() and cfg.config_hash() != now
 
 
 def write(force: bool = False) -> None:

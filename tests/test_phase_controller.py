@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from pemamoe.nets import make_actor, make_critic
+from pemamoe.nets import NetConfig, make_actor, make_critic
 from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
@@ -27,9 +27,9 @@ OBS, STATE = 10, 14
 BASE = BaseSchedule(total_iterations=3000, phase_length=1000)
 
 
-def setup(kind="pemamoe", cfg=None, enabled=True, base=BASE, seed=0, weight_decay=1e-4):
+def setup(kind="pemamoe", cfg=None, enabled=True, base=BASE, seed=0, weight_decay=1e-4, net=None):
     torch.manual_seed(seed)
-    actor, critic = make_actor(kind, OBS), make_critic(kind, STATE)
+    actor, critic = make_actor(kind, OBS, 2, net), make_critic(kind, STATE, net)
     opt = torch.optim.AdamW(build_param_groups(actor, critic, base.lr), lr=base.lr, weight_decay=weight_decay)
     ctl = PhaseController(cfg or PhaseControllerConfig(), actor, opt, base, enabled=enabled, seed=seed)
     return actor, critic, opt, ctl
@@ -141,7 +141,7 @@ def test_kl_anchor_decays_and_releases():
 
 def test_kl_penalty_is_zero_right_after_snapshot_and_grows_with_change():
     cfg = PhaseControllerConfig(noise_injection=False, log_std_reset=False)
-    actor, critic, opt, ctl = setup(cfg=cfg)
+    actor, critic, opt, ctl = setup(cfg=cfg, net=NetConfig(routing_noise="learned"))  # noisy gating
     ctl.on_switch(1000)
     ctl.begin_iteration(1000)
     obs = torch.randn(16, OBS)
@@ -170,7 +170,9 @@ def test_entropy_reset_and_reanneal():
     assert entropy_coef(1150, 150, BASE, cfg) == pytest.approx(0.0065)
     assert entropy_coef(1400, 400, BASE, cfg) == pytest.approx(0.003)
     actor, critic, opt, ctl = setup()
-    assert ctl.begin_iteration(150).ent_coef == pytest.approx(0.0065)
+    # before the first switch the controller is inert: the baselines' run-long schedule
+    assert ctl.begin_iteration(150).ent_coef == pytest.approx(entropy_coef(150, 150, BASE, None))
+    assert ctl.begin_iteration(450).ent_coef == pytest.approx(0.0065)
     assert ctl.begin_iteration(999).ent_coef == pytest.approx(0.003)
     ctl.on_switch(1000)
     assert ctl.begin_iteration(1000).ent_coef == pytest.approx(0.01)

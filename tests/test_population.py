@@ -91,8 +91,10 @@ def test_member_is_bit_identical_alone_and_in_any_population(method, device, tmp
     _assert_same_run(alone, pop[2], tmp_path / "alone", tmp_path / "p2")
     _assert_same_run(alone, pair[1], tmp_path / "alone", tmp_path / "q0")
     _assert_same_run(pop[1], pair[0], tmp_path / "p1", tmp_path / "q1")
-    for res in pop:  # routing replay holds per member: the ratio is exactly 1 at each first step
-        assert (res.metrics["first_ratio_dev"] == 0.0).all()
+    for res in pop:  # routing replay holds per member: the ratio is 1 at each first step, up to
+        # float rounding: the rollout's pass and the minibatch's see different row counts, and on
+        # some CPUs the BLAS kernel (and so the last bit) depends on the count (up to ~1.4e-6 seen)
+        assert (res.metrics["first_ratio_dev"] <= 1e-5).all()
         assert (res.metrics["population"] == 3).all()
 
 
