@@ -550,29 +550,35 @@ class GatedExperts(nn.Module):
 #
 # **What we measured.** Appendix 05c trains twelve readings side by side (fixed phases 0 and 1, 700k
 # environment steps, 2 seeds, MLP beside them) and logs the routing that ran. Its table
-# (`paper_figures/gating_readings.md`, runs of the code at the commit its provenance row names)
-# says, in coverage over the last 10 % of the steps, phase 0 / phase 1:
+# (`paper_figures/gating_readings.md`: coverage over the last 100k steps, seed mean, phase 0 /
+# phase 1; the commit is in `paper_figures/README.md`) says:
 #
-# * MLP 0.652 / 0.391; the version-1 reading (`st/learned/gated`) 0.565 / 0.371.
-# * Turning the noise off is the largest single gain (`st/off/gated`: 0.608 / 0.403, switch rate
-#   about 0.2 instead of 0.65). Annealed noise ends where `off` starts and is no better
-#   (0.597 / 0.404).
-# * The Switch weight is no better than the straight-through one, and the paper's literal weight,
-#   which leaves the router to the balance loss, is the worst of the noiseless readings
-#   (0.569 / 0.359): the router needs the task's gradient.
-# * A dense critic helps in phase 0 and costs in phase 1 (noise off: 0.608 → 0.643 and
-#   0.403 → 0.379); with two seeds the phase-1 difference is at the edge of the seeds' spread.
+# * MLP 0.645 / 0.391; the version-1 reading (`st/learned/gated`) 0.566 / 0.369.
+# * Turning the noise off is the largest single gain (`st/off/gated`: 0.600 / 0.402, switch rate
+#   about 0.2 instead of 0.64-0.66). Annealed noise ends where `off` starts and is no better
+#   (0.594 / 0.398); fixed noise learns less than none (σ = 0.3: 0.595 / 0.357; σ = 1:
+#   0.587 / 0.361), because the router's logits stay small and even σ = 0.3 overrides a quarter
+#   of its choices.
+# * The Switch weight is no better than the straight-through one (noise off, dense critic:
+#   0.639 / 0.361 against 0.640 / 0.371), and the paper's literal weight, which leaves the router to
+#   the balance loss, learns least of the noiseless readings (0.566 / 0.355): the router needs the
+#   task's gradient.
+# * A dense critic helps in phase 0 and costs in phase 1 (noise off: 0.600 → 0.640 and
+#   0.402 → 0.371). Over the two phases the two critics are within 0.005 of each other, which two
+#   seeds cannot separate.
+# * Evaluated with the router's own choice instead of the noise it trained with, the version-1
+#   SMoE loses most of its return in phase 0 (601 → −61; `paper_figures/gating_evaluation.md`):
+#   it had come to rely on random routing. The noiseless readings are the same either way.
 #
-# **What we chose.** `straight_through`, `off`, `dense`: the highest mean coverage of the gated
-# readings over the two phases, 90 % of the phase-0 gap to MLP closed at 700k steps (the version-1
-# reading closed none of it, by definition), the critic the paper's text describes, and a noise
-# scale that cannot grow because there is none. One consequence matters for PE-MAMoE: without
-# routing noise, dividing the logits by a temperature cannot change which expert is largest, so
-# the controller's temperature schedule no longer moves any routing decision (it still scales the
-# straight-through gradient). Appendix 05c also measures bounded fixed noise, the one reading that
-# keeps the temperature meaningful: $\sigma = 0.3$ and $\sigma = 1$ learn less than no noise in
-# both phases (0.600 / 0.350 and 0.588 / 0.361), because the router's logits stay small and even
-# $\sigma = 0.3$ overrides a quarter of its choices. The readings are all available:
+# **What we chose.** `straight_through`, `off`, `dense`. It closes 94 % of the phase-0 gap to MLP
+# at 700k steps, where the gated critic closes 43 %; in phase 1 it only matches the version-1
+# reading (0.371 against 0.369) while the gated critic beats MLP there (0.402 against 0.391). With
+# the two critics tied over both phases, the paper's text ("the centralised critic remains dense")
+# decides. Without noise the noise scale cannot grow. One consequence matters for PE-MAMoE:
+# without routing noise, dividing the logits by a temperature cannot change which expert is
+# largest, so the controller's temperature schedule no longer moves any routing decision (it still
+# scales the straight-through gradient); the one reading that would keep it meaningful, bounded
+# fixed noise, measurably learns less. The readings are all available:
 # `NetConfig(routing_noise="learned", critic_gating="gated")` is version 1's network, and the
 # paper's parameter counts (which include a noise gate) are reproduced with `PAPER_NET`, the
 # learned-noise reading.

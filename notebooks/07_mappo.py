@@ -768,7 +768,8 @@ def load_run(run_dir) -> RunResult:
     run_dir = check_run_dir(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
     done = verify_done(run_dir, config)
-    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None,
+                           resuming=done is None)
     env_cfg = config.env_config()
     actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])

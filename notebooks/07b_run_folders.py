@@ -170,13 +170,13 @@ def read_config(path, cls=None):
     return _config_from_dict(read_json(path), cls, path)
 
 
-def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
+def load_checkpoint(path, config=None, iteration: int | None = None, resuming: bool = True) -> dict:
     """`torch.load(path, weights_only=True)`, checked: a readable dict with a `config` and an
     `iteration`, whose bytes match the sha256 sealed into it (`seal_checkpoint`; checkpoints of
     format 4 and older have none); with `config`, the stored config must have the same identity
     (see `check_stored_config`), the checkpoint must come from this code's `TRAINING_NUMERICS`
-    (absent: version 1) and hold at most `config.iterations` iterations; with `iteration`,
-    exactly that many."""
+    (absent: version 1) when `resuming` (reading a finished run: any) and hold at most
+    `config.iterations` iterations; with `iteration`, exactly that many."""
     import io
     import pickle
     import zipfile
@@ -205,7 +205,9 @@ def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
         check_stored_config(ck["config"], config, path)
         from pemamoe.train_config import TRAINING_NUMERICS
 
-        if ck.get("numerics", 1) != TRAINING_NUMERICS:
+        # Only a resume would mix two arithmetics in one run: a sealed, finished run is read as it is
+        # (its folder's identity already carries the numerics it was computed under).
+        if resuming and ck.get("numerics", 1) != TRAINING_NUMERICS:
             raise RunFolderError(path, f"was computed under training numerics version {ck.get('numerics', 1)!r}, "
                                  f"but this code computes version {TRAINING_NUMERICS}: resuming it would mix two "
                                  "arithmetics in one run")

@@ -432,7 +432,8 @@ def load_run(run_dir) -> RunResult:
     run_dir = check_run_dir(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
     done = verify_done(run_dir, config)
-    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None,
+                           resuming=done is None)
     env_cfg = config.env_config()
     actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
     actor.load_state_dict(ckpt["actor"])
@@ -484,7 +485,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07_mappo.py, cell 24 (line 830)
+# %% notebooks/07_mappo.py, cell 24 (line 831)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
@@ -749,7 +750,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1105)
+# %% notebooks/07_mappo.py, cell 26 (line 1106)
 EVAL_ROUTINGS = ("noiseless", "trained")
 
 

@@ -326,7 +326,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 612)
+# %% notebooks/05_moe_actor.py, cell 15 (line 618)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -339,7 +339,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 16 (line 626)
+# %% notebooks/05_moe_actor.py, cell 16 (line 632)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -544,7 +544,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 18 (line 846)
+# %% notebooks/05_moe_actor.py, cell 18 (line 852)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -613,7 +613,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 21 (line 944)
+# %% notebooks/05_moe_actor.py, cell 21 (line 950)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 

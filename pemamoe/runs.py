@@ -103,13 +103,13 @@ def read_config(path, cls=None):
     return _config_from_dict(read_json(path), cls, path)
 
 
-def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
+def load_checkpoint(path, config=None, iteration: int | None = None, resuming: bool = True) -> dict:
     """`torch.load(path, weights_only=True)`, checked: a readable dict with a `config` and an
     `iteration`, whose bytes match the sha256 sealed into it (`seal_checkpoint`; checkpoints of
     format 4 and older have none); with `config`, the stored config must have the same identity
     (see `check_stored_config`), the checkpoint must come from this code's `TRAINING_NUMERICS`
-    (absent: version 1) and hold at most `config.iterations` iterations; with `iteration`,
-    exactly that many."""
+    (absent: version 1) when `resuming` (reading a finished run: any) and hold at most
+    `config.iterations` iterations; with `iteration`, exactly that many."""
     import io
     import pickle
     import zipfile
@@ -138,7 +138,9 @@ def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
         check_stored_config(ck["config"], config, path)
         from pemamoe.train_config import TRAINING_NUMERICS
 
-        if ck.get("numerics", 1) != TRAINING_NUMERICS:
+        # Only a resume would mix two arithmetics in one run: a sealed, finished run is read as it is
+        # (its folder's identity already carries the numerics it was computed under).
+        if resuming and ck.get("numerics", 1) != TRAINING_NUMERICS:
             raise RunFolderError(path, f"was computed under training numerics version {ck.get('numerics', 1)!r}, "
                                  f"but this code computes version {TRAINING_NUMERICS}: resuming it would mix two "
                                  "arithmetics in one run")
@@ -149,7 +151,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None) -> dict:
     return ck
 
 
-# %% notebooks/07b_run_folders.py, cell 8 (line 229)
+# %% notebooks/07b_run_folders.py, cell 8 (line 231)
 SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07c); every later one has it too
 CHECKPOINT_SEAL = b"pemamoe-sha256:"  # the zip comment of a sealed checkpoint: this, then the 64 hex digits
 
@@ -178,7 +180,7 @@ def seal_checkpoint(path) -> str:
     return h.hexdigest()
 
 
-# %% notebooks/07b_run_folders.py, cell 9 (line 259)
+# %% notebooks/07b_run_folders.py, cell 9 (line 261)
 _SEAL_LEN = len(CHECKPOINT_SEAL) + 64
 
 
@@ -209,7 +211,7 @@ def _existing_file(path) -> Path:
     return path
 
 
-# %% notebooks/07b_run_folders.py, cell 11 (line 298)
+# %% notebooks/07b_run_folders.py, cell 11 (line 300)
 def config_difference(stored: dict, requested: dict, limit: int = 6) -> str:
     """The keys where two identity dicts differ, as `key: stored X, requested Y` (nested keys
     dotted, at most `limit` of them); "" when equal."""
@@ -240,7 +242,7 @@ def check_stored_config(stored: dict, config, path) -> None:
                              "use another run_dir, or resume=False to overwrite it")
 
 
-# %% notebooks/07b_run_folders.py, cell 12 (line 330)
+# %% notebooks/07b_run_folders.py, cell 12 (line 332)
 def _short(value, width: int = 60) -> str:
     text = repr(value)
     return text if len(text) <= width else text[:width - 3] + "..."
@@ -253,7 +255,7 @@ def _config_from_dict(d, cls, path):
         raise RunFolderError(path, f"does not hold a valid {cls.__name__} ({type(err).__name__}: {err})") from None
 
 
-# %% notebooks/07b_run_folders.py, cell 14 (line 350)
+# %% notebooks/07b_run_folders.py, cell 14 (line 352)
 def file_digest(path) -> str:
     """sha256 of a file's bytes, as hex."""
     h = hashlib.sha256()
@@ -353,7 +355,7 @@ def prepare_run_dir(run_dir, config, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-# %% notebooks/07b_run_folders.py, cell 16 (line 460)
+# %% notebooks/07b_run_folders.py, cell 16 (line 462)
 class RunLock:
     """The exclusive writer lock of one run folder (a context manager; see `lock_run`)."""
 
