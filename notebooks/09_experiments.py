@@ -48,6 +48,7 @@ results_dir = "results"
 
 # %%
 #| export
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -187,8 +188,13 @@ def pending_runs(specs, results_dir) -> tuple:
 
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
               threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
-              population: int = DEFAULT_POPULATION) -> list:
+              population: int = DEFAULT_POPULATION, hours: float | None = None) -> list:
     """Run every spec not yet done; return all run folders, in the order of `specs`.
+
+    hours: train for at most this long: then every running population checkpoints at the end of
+    its current iteration and stops, no queued one starts, and the sweep returns (rerun it to go
+    on; nothing is lost but the iteration in flight). The folders of unfinished runs are returned
+    too: check them with pemamoe.runs.verify_done, or call pending_runs.
 
     A run counts as done only when its done.json verifies (pemamoe.runs.verify_done; a corrupt or
     foreign one raises). progress: a tqdm bar of runs done out of all (cached ones counted), with
@@ -197,6 +203,10 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     check_counts(workers=workers, threads_per_run=threads_per_run, population=population)
+    if hours is not None and not (isinstance(hours, (int, float)) and not isinstance(hours, bool)
+                                  and math.isfinite(hours) and hours > 0):
+        raise ValueError(f"hours must be a number > 0, got {hours!r}")
+    deadline = None if hours is None else time.time() + 3600.0 * hours
     if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
         raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
@@ -211,8 +221,13 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            runner(groups, results_dir, workers, address, threads_per_run, report)
-        if verbose:
+            runner(groups, results_dir, workers, address, threads_per_run, report, deadline)
+        left = pending_runs(specs, results_dir)[1]
+        if verbose and left:
+            print(f"[sweep] stopped after {hours:g} h ({time.perf_counter() - start:.0f} s): "
+                  f"{len(todo) - len(left)} of {len(todo)} runs finished, {len(left)} left, checkpointed; "
+                  "rerun the same command to go on", flush=True)
+        elif verbose:
             print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
     return [s.run_dir(results_dir) for s in specs]
 

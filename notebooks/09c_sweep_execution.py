@@ -52,6 +52,7 @@ import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
 
@@ -84,24 +85,37 @@ class SweepInterrupted(KeyboardInterrupt):
         return type(self), (self.signum,)
 
 
-def execute_population(specs, results_dir, threads: int = 1) -> list:
+def execute_population(specs, results_dir, threads: int = 1, deadline: float | None = None) -> list:
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
-    skipping as that folder allows); return their folders."""
+    skipping as that folder allows); return the folders of the runs that are finished. deadline: a
+    `time.time()` after which nothing starts and a running population checkpoints and stops."""
     import torch
 
     from pemamoe.mappo import train_population
 
+    if deadline is not None and time.time() >= deadline:
+        return []
     torch.set_num_threads(threads)
     specs = list(specs)
     dirs = [spec.run_dir(results_dir) for spec in specs]
     start = time.perf_counter()
-    train_population([spec.to_config() for spec in specs], dirs, resume=True, threads=threads, progress=False)
+    train_population([spec.to_config() for spec in specs], dirs, resume=True, threads=threads, progress=False,
+                     deadline=deadline)
+    finished = [d for spec, d in zip(specs, dirs) if verify_done(d, spec.to_config())]
     for spec, run_dir in zip(specs, dirs):
         marker = run_dir / "sweep.json"
-        if not marker.exists():
+        if run_dir in finished and not marker.exists():
             atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start,
                                        "population": len(specs)})
-    return [str(d) for d in dirs]
+    return [str(d) for d in finished]
+
+
+def _report_finished(group, finished, report) -> None:
+    """report(spec) for each run of `group` whose folder is among `finished` (paths)."""
+    done = {Path(f).name for f in finished}
+    for spec in group:
+        if spec.to_config().run_name() in done:
+            report(spec)
 
 # %% [markdown]
 # ## Stopping a sweep
@@ -198,30 +212,29 @@ def _finish(errors: list) -> None:
         raise RuntimeError(f"sweep run {spec.label()} failed: {type(err).__name__}: {err}{more}") from err
 
 
-def _run_local(groups, results_dir, workers, address, threads, report):
+def _run_local(groups, results_dir, workers, address, threads, report, deadline=None):
     errors = []
     if workers == 1:  # in this process: a signal interrupts the run itself, its lock is released
         for group in groups:
             try:
-                execute_population(group, results_dir, threads)
+                finished = execute_population(group, str(results_dir), threads, deadline)
             except Exception as err:  # noqa: BLE001 - reported after the others ran
                 errors.append((group, err))
                 continue
-            for spec in group:
-                report(spec)
+            _report_finished(group, finished, report)
         return _finish(errors)
     pool = ProcessPoolExecutor(max_workers=min(workers, len(groups)), mp_context=mp.get_context("spawn"),
                                initializer=_worker_init, initargs=(os.getpid(),))
     try:
-        futures = {pool.submit(execute_population, group, str(results_dir), threads): group for group in groups}
+        futures = {pool.submit(execute_population, group, str(results_dir), threads, deadline): group
+                   for group in groups}
         for future in as_completed(futures):
             try:
-                future.result()
+                finished = future.result()
             except Exception as err:  # noqa: BLE001 - a failed population does not stop the others
                 errors.append((futures[future], err))
                 continue
-            for spec in futures[future]:
-                report(spec)
+            _report_finished(futures[future], finished, report)
     except BaseException:  # SweepInterrupted (or anything else): kill the workers, start nothing more
         _kill_pool(pool)
         raise
@@ -267,7 +280,7 @@ def _start_local_ray(workers: int, attempts: int = 3) -> None:
                   flush=True)
 
 
-def _run_ray(groups, results_dir, workers, address, threads, report):
+def _run_ray(groups, results_dir, workers, address, threads, report, deadline=None):
     import ray
 
     address = address or os.environ.get("RAY_ADDRESS")
@@ -281,17 +294,16 @@ def _run_ray(groups, results_dir, workers, address, threads, report):
     try:
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own
             task = ray.remote(num_cpus=threads)(execute_population)
-            refs = {task.remote(group, str(Path(results_dir).resolve()), threads): group for group in groups}
+            refs = {task.remote(group, str(Path(results_dir).resolve()), threads, deadline): group for group in groups}
             pending = list(refs)
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 try:
-                    ray.get(done[0])
+                    finished = ray.get(done[0])
                 except Exception as err:  # noqa: BLE001 - a failed population does not stop the others
                     errors.append((refs[done[0]], err))
                     continue
-                for spec in refs[done[0]]:
-                    report(spec)
+                _report_finished(refs[done[0]], finished, report)
     except BaseException:  # SweepInterrupted: kill the running tasks, drop the queued ones
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -324,6 +336,19 @@ try:
              ([RunSpec("mlp", 1, "ci")], ValueError("out of memory"))])
 except RuntimeError as err:
     print(err)
+
+# %% [markdown]
+# ## A sweep that advances a few hours at a time
+#
+# A campaign longer than one machine's life runs as a series of sweeps of the same command, each
+# given a time budget: `python -m pemamoe sweep ... --hours H` (`run_sweep(..., hours=H)`). The
+# budget becomes a deadline on the wall clock (`time.time()`, the same on every worker of a
+# cluster). Once it passes, no queued population starts, and each running one finishes the
+# iteration in flight, writes a checkpoint of every member and returns; the trainer's resume is
+# bit for bit (tests/test_sweep.py trains a population through a deadline and compares it with one
+# that ran straight through). The command then prints how many runs finished and the `--status`
+# table of what is left. The next sweep, here or on another machine that has the run folders,
+# picks up where this one stopped.
 
 # %% [markdown]
 # ## Where a long sweep stands
@@ -455,6 +480,9 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--results-dir", default="results")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
+    parser.add_argument("--hours", type=_hours, default=None, metavar="H",
+                        help="train for at most H hours, then checkpoint every running population, stop, and "
+                             "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
     args = parser.parse_args(argv)
@@ -476,11 +504,38 @@ def sweep_cli(argv=None) -> int:
         return 0
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
-                  population=args.population)
+                  population=args.population, hours=args.hours)
+        if args.hours is not None and pending_left(specs, args.results_dir):
+            import pandas as pd
+
+            table = sweep_status(specs, args.results_dir, args.population, args.workers)
+            with pd.option_context("display.width", 120, "display.max_columns", 10):
+                print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+            print(status_summary(table, args.workers))
     except SweepInterrupted as stop:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
+
+
+def pending_left(specs, results_dir) -> int:
+    """How many of the sweep's runs are not finished."""
+    from pemamoe.sweep import pending_runs  # the sweep imports this module
+
+    return len(pending_runs(specs, results_dir)[1])
+
+
+def _hours(text: str) -> float:
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of hours > 0, got {text!r}")
+    return value
 
 
 def _method(text: str) -> str:

@@ -487,22 +487,24 @@ def plasticity_name(config: TrainConfig) -> str:
 
 # %% notebooks/07_mappo.py, cell 24 (line 831)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
-          threads: int | None = 1, verbose: bool = False, progress: bool | None = None) -> RunResult:
+          threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
+          deadline: float | None = None) -> RunResult:
     """Run MAPPO for `config`: the population of one (see `train_population`).
 
     run_dir: where config.json, metrics.parquet, episodes.parquet, checkpoint.pt and done.json go
     (None: nothing is written). resume: continue from run_dir's checkpoint (or return the stored
     result when done.json exists). max_iterations: stop after this many iterations in total,
     checkpointing, without done.json. threads: torch threads during the run (restored after).
-    progress: a progress bar (None: only when stderr is a terminal).
+    progress: a progress bar (None: only when stderr is a terminal). deadline: a `time.time()` after
+    which the run checkpoints at the end of its current iteration and stops (finished False).
     """
     return train_population([config], None if run_dir is None else [run_dir], resume, max_iterations=max_iterations,
-                            threads=threads, verbose=verbose, progress=progress)[0]
+                            threads=threads, verbose=verbose, progress=progress, deadline=deadline)[0]
 
 
 def train_population(configs: list, run_dirs: list | None = None, resume: bool = True, *,
                      max_iterations: int | None = None, threads: int | None = 1, verbose: bool = False,
-                     progress: bool | None = None) -> list:
+                     progress: bool | None = None, deadline: float | None = None) -> list:
     """Train R runs in one process as one population (the run is a tensor axis).
 
     configs: TrainConfigs that differ only in MEMBER_FIELDS (seed, controller settings such as
@@ -512,7 +514,9 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     different iterations start as sub-populations: the one furthest behind trains up to the next
     one's iteration, checkpoints, and joins it (a killed sweep resumes as one population again,
     not as a queue of small ones; this needs the lagging members' folders, so with run_dir None
-    they train to the end first). Returns one RunResult per config.
+    they train to the end first). deadline: a `time.time()` at which training stops at the end of
+    the current iteration with a checkpoint of every member (a resume continues bit for bit);
+    members that had not started by then are None. Returns one RunResult per config.
     """
     configs = list(configs)
     check_population(configs)
@@ -555,7 +559,11 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
                 after = min(pending) if catch_up else None
                 stop = max_iterations if after is None else min(after, max_iterations or after)
                 group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                     [ck for _, ck in members], stop, verbose, progress)
+                                     [ck for _, ck in members], stop, verbose, progress, deadline)
+                if deadline is not None and time.time() >= deadline:  # out of time: start nothing more
+                    for (r, _), res in zip(members, group):
+                        results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
+                    break
                 if catch_up and stop == after and stop < configs[members[0][0]].iterations:
                     joined = [(r, load_checkpoint(dirs[r] / "checkpoint.pt", configs[r])) for r, _ in members]
                     pending[stop] = sorted(pending[stop] + joined, key=lambda m: m[0])
@@ -568,7 +576,7 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     return results
 
 
-def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress) -> list:
+def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress, deadline=None) -> list:
     """The training loop for members that start at the same iteration (read top to bottom)."""
     wall_start = time.perf_counter()
     c0, R = configs[0], len(configs)
@@ -704,7 +712,8 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
 
         # --- 5. logging, diagnostics and checkpoints, per member ---------------------------------
         diag = it % c0.diag_every == 0 or switch or it == c0.iterations - 1
-        checkpoint = (it + 1) % c0.checkpoint_every == 0 or it == stop - 1
+        out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
+        checkpoint = (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time
         env_state = venv.state_dict() if checkpoint and any(d is not None for d in run_dirs) else None
         for r in range(R):
             row = _iteration_row(configs[r], r, it, phase[r], switch, global_step, sched, group_names, actor, norms,
@@ -730,6 +739,9 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {metrics_rows[0][-1]['sps']:7.0f}", flush=True)
         bar.set_postfix(phase=phase[0] if len(set(phase)) == 1 else "mixed", ret=f"{recent:.1f}", sps=f"{metrics_rows[0][-1]['sps']:.0f}", refresh=False)
         bar.update(1)
+        if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
+            stop = it + 1
+            break
     bar.close()
 
     finished = stop == c0.iterations
@@ -750,7 +762,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     return results
 
 
-# %% notebooks/07_mappo.py, cell 26 (line 1106)
+# %% notebooks/07_mappo.py, cell 26 (line 1118)
 EVAL_ROUTINGS = ("noiseless", "trained")
 
 

@@ -10,8 +10,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import psutil
 import pytest
+import torch
 
 from pemamoe.mappo import train
 from pemamoe.methods import METHOD_REGISTRY
@@ -268,3 +270,50 @@ def test_status_rate_counts_checkpoints_but_not_pauses(tmp_path):
     n, rate = _logged_progress(tmp_path, checkpoint_every=100)
     assert n == 201 and rate == pytest.approx((197 * 1.0 + 2 * 41.0) / 199)  # 199 working steps, the pause left out
     assert _logged_progress(tmp_path / "missing", 100) == (0, None)
+
+
+# --- sweeps that advance a few hours at a time (--hours) ------------------------------------------
+def _comparable_metrics(result):
+    from pemamoe.mappo import TIMING_COLUMNS
+
+    return result.metrics.drop(columns=[c for c in TIMING_COLUMNS if c in result.metrics.columns])
+
+
+def test_a_deadline_checkpoints_every_member_and_the_resume_is_bit_identical(tmp_path):
+    from pemamoe.mappo import TrainConfig, train_population
+    from pemamoe.runs import verify_done
+
+    cfgs = [TrainConfig.for_scale("ci", method="smoe", seed=s, iterations=5) for s in (0, 1)]
+    whole = train_population(cfgs, [tmp_path / "w0", tmp_path / "w1"])
+    dirs = [tmp_path / "d0", tmp_path / "d1"]
+    cut = train_population(cfgs, dirs, deadline=time.time())  # already passed: one iteration, then stop
+    assert all(not r.finished and len(r.metrics) == 1 for r in cut)
+    assert not any(verify_done(d) for d in dirs) and all((d / "checkpoint.pt").exists() for d in dirs)
+    resumed = train_population(cfgs, dirs)
+    for a, b in zip(whole, resumed):
+        assert b.finished and b.resumed_from == 1
+        pd.testing.assert_frame_equal(_comparable_metrics(a), _comparable_metrics(b))
+        for (na, ta), (nb, tb) in zip(a.actor.state_dict().items(), b.actor.state_dict().items()):
+            assert torch.equal(ta, tb), na
+
+
+def test_sweep_hours_stops_starts_nothing_after_the_deadline_and_a_rerun_finishes(tmp_path, capsys):
+    from pemamoe.runs import verify_done
+
+    specs = [RunSpec("mlp", 0, "ci"), RunSpec("smoe", 0, "ci")]  # two populations
+    run_sweep(specs, workers=1, results_dir=tmp_path, hours=1e-9)
+    out = capsys.readouterr().out
+    assert "0 of 2 runs finished, 2 left" in out and "rerun the same command" in out
+    assert not any(verify_done(s.run_dir(tmp_path)) for s in specs)
+    run_sweep(specs, workers=1, results_dir=tmp_path, hours=1.0)
+    assert "finished 2 runs" in capsys.readouterr().out
+    assert all(verify_done(s.run_dir(tmp_path)) for s in specs)
+    with pytest.raises(ValueError, match="hours must be a number > 0"):
+        run_sweep(specs, results_dir=tmp_path, hours=0)
+
+
+def test_sweep_cli_hours_prints_what_is_left(tmp_path, capsys):
+    code = sweep_cli(["--experiment", "main", "--scale", "ci", "--methods", "mlp", "--workers", "1",
+                      "--results-dir", str(tmp_path), "--hours", "0.0000001", "--no-progress"])
+    out = capsys.readouterr().out
+    assert code == 0 and "1 left" in out and "0 of 1 runs finished" in out and "hours_left" in out
