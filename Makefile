@@ -8,13 +8,14 @@ SCALE ?= small
 BACKEND ?= local
 WORKERS ?= 2
 PYTEST_ARGS ?= -n 2
+RETRAIN ?=
 LAB_ARGS ?=
 
 .PHONY: help test figures export check-export lab bench clean lock venv
 
 help:
 	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
-	@echo "make figures [SCALE=ci|small|medium|paper]  regenerate paper_figures/ with papermill (default small)"
+	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
 	@echo "make bench                 print the performance figures"
@@ -42,7 +43,7 @@ test: $(STAMP)
 # kernels' "Kernel is running over TCP without encryption" warnings are fixed at their cause, not
 # filtered: the runner provisions CurveZMQ keys (transport_encryption="auto"; notebooks/00b_core.py).
 figures: $(STAMP)
-	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS)
+	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS) $(if $(RETRAIN),--retrain,)
 
 export: $(STAMP)
 	$(PY) -m pemamoe.literate export

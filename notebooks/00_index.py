@@ -45,6 +45,7 @@
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py`, `pemamoe/analysis.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
+# | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #

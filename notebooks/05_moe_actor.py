@@ -550,13 +550,13 @@ class GatedExperts(nn.Module):
 #
 # **What we measured.** Appendix 05c trains twelve readings side by side (fixed phases 0 and 1, 700k
 # environment steps, 2 seeds, MLP beside them) and logs the routing that ran. Its table
-# (`paper_figures/gating_readings.md`: coverage over the last 100k steps, seed mean, phase 0 /
+# (`paper_figures/gating_readings.md`, from the runs' records: coverage over the last 100k steps, seed mean, phase 0 /
 # phase 1; the commit is in `paper_figures/README.md`) says:
 #
 # * MLP 0.645 / 0.391; the version-1 reading (`st/learned/gated`) 0.566 / 0.369.
 # * Turning the noise off is the largest single gain (`st/off/gated`: 0.600 / 0.402, switch rate
 #   about 0.2 instead of 0.64-0.66). Annealed noise ends where `off` starts and is no better
-#   (0.594 / 0.398); fixed noise learns less than none (σ = 0.3: 0.595 / 0.357; σ = 1:
+#   (0.595 / 0.398); fixed noise learns less than none (σ = 0.3: 0.594 / 0.357; σ = 1:
 #   0.587 / 0.361), because the router's logits stay small and even σ = 0.3 overrides a quarter
 #   of its choices.
 # * The Switch weight is no better than the straight-through one (noise off, dense critic:
@@ -571,7 +571,7 @@ class GatedExperts(nn.Module):
 #   it had come to rely on random routing. The noiseless readings are the same either way.
 #
 # **What we chose.** `straight_through`, `off`, `dense`. It closes 94 % of the phase-0 gap to MLP
-# at 700k steps, where the gated critic closes 43 %; in phase 1 it only matches the version-1
+# at 700k steps, where the gated critic closes 42 %; in phase 1 it only matches the version-1
 # reading (0.371 against 0.369) while the gated critic beats MLP there (0.402 against 0.391). With
 # the two critics tied over both phases, the paper's text ("the centralised critic remains dense")
 # decides. Without noise the noise scale cannot grow. One consequence matters for PE-MAMoE:

@@ -43,8 +43,9 @@
 # routing that generated the data, not the noiseless preference the router diagnostics show.
 #
 # The runs are a sweep, `python -m pemamoe sweep --experiment gating` (cached under
-# `results/small/` like any run); this notebook reads them. At the `ci` scale it is a few
-# iterations so that CI can execute the notebook.
+# `results/small/` like any run); this notebook reads their records (appendix 09d), final actors
+# included, and trains only runs that have none. At the `ci` scale it is a few iterations so that
+# CI can execute the notebook.
 
 # %% tags=["parameters"]
 scale = "small"
@@ -55,6 +56,8 @@ backend = "local"
 workers = 2
 ray_address = None
 results_dir = "results"
+records_dir = "records"  # the published records (appendix 09d); runs without one are trained
+retrain = False  # True: ignore the records, train into results_dir and write the records again
 
 # %%
 from pathlib import Path
@@ -64,23 +67,18 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pemamoe.budget import PLATEAU_TAIL, block_steps, budget_curves, plateau_table
+from pemamoe.budget import PLATEAU_TAIL, block_steps, budget_curves, load_budget, plateau_table
 from pemamoe.core import save_figure, write_table
-from pemamoe.mappo import evaluate_policy, load_run
-from pemamoe.runs import read_parquet
-from pemamoe.sweep import GATING_READINGS, gating_specs, run_sweep
+from pemamoe.mappo import evaluate_policy
+from pemamoe.records import read_record_actor
+from pemamoe.sweep import GATING_READINGS, gating_specs, sweep_records
 
 specs = gating_specs(scale, seeds)
-run_dirs = run_sweep(specs, backend, workers, results_dir, ray_address)
-frames = []
-for spec, run_dir in zip(specs, run_dirs):
-    m = read_parquet(Path(run_dir) / "metrics.parquet")
-    frames.append(m.assign(run=Path(run_dir).name, method=spec.tag.split("/", 1)[1], settings="small",
-                           seed=spec.seed, phase=int(dict(spec.overrides)["fixed_phase"]),
-                           member_seconds=(m.rollout_time + m.update_time) / m.population))
-metrics = pd.concat(frames, ignore_index=True)
+records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
+metrics = load_budget(records)  # fixed-phase runs, labelled as the learning-budget study labels them
+metrics["method"] = metrics.run.map({Path(r).stem: spec.tag.split("/", 1)[1] for spec, r in zip(specs, records)})
 readings = list(GATING_READINGS)
-print(f"{len(run_dirs)} runs of {metrics.env_steps.max():,} environment steps, {len(readings)} readings")
+print(f"{len(records)} runs of {metrics.env_steps.max():,} environment steps, {len(readings)} readings")
 
 # %% [markdown]
 # ## The table
@@ -166,15 +164,15 @@ save_figure(fig, "gating_readings", figures_dir)
 # %%
 episodes = 2 if scale == "ci" else 16
 rows = []
-for spec, run_dir in zip(specs, run_dirs):
+for spec, record in zip(specs, records):
     reading = spec.tag.split("/", 1)[1]
     if reading == "mlp":
         continue
-    run = load_run(run_dir)
+    actor, config = read_record_actor(record), spec.to_config()  # the final actor, from the record
     phase = int(dict(spec.overrides)["fixed_phase"])
     torch.manual_seed(0)
     for routing in ("noiseless", "trained"):
-        ev = evaluate_policy(run.actor, run.config.env_config(), episodes=episodes, seed=1000 + spec.seed,
+        ev = evaluate_policy(actor, config.env_config(), episodes=episodes, seed=1000 + spec.seed,
                              phase=phase, routing=routing)
         rows.append({"reading": reading, "phase": phase, "seed": spec.seed, "routing": routing,
                      "coverage": float(ev.coverage.mean()), "return": float(ev["return"].mean())})

@@ -45,6 +45,8 @@ backend = "local"  # "local" | "ray"
 workers = 2
 ray_address = None
 results_dir = "results"
+records_dir = "records"  # the published records (appendix 09d); runs without one are trained
+retrain = False  # True: ignore the records, train into results_dir and write the records again
 
 # %%
 #| export
@@ -63,6 +65,7 @@ from pemamoe.execution import (  # re-export (public names only)
     BACKENDS, SweepInterrupted, _progress, _run_local, _run_ray, _stop_on_signals, execute_population, sweep_cli)
 from pemamoe.mappo import METHODS, TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.records import RECORDS_DIR, RecordError, record_files, verify_record, write_record
 from pemamoe.runs import verify_done
 
 # %% [markdown]
@@ -176,30 +179,50 @@ def check_counts(**counts) -> None:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
 
-def pending_runs(specs, results_dir) -> tuple:
-    """({run folder: spec}, the specs whose folder holds no verified finished run). Two specs can
-    resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
+def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) -> tuple:
+    """({run folder: spec}, the specs still to train: whose folder holds no verified finished run
+    and, with records_dir, whose record does not verify either (retrain: records ignored). Two specs
+    can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
     point): keyed by run folder, such a run is trained once, not twice at once."""
     by_folder = {}
     for spec in specs:
         by_folder.setdefault(spec.run_dir(Path(results_dir)), spec)
-    return by_folder, [spec for folder, spec in by_folder.items() if not verify_done(folder, spec.to_config())]
+
+    def done(folder, spec):
+        config = spec.to_config()
+        if records_dir is not None and not retrain and verify_record(record_marker(spec, records_dir), config):
+            return True
+        return verify_done(folder, config) is not None
+
+    return by_folder, [spec for folder, spec in by_folder.items() if not done(folder, spec)]
+
+
+def record_marker(spec, records_dir=RECORDS_DIR) -> Path:
+    """Where the record of `spec`'s run lives (its marker; appendix 09d)."""
+    return record_files(records_dir, spec.scale, spec.to_config().run_name())["marker"]
 
 
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
               threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
-              population: int = DEFAULT_POPULATION, hours: float | None = None) -> list:
+              population: int = DEFAULT_POPULATION, hours: float | None = None, records_dir=None,
+              retrain: bool = False) -> list:
     """Run every spec not yet done; return all run folders, in the order of `specs`.
+
+    records_dir: also keep the runs' records there (appendix 09d): a run whose record verifies
+    counts as done and is not trained (unless retrain), each run's record is written as it
+    finishes, and a finished run folder without a record gets one. retrain: ignore the records,
+    train into the cache whatever is not in it, and write every record again (byte-identical
+    when nothing changed).
 
     hours: train for at most this long: then every running population checkpoints at the end of
     its current iteration and stops, no queued one starts, and the sweep returns (rerun it to go
     on; nothing is lost but the iteration in flight). The folders of unfinished runs are returned
     too: check them with pemamoe.runs.verify_done, or call pending_runs.
 
-    A run counts as done only when its done.json verifies (pemamoe.runs.verify_done; a corrupt or
-    foreign one raises). progress: a tqdm bar of runs done out of all (cached ones counted), with
-    an ETA; None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start
-    no queued one and raise SweepInterrupted (rerun to resume)."""
+    A run counts as done only when its done.json (or record) verifies (a corrupt or foreign one
+    raises). progress: a tqdm bar of runs done out of all (cached ones counted), with an ETA;
+    None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start no
+    queued one and raise SweepInterrupted (rerun to resume)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     check_counts(workers=workers, threads_per_run=threads_per_run, population=population)
@@ -211,7 +234,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
     specs = list(specs)
     results_dir = Path(results_dir)
-    by_folder, todo = pending_runs(specs, results_dir)
+    by_folder, todo = pending_runs(specs, results_dir, records_dir, retrain)
     groups = group_specs(todo, population, workers)
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
@@ -221,15 +244,37 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            runner(groups, results_dir, workers, address, threads_per_run, report, deadline)
-        left = pending_runs(specs, results_dir)[1]
+            runner(groups, results_dir, workers, address, threads_per_run, report, deadline, records_dir)
+        left = pending_runs(specs, results_dir, records_dir, retrain)[1]
         if verbose and left:
-            print(f"[sweep] stopped after {hours:g} h ({time.perf_counter() - start:.0f} s): "
+            print(f"[sweep] stopped after {hours} h ({time.perf_counter() - start:.0f} s): "
                   f"{len(todo) - len(left)} of {len(todo)} runs finished, {len(left)} left, checkpointed; "
                   "rerun the same command to go on", flush=True)
         elif verbose:
             print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
+    if records_dir is not None:  # finished folders without a (verified) record, e.g. trained before records
+        for folder, spec in by_folder.items():
+            config = spec.to_config()
+            marker = record_marker(spec, records_dir)
+            if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
+                write_record(folder, spec.scale, records_dir)
     return [s.run_dir(results_dir) for s in specs]
+
+
+def sweep_records(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
+                  records_dir=RECORDS_DIR, retrain: bool = False, **options) -> list:
+    """The record markers of every spec, in order, training only the runs without a record
+    (`run_sweep` with records_dir; retrain: ignore the records). What the notebooks read."""
+    specs = list(specs)
+    run_sweep(specs, backend, workers, results_dir, address, records_dir=records_dir, retrain=retrain, **options)
+    return [record_marker(spec, records_dir) for spec in specs]
+
+
+def _record_ok(marker, config) -> bool:
+    try:
+        return verify_record(marker, config) is not None
+    except RecordError:  # a damaged record of a run whose folder is here: written again from the folder
+        return False
 
 
 # %% [markdown]
@@ -400,13 +445,16 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
 # %% [markdown]
 # ## Reading results back
 #
-# Everything below reads the run folders; nothing trains. `load_runs` stacks the per-iteration logs
-# (`metrics.parquet`) and the per-episode logs (`episodes.parquet`) of a list of run folders into
-# two tidy frames. Each row carries its run's labels, read from **that run's own `config.json`**
-# (the resolved `TrainConfig`), never from a marker left by whichever experiment asked for the run
-# first: the method, the seed, the phase-controller mechanisms switched off, whether a baseline ran
-# the controller, the noise scale γ, a short `variant` ("", "w/o lr_drop", "+ noise_injection")
-# and the display `label` of `TrainConfig.label()`.
+# Everything below reads the runs' **records** (appendix 09d), the compact published form of a
+# finished run that git keeps under `records/<scale>/`; nothing trains unless a record is missing
+# (`sweep_records` trains those runs first). `load_runs` stacks the records of a list of runs into
+# two tidy frames: the per-iteration log (one row per block of iterations in a long run), and the
+# rows in which episodes ended, with each metric's mean over those episodes. Each row carries its
+# run's labels, read from **that run's own config** (the resolved `TrainConfig` the record holds),
+# never from a marker left by whichever experiment asked for the run first: the method, the seed,
+# the phase-controller mechanisms switched off, whether a baseline ran the controller, the noise
+# scale γ, a short `variant` ("", "w/o lr_drop", "+ noise_injection") and the display `label` of
+# `TrainConfig.label()`.
 #
 # Which methods exist, in which order, with which label and colour, comes from the method registry
 # (`pemamoe.methods`, appendix 05b): a method registered by outside code (a plugin) appears in every
@@ -428,7 +476,7 @@ from scipy import stats
 
 from pemamoe.core import atomic_write_text, by_scale
 from pemamoe.methods import METHOD_REGISTRY, load_plugins, method_colour, method_label, proposed_method
-from pemamoe.runs import read_json, read_parquet, verify_done
+from pemamoe.records import read_record
 
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
@@ -469,16 +517,25 @@ def run_labels(config: dict, run: str = "") -> dict:
             "noise_gamma": float(ctrl.get("noise_gamma", float("nan"))), "variant": variant, "label": label}
 
 
-def load_runs(run_dirs) -> tuple:
-    """(metrics, episodes) DataFrames of finished runs; every row carries RUN_COLUMNS, read from
-    its own run's config.json."""
+# The per-iteration episode means of a record, under the names of the per-episode log
+RECORD_EPISODE_COLUMNS = {"episode_return": "return", "coverage": "coverage", "served_users": "served_users",
+                          "energy_rate_kj": "energy_rate_kj", "collisions_per_episode": "collisions"}
+
+
+def load_runs(records) -> tuple:
+    """(metrics, episode_means) DataFrames of recorded runs (paths of record markers, appendix
+    09d); every row carries RUN_COLUMNS, from the run's own config. metrics: one row per record row
+    (an iteration, or a block of them in a long run). episode_means: the rows in which episodes
+    ended, with the episode columns under the per-episode log's names (return, coverage, ...) and
+    `episodes`, the number that ended there: what the run scores are computed from."""
     metrics, episodes = [], []
-    for run_dir in map(Path, run_dirs):
-        if not verify_done(run_dir):  # a corrupt or foreign done.json raises, naming it
-            raise FileNotFoundError(f"{run_dir} has no done.json: run the sweep first")
-        label = run_labels(read_json(run_dir / "config.json"), run_dir.name)
-        metrics.append(read_parquet(run_dir / "metrics.parquet").assign(**label))
-        episodes.append(read_parquet(run_dir / "episodes.parquet").assign(**label))
+    for marker in map(Path, records):
+        config, frame = read_record(marker)  # a missing, damaged or foreign record raises, naming it
+        label = run_labels(config, marker.stem)
+        metrics.append(frame.assign(**label))
+        ended = frame[frame.episodes > 0]
+        episodes.append(ended[["iteration", "phase", "episodes", *RECORD_EPISODE_COLUMNS]].rename(
+            columns=RECORD_EPISODE_COLUMNS).assign(**label))
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
@@ -487,7 +544,9 @@ def load_runs(run_dirs) -> tuple:
 #
 # The paper summarises each method by the **interquartile mean** (IQM) of the per-episode values
 # of a metric recorded during training: sort them, drop the lowest and highest quarter, average the
-# rest. For the bar chart across five metrics it then min–max normalises each metric across the
+# rest. Our records keep each iteration's mean over the episodes that ended in it (a block's, in a
+# long run), not every episode (those would not fit the records' budget), so our IQM is taken over
+# those means: a slightly smoother quantity than the paper's, with the same centre. For the bar chart across five metrics it then min–max normalises each metric across the
 # methods, and plots energy and collisions as one minus the normalised value so that taller is
 # better everywhere. We follow that protocol per run, and add what a single seed cannot give: for
 # several seeds, the stratified bootstrap confidence intervals of rliable (IQM across runs), and
@@ -513,7 +572,8 @@ def iqm(values) -> float:
 
 
 def run_scores(episodes: pd.DataFrame, metrics=tuple(SUMMARY_METRICS)) -> pd.DataFrame:
-    """One row per run: the IQM of each metric's per-episode values (the paper's protocol)."""
+    """One row per run: the IQM of each metric over the run's episode means (load_runs; the paper
+    takes it over the episodes themselves)."""
     return episodes.groupby(list(RUN_COLUMNS))[list(metrics)].agg(iqm).reset_index()
 
 
@@ -802,12 +862,13 @@ from pemamoe.core import save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
 # Worker processes import what they run by module path, so the sweep must use the package's copies
 # of these definitions, not the ones this notebook's cells just created in __main__.
-from pemamoe.sweep import default_seeds, main_specs, run_sweep
+from pemamoe.sweep import default_seeds, main_specs, sweep_records
 
 method_list = method_order(None if methods is None else tuple(methods))
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
-run_dirs = run_sweep(main_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address)
-metrics, episodes = load_runs(run_dirs)
+records = sweep_records(main_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address,
+                        records_dir, retrain)
+metrics, episodes = load_runs(records)
 levels = reference_levels(scale, results_dir)
 note = provenance(metrics, scale)
 STYLE_NAMES = {":": "dotted", "-.": "dash-dot", "--": "dashed", "-": "solid"}
@@ -1021,9 +1082,9 @@ from pemamoe.budget import (PLATEAU_FRACTION, block_steps, budget_curves, load_b
 from pemamoe.sweep import budget_specs
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
-study_dirs = run_sweep(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
-                       workers, results_dir, ray_address)
-plateaus = plateau_table(budget_curves(load_budget(study_dirs), block_steps=block_steps(scale)))
+study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
+                      workers, results_dir, ray_address, records_dir, retrain)
+plateaus = plateau_table(budget_curves(load_budget(study), block_steps=block_steps(scale)))
 learned = phase_learning(metrics, plateaus[plateaus.settings == "small"])
 mlp_rows = learned[learned.method == "mlp"]
 mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()

@@ -54,6 +54,8 @@ backend = "local"
 workers = 2
 ray_address = None
 results_dir = "results"
+records_dir = "records"  # the published records (appendix 09d); runs without one are trained
+retrain = False  # True: ignore the records, train into results_dir and write the records again
 
 # %%
 #| export
@@ -63,7 +65,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.analysis import phase_visits
-from pemamoe.runs import read_json, read_parquet, verify_done
+from pemamoe.records import read_record, record_timing
 from pemamoe.sweep import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
@@ -86,21 +88,22 @@ def update_setting(config: dict) -> str:
     return "small"
 
 
-def load_budget(run_dirs) -> pd.DataFrame:
-    """Per-iteration logs of finished fixed-phase runs, one frame, with the labels the study
-    needs: method, seed, phase, settings (the update settings), and the compute seconds each iteration cost
-    one member (the population's rollout + update time divided by its size)."""
+def load_budget(records) -> pd.DataFrame:
+    """Per-row logs of recorded fixed-phase runs (record markers, appendix 09d), one frame, with
+    the labels the study needs: method, seed, phase, settings (the update settings), and the
+    compute seconds each row cost one member. Records keep no timing (it differs between trainings
+    of one run), so that cost is the run's measured compute (`record_timing`) spread evenly over
+    its environment steps: the runs of one population share every iteration's cost alike."""
     frames = []
-    for run_dir in map(Path, run_dirs):
-        if not verify_done(run_dir):
-            raise FileNotFoundError(f"{run_dir} has no done.json: run `python -m pemamoe sweep --experiment budget`")
-        config = read_json(run_dir / "config.json")
+    for marker in map(Path, records):
+        config, m = read_record(marker)
         if config.get("fixed_phase") is None:
-            raise ValueError(f"{run_dir} is not a fixed-phase run (fixed_phase is None); the study needs one phase per run")
-        m = read_parquet(run_dir / "metrics.parquet")
-        frames.append(m.assign(run=run_dir.name, method=config["method"], seed=int(config["seed"]),
+            raise ValueError(f"{marker} is not a fixed-phase run (fixed_phase is None); the study needs one phase per run")
+        per_step = record_timing(marker).get("member_compute_s", float("nan")) / float(m.env_steps.max())
+        steps = m.env_steps.diff().fillna(m.env_steps.iloc[0])
+        frames.append(m.assign(run=marker.stem, method=config["method"], seed=int(config["seed"]),
                                phase=int(config["fixed_phase"]), settings=update_setting(config),
-                               member_seconds=(m.rollout_time + m.update_time) / m.population))
+                               member_seconds=steps * per_step))
     return pd.concat(frames, ignore_index=True)
 
 
@@ -200,16 +203,16 @@ from pemamoe.analysis import REFERENCE_POLICIES, method_order, reference_levels
 from pemamoe.core import save_figure, write_table
 from pemamoe.mappo import METHODS, TrainConfig
 from pemamoe.methods import method_colour, method_label
-from pemamoe.sweep import budget_specs, run_sweep
+from pemamoe.sweep import budget_specs, sweep_records
 
 specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)
-run_dirs = run_sweep(specs, backend, workers, results_dir, ray_address)
-metrics = load_budget(run_dirs)
+records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
+metrics = load_budget(records)
 curves = budget_curves(metrics, block_steps=block_steps(scale))
 table = plateau_table(curves)
 study_scale = "ci" if scale == "ci" else "small"
 levels = reference_levels(study_scale, results_dir)
-print(f"{len(run_dirs)} runs; the longest lasts {metrics.env_steps.max():,} environment steps")
+print(f"{len(records)} runs; the longest lasts {metrics.env_steps.max():,} environment steps")
 
 # %% [markdown]
 # ## Learning curves in each fixed phase

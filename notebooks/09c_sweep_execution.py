@@ -52,6 +52,7 @@ import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.records import write_record
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -85,10 +86,12 @@ class SweepInterrupted(KeyboardInterrupt):
         return type(self), (self.signum,)
 
 
-def execute_population(specs, results_dir, threads: int = 1, deadline: float | None = None) -> list:
+def execute_population(specs, results_dir, threads: int = 1, deadline: float | None = None,
+                       records_dir=None) -> list:
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
     skipping as that folder allows); return the folders of the runs that are finished. deadline: a
-    `time.time()` after which nothing starts and a running population checkpoints and stops."""
+    `time.time()` after which nothing starts and a running population checkpoints and stops.
+    records_dir: write each finished run's record there (appendix 09d), as the population ends."""
     import torch
 
     from pemamoe.mappo import train_population
@@ -107,6 +110,8 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
         if run_dir in finished and not marker.exists():
             atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start,
                                        "population": len(specs)})
+        if run_dir in finished and records_dir is not None:
+            write_record(run_dir, spec.scale, records_dir)
     return [str(d) for d in finished]
 
 
@@ -212,12 +217,12 @@ def _finish(errors: list) -> None:
         raise RuntimeError(f"sweep run {spec.label()} failed: {type(err).__name__}: {err}{more}") from err
 
 
-def _run_local(groups, results_dir, workers, address, threads, report, deadline=None):
+def _run_local(groups, results_dir, workers, address, threads, report, deadline=None, records_dir=None):
     errors = []
     if workers == 1:  # in this process: a signal interrupts the run itself, its lock is released
         for group in groups:
             try:
-                finished = execute_population(group, str(results_dir), threads, deadline)
+                finished = execute_population(group, str(results_dir), threads, deadline, records_dir)
             except Exception as err:  # noqa: BLE001 - reported after the others ran
                 errors.append((group, err))
                 continue
@@ -226,7 +231,8 @@ def _run_local(groups, results_dir, workers, address, threads, report, deadline=
     pool = ProcessPoolExecutor(max_workers=min(workers, len(groups)), mp_context=mp.get_context("spawn"),
                                initializer=_worker_init, initargs=(os.getpid(),))
     try:
-        futures = {pool.submit(execute_population, group, str(results_dir), threads, deadline): group
+        records = None if records_dir is None else str(records_dir)
+        futures = {pool.submit(execute_population, group, str(results_dir), threads, deadline, records): group
                    for group in groups}
         for future in as_completed(futures):
             try:
@@ -280,7 +286,7 @@ def _start_local_ray(workers: int, attempts: int = 3) -> None:
                   flush=True)
 
 
-def _run_ray(groups, results_dir, workers, address, threads, report, deadline=None):
+def _run_ray(groups, results_dir, workers, address, threads, report, deadline=None, records_dir=None):
     import ray
 
     address = address or os.environ.get("RAY_ADDRESS")
@@ -294,7 +300,9 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     try:
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own
             task = ray.remote(num_cpus=threads)(execute_population)
-            refs = {task.remote(group, str(Path(results_dir).resolve()), threads, deadline): group for group in groups}
+            records = None if records_dir is None else str(Path(records_dir).resolve())
+            refs = {task.remote(group, str(Path(results_dir).resolve()), threads, deadline, records): group
+                    for group in groups}
             pending = list(refs)
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
@@ -349,6 +357,11 @@ except RuntimeError as err:
 # that ran straight through). The command then prints how many runs finished and the `--status`
 # table of what is left. The next sweep, here or on another machine that has the run folders,
 # picks up where this one stopped.
+#
+# With `records_dir` (the command line's `--records-dir`, `records/` by default), each worker
+# writes the record of every run its population finished (appendix 09d) before it returns, so the
+# records of a campaign grow as its populations finish, and a run whose record verifies is never
+# trained again (`--retrain` trains it into the cache anyway and writes its record again).
 
 # %% [markdown]
 # ## Where a long sweep stands
@@ -391,7 +404,8 @@ def _logged_progress(run_dir: Path, checkpoint_every: int) -> tuple:
     return len(m), float(kept.mean())
 
 
-def sweep_status(specs, results_dir="results", population: int | None = None, workers: int = 2):
+def sweep_status(specs, results_dir="results", population: int | None = None, workers: int = 2,
+                 records_dir=None):
     """Where a sweep stands, without training: one row per population `run_sweep` would start now
     (its methods, members, the iteration all have reached, of how many, wall seconds per population
     iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
@@ -402,7 +416,7 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
     population = DEFAULT_POPULATION if population is None else population
     check_counts(population=population, workers=workers)
     results_dir = Path(results_dir)
-    by_folder, todo = pending_runs(specs, results_dir)
+    by_folder, todo = pending_runs(specs, results_dir, records_dir)
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
         config = group[0].to_config()
@@ -478,6 +492,11 @@ def sweep_cli(argv=None) -> int:
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results")
+    parser.add_argument("--records-dir", default="records",
+                        help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
+                             "record is written as it finishes (default: records/)")
+    parser.add_argument("--retrain", action="store_true",
+                        help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
     parser.add_argument("--hours", type=_hours, default=None, metavar="H",
@@ -492,23 +511,25 @@ def sweep_cli(argv=None) -> int:
         parser.error(str(err))
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path")
+    if str(args.records_dir).strip() == "":
+        parser.error("--records-dir must be a folder path")
     methods = tuple(args.methods) if args.methods else tuple(METHOD_REGISTRY)
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:
         import pandas as pd
 
-        table = sweep_status(specs, args.results_dir, args.population, args.workers)
+        table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
         with pd.option_context("display.width", 120, "display.max_columns", 10):
             print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
         print(status_summary(table, args.workers))
         return 0
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
-                  population=args.population, hours=args.hours)
-        if args.hours is not None and pending_left(specs, args.results_dir):
+                  population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
+        if args.hours is not None and pending_left(specs, args.results_dir, args.records_dir):
             import pandas as pd
 
-            table = sweep_status(specs, args.results_dir, args.population, args.workers)
+            table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
@@ -518,11 +539,11 @@ def sweep_cli(argv=None) -> int:
     return 0
 
 
-def pending_left(specs, results_dir) -> int:
-    """How many of the sweep's runs are not finished."""
+def pending_left(specs, results_dir, records_dir=None) -> int:
+    """How many of the sweep's runs are not finished (nor recorded, with records_dir)."""
     from pemamoe.sweep import pending_runs  # the sweep imports this module
 
-    return len(pending_runs(specs, results_dir)[1])
+    return len(pending_runs(specs, results_dir, records_dir)[1])
 
 
 def _hours(text: str) -> float:

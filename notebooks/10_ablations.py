@@ -38,6 +38,8 @@ backend = "local"
 workers = 2
 ray_address = None
 results_dir = "results"
+records_dir = "records"  # the published records (appendix 09d); runs without one are trained
+retrain = False  # True: ignore the records, train into results_dir and write the records again
 
 # %%
 from pathlib import Path
@@ -50,21 +52,22 @@ from pemamoe.analysis import (SUMMARY_METRICS, claim_verdict, heuristic_episodes
                               method_order, relative_change, run_scores)
 from pemamoe.core import by_scale, save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
-from pemamoe.sweep import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, run_sweep,
+from pemamoe.sweep import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, sweep_records,
                            trick_specs)
 
 proposed = proposed_method()
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
 experiments = {"main": main_specs(scale, seed_list, method_order()), "noise": noise_specs(scale, seed_list),
                "tricks": trick_specs(scale, seed_list)}
-run_dirs = run_sweep([s for specs in experiments.values() for s in specs], backend, workers, results_dir, ray_address)
-# Which experiment asked for which run folder (one folder can serve two: the main PE-MAMoE runs are
-# also the noise sweep's default-gamma point). What a run *is* comes from its own config.json.
+records = sweep_records([s for specs in experiments.values() for s in specs], backend, workers, results_dir,
+                        ray_address, records_dir, retrain)
+# Which experiment asked for which run (one run can serve two: the main PE-MAMoE runs are also the
+# noise sweep's default-gamma point). What a run *is* comes from its own record's config.
 runs_of, start = {}, 0
 for name, specs in experiments.items():
-    runs_of[name] = {Path(d).name for d in run_dirs[start:start + len(specs)]}
+    runs_of[name] = {Path(d).stem for d in records[start:start + len(specs)]}
     start += len(specs)
-metrics, episodes = load_runs(dict.fromkeys(run_dirs))
+metrics, episodes = load_runs(dict.fromkeys(records))
 n_seeds = len(seed_list)
 note = f"scale={scale}, {n_seeds} seed{'s' if n_seeds != 1 else ''} per point"
 print(note, "|", metrics.run.nunique(), "runs")

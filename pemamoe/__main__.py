@@ -18,6 +18,9 @@ def main(argv=None) -> int:
 
     fig.add_argument("--scale", default="small", choices=SCALES, help="the preset scale (default: small)")
     fig.add_argument("--figures-dir", default=None, help="output folder (default: paper_figures/)")
+    fig.add_argument("--retrain", action="store_true",
+                     help="ignore the committed run records (records/), train every run into results/ and write "
+                          "the records again")
     fig.add_argument("--notebook", action="append", help="run only these notebooks (repeatable)")
     fig.add_argument("--backend", default="local", help="sweep backend: local | ray")
     fig.add_argument("--workers", type=int, default=2, help="parallel training runs")
@@ -56,7 +59,7 @@ def main(argv=None) -> int:
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
-                              workers=args.workers, ray_address=args.ray_address)
+                              workers=args.workers, ray_address=args.ray_address, retrain=args.retrain)
         print(f"[figures] provenance written to {readme}")
         return 0
     if args.command == "train":

@@ -3,14 +3,14 @@
 
 __all__ = ['BLOCK_STEPS', 'block_steps', 'PLATEAU_TAIL', 'PLATEAU_FRACTION', 'update_setting', 'load_budget', 'budget_curves', 'plateau_table', 'seconds_to_reach', 'phase_learning']
 
-# %% notebooks/09b_learning_budget.py, cell 4 (line 58)
+# %% notebooks/09b_learning_budget.py, cell 4 (line 60)
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from pemamoe.analysis import phase_visits
-from pemamoe.runs import read_json, read_parquet, verify_done
+from pemamoe.records import read_record, record_timing
 from pemamoe.sweep import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
@@ -33,21 +33,22 @@ def update_setting(config: dict) -> str:
     return "small"
 
 
-def load_budget(run_dirs) -> pd.DataFrame:
-    """Per-iteration logs of finished fixed-phase runs, one frame, with the labels the study
-    needs: method, seed, phase, settings (the update settings), and the compute seconds each iteration cost
-    one member (the population's rollout + update time divided by its size)."""
+def load_budget(records) -> pd.DataFrame:
+    """Per-row logs of recorded fixed-phase runs (record markers, appendix 09d), one frame, with
+    the labels the study needs: method, seed, phase, settings (the update settings), and the
+    compute seconds each row cost one member. Records keep no timing (it differs between trainings
+    of one run), so that cost is the run's measured compute (`record_timing`) spread evenly over
+    its environment steps: the runs of one population share every iteration's cost alike."""
     frames = []
-    for run_dir in map(Path, run_dirs):
-        if not verify_done(run_dir):
-            raise FileNotFoundError(f"{run_dir} has no done.json: run `python -m pemamoe sweep --experiment budget`")
-        config = read_json(run_dir / "config.json")
+    for marker in map(Path, records):
+        config, m = read_record(marker)
         if config.get("fixed_phase") is None:
-            raise ValueError(f"{run_dir} is not a fixed-phase run (fixed_phase is None); the study needs one phase per run")
-        m = read_parquet(run_dir / "metrics.parquet")
-        frames.append(m.assign(run=run_dir.name, method=config["method"], seed=int(config["seed"]),
+            raise ValueError(f"{marker} is not a fixed-phase run (fixed_phase is None); the study needs one phase per run")
+        per_step = record_timing(marker).get("member_compute_s", float("nan")) / float(m.env_steps.max())
+        steps = m.env_steps.diff().fillna(m.env_steps.iloc[0])
+        frames.append(m.assign(run=marker.stem, method=config["method"], seed=int(config["seed"]),
                                phase=int(config["fixed_phase"]), settings=update_setting(config),
-                               member_seconds=(m.rollout_time + m.update_time) / m.population))
+                               member_seconds=steps * per_step))
     return pd.concat(frames, ignore_index=True)
 
 

@@ -420,7 +420,9 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                  09 and 10, the learning-budget study of 09b, the gating comparison of 05c) as one sweep, so that compatible
                  runs of different experiments share populations, no notebook trains for hours
                  under its timeout, and the notebooks only read results (None: when all notebooks run).
-    extra:       further parameters (e.g. backend="ray", workers=2), given to the notebooks that declare them.
+    extra:       further parameters (e.g. backend="ray", workers=2, retrain=True), given to the
+                 notebooks that declare them. retrain=True: ignore the committed records (appendix
+                 09d), train every run into the cache and write the records again.
     """
     import subprocess
 
@@ -432,10 +434,11 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     if precompute if precompute is not None else notebooks is None:
         from pemamoe.sweep import experiment_specs, run_sweep  # the sweep imports core: import here
 
-        say(f"[figures] training the {scale} sweep first (cached runs are skipped)")
+        say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
         run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
                   extra.get("backend", "local"), extra.get("workers", 2),
-                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"))
+                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"),
+                  records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
     for i, nb in enumerate(notebooks, start=1):
@@ -486,7 +489,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 643)
+# %% notebooks/00b_core.py, cell 21 (line 646)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

@@ -17,6 +17,7 @@ from pemamoe import analysis  # noqa: E402
 from pemamoe.core import atomic_write_json  # noqa: E402
 from pemamoe.mappo import TrainConfig, train  # noqa: E402
 from pemamoe.methods import METHOD_REGISTRY, MethodSpec, proposed_method, register_method  # noqa: E402
+from pemamoe.records import write_record  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +33,7 @@ def test_load_runs_labels_come_from_the_runs_own_config(ablated_run, tmp_path):
     d = shutil.copytree(folder, tmp_path / "run")
     # a marker left by another experiment (or another run) must not relabel the run
     atomic_write_json(d / "sweep.json", {"spec": {"method": "mlp", "seed": 7, "without": [], "tag": "noise"}})
-    metrics, episodes = analysis.load_runs([d])
+    metrics, episodes = analysis.load_runs([write_record(d, "ci", tmp_path / "records")])
     for frame in (metrics, episodes):
         row = frame.iloc[0]
         assert set(analysis.RUN_COLUMNS) <= set(frame.columns)

@@ -259,7 +259,9 @@ def test_ctrl_c_during_train_is_one_line_that_says_the_run_resumes(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "train", "--scale", "ci", "--method", "mlp",
                              "--iterations", "100000", "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            # a shell's background job starts with SIGINT ignored, and Python then keeps it so
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 240
         while not (out / "checkpoint.pt").exists() and proc.poll() is None and time.monotonic() < deadline:

@@ -45,12 +45,13 @@ def plugin(tmp_path, monkeypatch):
 def test_the_contributing_example_runs_in_a_sweep_and_a_figure(plugin, tmp_path):
     from pemamoe.analysis import load_runs, plot_over_training
     from pemamoe.methods import method_label, method_spec
-    from pemamoe.sweep import main_specs, run_sweep
+    from pemamoe.sweep import main_specs, sweep_records
 
     assert method_spec(plugin).plasticity == "shrink_perturb"  # loaded from $PEMAMOE_PLUGINS on first use
     specs = main_specs("ci", seeds=(0,), methods=("mlp", plugin))
-    dirs = run_sweep(specs, "local", workers=2, results_dir=tmp_path / "results", verbose=False)
-    metrics, _ = load_runs(dirs)
+    records = sweep_records(specs, "local", workers=2, results_dir=tmp_path / "results", verbose=False,
+                            records_dir=tmp_path / "records")
+    metrics, _ = load_runs(records)
     assert set(metrics.method) == {"mlp", plugin}
     toy = metrics[metrics.method == plugin]
     assert toy.switch.any() and toy.episode_return.notna().any()

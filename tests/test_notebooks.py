@@ -20,6 +20,8 @@ def test_notebook_runs_at_ci_scale(notebook: Path, tmp_path):
     params = {"scale": "ci", "figures_dir": str(figures)}
     if "results_dir" in notebook_parameters(notebook):  # experiments train into a throwaway cache
         params["results_dir"] = str(tmp_path / "results")
+    if "records_dir" in notebook_parameters(notebook):  # ... and write their records beside it
+        params["records_dir"] = str(tmp_path / "records")
     nb = run_notebook(
         notebook,
         params,

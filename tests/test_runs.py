@@ -255,7 +255,8 @@ def _error_samples():
     samples = {"RunFolderError": (ROOT / "results" / "run" / "done.json", "is broken", "a hint"),
                "RunLockedError": (ROOT / "results" / "run", 4321),
                "ExportError": ("notebooks/x.py: unknown directive",),
-               "SweepInterrupted": (signal.SIGTERM,)}
+               "SweepInterrupted": (signal.SIGTERM,),
+               "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed")}
     found = []
     for path in sorted((ROOT / "pemamoe").glob("*.py")):
         if path.stem == "__main__":

@@ -1,0 +1,279 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 09d · Appendix: run records, the published data of a finished run
+#
+# A run folder under `results/` is a training cache: its checkpoint (tens of megabytes late in a
+# medium run) and its full logs let a run resume bit for bit, but they live only as long as the
+# machine does, and git ignores them. What the figures and tables need from a finished run is far
+# smaller, and it is what this appendix writes as the run's **record**, in a folder git tracks
+# (`records/<scale>/`):
+#
+# * `<run>.parquet`: the per-iteration log (`metrics.parquet`) without the timing columns, which
+#   differ from one training to the next, in float32, averaged over blocks of iterations when a run
+#   is long (at most `RECORD_ROWS` rows: a medium run of 12,000 iterations keeps one row per 20).
+#   A block never straddles a phase switch (its length divides the phase length). The episode
+#   columns (return, coverage, ...) are averaged with the number of episodes that ended in each
+#   iteration as the weight, `episodes` is summed, and the diagnostics, which are logged every
+#   `diag_every` iterations, are averaged over the iterations that logged them;
+# * `<run>.actor.parquet`: the final actor's parameters, so that a published policy can be
+#   evaluated without retraining it (appendix 05c does);
+# * `<run>.json`, written last: the record's format, the run's name, scale and full config, the
+#   numerics version, and the sha256 of the two files. It is the record's done marker.
+#
+# A record is computed from the run's sealed files alone, so it is byte-identical however the run
+# was trained: alone, in a population, or resumed (tests/test_records.py checks all three). The
+# compute the run took is a measurement, not a result; it goes to a fourth file,
+# `<run>.timing.json`, written once, when the record is first made.
+
+# %%
+#| default_exp records
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+
+# %%
+#| export
+import hashlib
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_json, check_scale
+from pemamoe.runs import read_config, read_json, read_parquet, verify_done
+from pemamoe.train_config import TIMING_COLUMNS, TRAINING_NUMERICS, TrainConfig
+
+RECORD_FORMAT = 1
+RECORDS_DIR = REPO_ROOT / "records"  # tracked by git, one folder per scale (ci's is ignored)
+RECORD_ROWS = 600  # at most this many rows per record: longer runs are averaged over blocks
+RECORD_BUDGET_MB = {"per_medium_run": 0.5, "committed": 60.0}
+# Per-iteration means over the episodes that ended in the iteration: averaged with those counts
+EPISODE_COLUMNS = ("episode_return", "episode_length", "coverage", "served_users", "uav_using_rate",
+                   "energy_rate_kj", "collisions_per_episode")
+
+
+class RecordError(ValueError):
+    """A record that cannot be trusted: names the file and what is wrong with it."""
+
+    def __init__(self, path, problem: str):
+        self.path, self.problem = Path(path), problem
+        super().__init__(f"run record {self.path}: {problem}")
+
+    def __reduce__(self):  # pickles (a process pool sends exceptions back)
+        return type(self), (self.path, self.problem)
+
+
+# %% [markdown]
+# ## Blocks
+#
+# The block length is the smallest that keeps a record within `RECORD_ROWS` rows, rounded up to a
+# divisor of the phase length, so that a block lies inside one phase visit (a run with a fixed phase
+# has no switch and takes the length as it is).
+
+# %%
+#| export
+def record_block(config: TrainConfig) -> int:
+    """Iterations per record row for `config`."""
+    target = max(1, math.ceil(config.iterations / RECORD_ROWS))
+    if config.fixed_phase is not None:
+        return target
+    length = config.phase_length_iters
+    return min((d for d in range(target, length + 1) if length % d == 0), default=length)
+
+
+def record_frame(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
+    """The record's table from a run's per-iteration log: timing columns dropped, rows averaged
+    over blocks of `block` iterations (episode columns weighted by episodes, `episodes` summed,
+    `env_steps` at the block's end, `switch` if any iteration switched), floats as float32, and
+    `iterations`, the number of iterations in each row."""
+    m = metrics.drop(columns=[c for c in TIMING_COLUMNS if c in metrics.columns]).reset_index(drop=True)
+    key = m.iteration // block
+    groups = m.groupby(key, sort=True)
+    out = groups.mean(numeric_only=True)
+    episodes = groups.episodes.sum()
+    for column in EPISODE_COLUMNS:
+        if column in m:
+            total = (m[column].fillna(0.0) * m.episodes).groupby(key).sum()
+            out[column] = (total / episodes.where(episodes > 0)).astype(float)
+    out["episodes"] = episodes
+    for column, how in (("iteration", "first"), ("phase", "first"), ("env_steps", "last"), ("agent_steps", "last"),
+                        ("switch", "any")):
+        if column in m:
+            out[column] = getattr(groups[column], how)()
+    out["iterations"] = groups.size()
+    out = out[[c for c in m.columns if c in out.columns] + ["iterations"]].reset_index(drop=True)
+    for column in out.columns:
+        if out[column].dtype == np.float64:
+            out[column] = out[column].astype(np.float32)
+    return out
+
+
+# %% [markdown]
+# ## Writing and checking a record
+
+# %%
+#| export
+def record_files(records_dir, scale: str, run_name: str) -> dict:
+    """{"data", "actor", "marker", "timing"}: the paths of one run's record."""
+    base = Path(records_dir) / check_scale(scale)
+    return {"data": base / f"{run_name}.parquet", "actor": base / f"{run_name}.actor.parquet",
+            "marker": base / f"{run_name}.json", "timing": base / f"{run_name}.timing.json"}
+
+
+def _parquet_bytes(frame: pd.DataFrame) -> bytes:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    buffer = io.BytesIO()
+    # No pandas schema and no column statistics: together they were about half of a small record.
+    table = pa.Table.from_pandas(frame, preserve_index=False).replace_schema_metadata(None)
+    pq.write_table(table, buffer, compression="zstd", compression_level=9, write_statistics=False)
+    return buffer.getvalue()
+
+
+def _actor_frame(state: dict) -> pd.DataFrame:
+    return pd.DataFrame({"name": list(state), "shape": [",".join(map(str, t.shape)) for t in state.values()],
+                         "values": [t.detach().cpu().float().contiguous().numpy().astype("<f4").tobytes()
+                                    for t in state.values()]})
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
+    """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
+    RecordError when the run is not finished."""
+    from pemamoe.runs import load_checkpoint  # the checkpoint is read only here, for the final actor
+
+    run_dir = Path(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    if not verify_done(run_dir, config):
+        raise RecordError(run_dir, "is not a finished run (no done.json): only finished runs have records")
+    name = config.run_name()  # the sweep's folder name; a folder elsewhere gets the same record
+    files = record_files(records_dir, scale, name)
+    metrics = read_parquet(run_dir / "metrics.parquet")
+    block = record_block(config)
+    data = _parquet_bytes(record_frame(metrics, block))
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations, resuming=False)
+    actor = _parquet_bytes(_actor_frame(ckpt["actor"]))
+    _write_bytes(files["data"], data)
+    _write_bytes(files["actor"], actor)
+    if not files["timing"].exists():  # a measurement of the training that made the record first
+        member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
+        atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
+                                            "population": int(metrics.population.iloc[-1]),
+                                            "note": "measured; differs between trainings of the same run"})
+    marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
+              "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
+              "block": block, "rows": int(-(-config.iterations // block)), "env_steps": int(metrics.env_steps.max()),
+              "sha256": {"data": hashlib.sha256(data).hexdigest(), "actor": hashlib.sha256(actor).hexdigest()}}
+    return atomic_write_json(files["marker"], marker)
+
+
+def verify_record(marker_path, config: TrainConfig | None = None) -> dict | None:
+    """The record's marker after checking it and its files; None when there is no marker.
+    RecordError when it is of another format, of another config, or a file differs."""
+    path = Path(marker_path)
+    if not path.exists():
+        return None
+    try:
+        marker = read_json(path)
+    except Exception as err:  # noqa: BLE001 - any unreadable marker is named
+        raise RecordError(path, f"cannot be read ({err})") from None
+    if marker.get("format") != RECORD_FORMAT:
+        raise RecordError(path, f"has format {marker.get('format')!r}, this code reads {RECORD_FORMAT}")
+    if config is not None and marker.get("config_hash") != config.config_hash():
+        raise RecordError(path, f"belongs to config hash {marker.get('config_hash')!r}, not the requested "
+                          f"{config.config_hash()!r}")
+    for kind, suffix in (("data", ".parquet"), ("actor", ".actor.parquet")):
+        file = path.with_name(path.name[: -len(".json")] + suffix)
+        if not file.is_file():
+            raise RecordError(path, f"seals {file.name}, which is missing")
+        if hashlib.sha256(file.read_bytes()).hexdigest() != marker["sha256"][kind]:
+            raise RecordError(path, f"{file.name} differs from the file it sealed (changed or damaged)")
+    return marker
+
+
+def read_record(marker_path) -> tuple:
+    """(config dict, per-row frame) of a verified record."""
+    marker = verify_record(marker_path)
+    if marker is None:
+        raise RecordError(marker_path, "is missing: train the run (python -m pemamoe sweep ...) to write it")
+    return marker["config"], read_parquet(Path(marker_path).with_name(marker["run"] + ".parquet"))
+
+
+def read_record_actor(marker_path):
+    """The final actor of a recorded run, as a single-run module (float32)."""
+    import torch
+
+    from pemamoe.env import observation_dim
+    from pemamoe.nets import make_actor
+
+    config_dict, _ = read_record(marker_path)
+    config = TrainConfig.from_dict(config_dict)
+    actor = make_actor(config.method_spec().network, observation_dim(config.env_config()), 2, config.net)
+    table = read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".actor.parquet"))
+    state = {row.name: torch.from_numpy(np.frombuffer(row.values, dtype="<f4").copy()).reshape(
+        [int(s) for s in row.shape.split(",") if s]) for row in table.itertuples()}
+    actor.load_state_dict(state)
+    return actor
+
+
+def record_timing(marker_path) -> dict:
+    """The measured compute of the training that first made the record ({} if none)."""
+    path = Path(marker_path).with_name(Path(marker_path).stem + ".timing.json")
+    return read_json(path) if path.exists() else {}
+
+
+def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
+    """{scale: megabytes} of the record files under records_dir (every scale but ci is committed)."""
+    out = {}
+    for folder in sorted(p for p in Path(records_dir).glob("*") if p.is_dir()):
+        out[folder.name] = sum(f.stat().st_size for f in folder.iterdir() if f.is_file()) / 1e6
+    return out
+
+
+# %% [markdown]
+# ## Demonstration: a ci run and its record
+#
+# One short run, trained into a temporary folder; its record; the record read back; and the same
+# run trained again in a population of two, whose record is byte-identical.
+
+# %%
+import tempfile
+
+from pemamoe.mappo import train, train_population
+
+with tempfile.TemporaryDirectory() as tmp:
+    tmp = Path(tmp)
+    cfg = TrainConfig.for_scale("ci", method="smoe", seed=0, iterations=6)
+    train(cfg, tmp / "alone")
+    marker = write_record(tmp / "alone", "ci", tmp / "records")
+    config_dict, frame = read_record(marker)
+    print(f"{marker.name}: {len(frame)} rows x {frame.shape[1]} columns, block {record_block(cfg)}, "
+          f"{sum(f.stat().st_size for f in marker.parent.iterdir()) / 1e3:.1f} kB in all")
+    train_population([cfg, cfg.replace(seed=1)], [tmp / "pop0", tmp / "pop1"])
+    again = write_record(tmp / "pop0", "ci", tmp / "records2")
+    same = all((marker.parent / f.name).read_bytes() == f.read_bytes() for f in again.parent.iterdir()
+               if not f.name.endswith(".timing.json"))
+    print("record of the same run trained in a population: byte-identical" if same else "RECORDS DIFFER")
+    assert same
+    print(read_record_actor(marker).__class__.__name__, "read back from the record")
