@@ -88,14 +88,14 @@ def test_done_marker_copied_beside_a_stopped_run_is_rejected(copy, store):
 
 
 def test_logs_changed_after_the_seal_are_rejected(copy):
-    from pemamoe.analysis import load_runs
+    from pemamoe.records import write_record
 
     d = copy("finished")
     m = pd.read_parquet(d / "metrics.parquet")
     m.loc[0, "approx_kl"] += 1.0
     m.to_parquet(d / "metrics.parquet", index=False)
     with pytest.raises(ValueError, match=r"seals a different metrics.parquet"):
-        load_runs([d])
+        write_record(d, "ci", d.parent / "records")  # a record is made only from a verified folder
 
 
 # --- a checkpoint is resumed only by its own run ---------------------------------------------------
@@ -381,7 +381,7 @@ def test_a_checkpoint_of_another_numerics_version_is_refused(copy, stored):
 
 # --- done.json seals whole runs only (issue 28) ---------------------------------------------------
 def test_a_partial_run_cannot_be_sealed_nor_pass_for_finished(copy):
-    from pemamoe.analysis import load_runs
+    from pemamoe.records import write_record
     from pemamoe.runs import LOG_FILES, file_digest, verify_done, write_done
 
     d = copy("partial")  # 4 of 6 iterations
@@ -393,10 +393,10 @@ def test_a_partial_run_cannot_be_sealed_nor_pass_for_finished(copy):
     marker = {"format": 2, "finished": True, "config_hash": ci().config_hash(), "iterations": 6,
               "digests": {name: file_digest(d / name) for name in LOG_FILES}}
     (d / "done.json").write_text(json.dumps(marker))
-    for read in (verify_done, load_run, load_runs, lambda d: train(ci(), d)):
+    for read in (verify_done, load_run, lambda d: write_record(d, "ci", d.parent / "records"), lambda d: train(ci(), d)):
         with pytest.raises(ValueError, match=r"done.json seals a metrics.parquet of 4 rows, but the run has 6 "
                                              r"iterations"):
-            read(d) if read is not load_runs else read([d])
+            read(d)
 
 
 # --- a directory where a file should be (issue 28) ------------------------------------------------
