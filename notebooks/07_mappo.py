@@ -1142,8 +1142,7 @@ def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, 
         torch.manual_seed(seed)
         while len(rows) < episodes:
             x = torch.from_numpy(obs).reshape(B * U, -1)
-            with torch.no_grad():
-                dist, _ = actor(x, temperature, None, deterministic_gate=routing == "noiseless")
+            dist, _ = actor(x, temperature, None, deterministic_gate=routing == "noiseless")
             obs = _evaluation_step(venv, tracker, dist.mean.reshape(B, U, -1).numpy(), action_abs, rows)
     df = pd.DataFrame(rows[:episodes]).drop(columns=["iteration"])
     df["episode"] = np.arange(len(df))

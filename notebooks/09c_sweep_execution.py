@@ -476,7 +476,7 @@ _status
 def sweep_cli(argv=None) -> int:
     import argparse
 
-    from pemamoe.sweep import DEFAULT_POPULATION, experiment_specs, run_sweep  # the sweep imports this module
+    from pemamoe.sweep import DEFAULT_POPULATION, experiment_specs, pending_runs, run_sweep  # the sweep imports this module
 
     parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
     parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
@@ -526,7 +526,7 @@ def sweep_cli(argv=None) -> int:
     try:
         run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
                   population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
-        if args.hours is not None and pending_left(specs, args.results_dir, args.records_dir):
+        if args.hours is not None and pending_runs(specs, args.results_dir, args.records_dir)[1]:
             import pandas as pd
 
             table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
@@ -537,13 +537,6 @@ def sweep_cli(argv=None) -> int:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
-
-
-def pending_left(specs, results_dir, records_dir=None) -> int:
-    """How many of the sweep's runs are not finished (nor recorded, with records_dir)."""
-    from pemamoe.sweep import pending_runs  # the sweep imports this module
-
-    return len(pending_runs(specs, results_dir, records_dir)[1])
 
 
 def _hours(text: str) -> float:

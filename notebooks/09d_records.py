@@ -212,11 +212,16 @@ def verify_record(marker_path, config: TrainConfig | None = None) -> dict | None
     return marker
 
 
-def read_record(marker_path) -> tuple:
-    """(config dict, per-row frame) of a verified record."""
+def _existing_record(marker_path) -> dict:
     marker = verify_record(marker_path)
     if marker is None:
         raise RecordError(marker_path, "is missing: train the run (python -m pemamoe sweep ...) to write it")
+    return marker
+
+
+def read_record(marker_path) -> tuple:
+    """(config dict, per-row frame) of a verified record."""
+    marker = _existing_record(marker_path)
     return marker["config"], read_parquet(Path(marker_path).with_name(marker["run"] + ".parquet"))
 
 
@@ -227,8 +232,7 @@ def read_record_actor(marker_path):
     from pemamoe.env import observation_dim
     from pemamoe.nets import make_actor
 
-    config_dict, _ = read_record(marker_path)
-    config = TrainConfig.from_dict(config_dict)
+    config = TrainConfig.from_dict(_existing_record(marker_path)["config"])  # the marker alone: no log read
     actor = make_actor(config.method_spec().network, observation_dim(config.env_config()), 2, config.net)
     table = read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".actor.parquet"))
     state = {row.name: torch.from_numpy(np.frombuffer(row.values, dtype="<f4").copy()).reshape(
