@@ -120,7 +120,8 @@ def test_kills_two_writers_and_corrupt_files(tmp_path):
     # --- 2. a 2-worker sweep, killed by SIGKILL and by SIGTERM (random order and moment) ----------
     results = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "pemamoe", "sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "1",
-           "--workers", "2", "--results-dir", str(results), "--no-progress"]
+           "--workers", "2", "--results-dir", str(results), "--records-dir", str(tmp_path / "records"),
+           "--no-progress"]
     for sig in rng.sample([signal.SIGKILL, signal.SIGTERM], 2):
         proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         watched.append(psutil.Process(proc.pid))

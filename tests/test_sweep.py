@@ -169,7 +169,8 @@ def test_sigint_stops_the_workers_and_starts_nothing_queued(tmp_path):
     folders = [s.run_dir(tmp_path) for s in specs]
     proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "sweep", "--experiment", "main", "--scale", "ci",
                              "--seeds", "0", "--methods", *BASELINES, "--workers", "2",
-                             "--results-dir", str(tmp_path), "--no-progress"],
+                             "--results-dir", str(tmp_path), "--records-dir", str(tmp_path / "records"),
+                             "--no-progress"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         _wait_for(lambda: all((f / "config.json").exists() for f in folders[:2]) or proc.poll() is not None,
@@ -251,7 +252,8 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
         sweep_status(specs, tmp_path, workers=0)
     assert sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*")) == before  # nothing trained or written
     assert sweep_cli(["--experiment", "main", "--scale", "ci", "--seeds", "0", "--methods", "mlp", "smoe", "moe",
-                      "--results-dir", str(tmp_path), "--status"]) == 0
+                      "--results-dir", str(tmp_path), "--records-dir", str(tmp_path / "records"),
+                      "--status"]) == 0
     assert "1 of 3 runs finished" in capsys.readouterr().out
 
 
@@ -314,6 +316,7 @@ def test_sweep_hours_stops_starts_nothing_after_the_deadline_and_a_rerun_finishe
 
 def test_sweep_cli_hours_prints_what_is_left(tmp_path, capsys):
     code = sweep_cli(["--experiment", "main", "--scale", "ci", "--methods", "mlp", "--workers", "1",
-                      "--results-dir", str(tmp_path), "--hours", "0.0000001", "--no-progress"])
+                      "--results-dir", str(tmp_path), "--records-dir", str(tmp_path / "records"),
+                      "--hours", "0.0000001", "--no-progress"])
     out = capsys.readouterr().out
     assert code == 0 and "1 left" in out and "0 of 1 runs finished" in out and "hours_left" in out
