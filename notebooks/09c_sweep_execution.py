@@ -52,7 +52,7 @@ import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import write_record
+from pemamoe.records import PORTABLE_DIR, drop_portable_state, restore_portable_state, write_portable_state, write_record
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -91,7 +91,9 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
     skipping as that folder allows); return the folders of the runs that are finished. deadline: a
     `time.time()` after which nothing starts and a running population checkpoints and stops.
-    records_dir: write each finished run's record there (appendix 09d), as the population ends."""
+    records_dir: write each finished run's record there (appendix 09d), as the population ends;
+    resume a run from its portable state there when this machine's folder is behind, and leave a
+    portable state for each run the deadline stopped."""
     import torch
 
     from pemamoe.mappo import train_population
@@ -101,6 +103,9 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
     torch.set_num_threads(threads)
     specs = list(specs)
     dirs = [spec.run_dir(results_dir) for spec in specs]
+    if records_dir is not None:
+        for spec, run_dir in zip(specs, dirs):
+            restore_portable_state(run_dir, spec.scale, records_dir)
     start = time.perf_counter()
     train_population([spec.to_config() for spec in specs], dirs, resume=True, threads=threads, progress=False,
                      deadline=deadline)
@@ -110,8 +115,13 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
         if run_dir in finished and not marker.exists():
             atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start,
                                        "population": len(specs)})
-        if run_dir in finished and records_dir is not None:
+        if records_dir is None:
+            continue
+        if run_dir in finished:
             write_record(run_dir, spec.scale, records_dir)
+            drop_portable_state(run_dir.name, spec.scale, records_dir)
+        else:  # stopped by the deadline: what it has done so far travels with the records
+            write_portable_state(run_dir, spec.scale, records_dir)
     return [str(d) for d in finished]
 
 
@@ -362,6 +372,13 @@ except RuntimeError as err:
 # writes the record of every run its population finished (appendix 09d) before it returns, so the
 # records of a campaign grow as its populations finish, and a run whose record verifies is never
 # trained again (`--retrain` trains it into the cache anyway and writes its record again).
+#
+# A population the deadline stopped (`--hours`) leaves the portable state of each unfinished run
+# in `records/<scale>/in_progress/` (appendix 09d). Committed with the records, it lets the sweep
+# go on on another machine: before a population starts, each member whose local folder is behind
+# its portable state is resumed from it, and no iteration is trained twice. A campaign that lives
+# longer than its machines is then: `sweep --hours H`, commit `records/`, and the same command on
+# the next machine.
 
 # %% [markdown]
 # ## Where a long sweep stands
@@ -533,6 +550,10 @@ def sweep_cli(argv=None) -> int:
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
+            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt"))
+            if moved:
+                print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
+                      f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
     except SweepInterrupted as stop:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum

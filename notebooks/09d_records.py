@@ -256,6 +256,100 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
 
 
 # %% [markdown]
+# ## Work in progress that moves: portable state
+#
+# A record exists only once a run has finished, and a medium population trains for hours: longer
+# than some machines live. So a sweep stopped by `--hours` (appendix 09c) also leaves, for each
+# run it did not finish, a **portable state** beside the records, in
+# `records/<scale>/in_progress/<run>.pt`, which is committed with them. It is the run's own sealed
+# checkpoint with one thing left out: the per-episode rows (the largest part of it, and raw data
+# that no record reads). Everything that decides the next numbers (parameters, optimizer moments,
+# generators, the environments' state, the per-iteration log that the record is computed from)
+# stays, so a run resumed from it on another machine computes the same bits, and its record is
+# byte-identical to an uninterrupted run's.
+#
+# On the next machine the sweep copies each portable state into its run folder (unless that
+# folder's own checkpoint is further along) and resumes it. The folder then also gets a
+# `moved.json` saying from which iteration on its `episodes.parquet` holds episodes: the raw
+# episode log of a moved run is partial, and says so. When a run finishes, its record is written
+# and its portable state deleted; the folder `in_progress/` is empty when a campaign is done.
+
+# %%
+#| export
+PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt: unfinished runs (committed while a campaign runs)
+
+
+def portable_state_path(records_dir, scale: str, run_name: str) -> Path:
+    """Where the portable state of the unfinished run `run_name` lives."""
+    return Path(records_dir) / check_scale(scale) / PORTABLE_DIR / f"{run_name}.pt"
+
+
+def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path | None:
+    """Pack the unfinished run in `run_dir` into its portable state (its checkpoint without the
+    per-episode rows, sealed); returns the path, or None when the run is finished or has no
+    checkpoint yet (then there is nothing to carry)."""
+    import torch
+
+    from pemamoe.runs import load_checkpoint, seal_checkpoint
+
+    run_dir = Path(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    if verify_done(run_dir, config) or not (run_dir / "checkpoint.pt").exists():
+        return None
+    ck = load_checkpoint(run_dir / "checkpoint.pt", config)
+    path = portable_state_path(records_dir, scale, config.run_name())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:  # format and numerics stamps kept as the trainer wrote them
+        torch.save({**ck, "episode_rows": []}, tmp)
+        seal_checkpoint(tmp)
+    return path
+
+
+def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool:
+    """Copy the portable state of `run_dir`'s run (named by the folder) into the folder when the
+    folder is not already as far along; returns whether it did. The folder gets `config.json`,
+    the checkpoint and `moved.json` (from which iteration on its episode log is complete)."""
+    from pemamoe.runs import RunFolderError, load_checkpoint
+
+    run_dir = Path(run_dir)
+    source = portable_state_path(records_dir, scale, run_dir.name)
+    if not source.exists():
+        return False
+    ck = load_checkpoint(source)  # its seal is checked: a damaged portable state is refused here
+    config = TrainConfig.from_dict(ck["config"])
+    if config.run_name() != run_dir.name:
+        raise RecordError(source, f"holds run {config.run_name()!r}, not {run_dir.name!r}")
+    here = run_dir / "checkpoint.pt"
+    if verify_done(run_dir, config):
+        return False
+    if here.exists():
+        try:
+            if int(load_checkpoint(here, config)["iteration"]) >= int(ck["iteration"]):
+                return False  # this machine's own checkpoint is as far along: it keeps its episode log
+        except RunFolderError:
+            pass  # a damaged local checkpoint: the portable state replaces it
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(run_dir / "config.json", config.to_dict())
+    with atomic_path(here) as tmp:
+        tmp.write_bytes(source.read_bytes())
+    atomic_write_json(run_dir / "moved.json", {"episodes_from_iteration": int(ck["iteration"]),
+                                               "note": "resumed from a portable state: episodes.parquet holds only the "
+                                                       "episodes that ended after this iteration"})
+    return True
+
+
+def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> None:
+    """Delete a finished run's portable state (its record now carries the run)."""
+    portable_state_path(records_dir, scale, run_name).unlink(missing_ok=True)
+
+
+def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
+    """{scale: megabytes} of the portable states under records_dir."""
+    return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.pt")) / 1e6
+            for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
+
+
+# %% [markdown]
 # ## Demonstration: a ci run and its record
 #
 # One short run, trained into a temporary folder; its record; the record read back; and the same

@@ -17,7 +17,7 @@ import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import write_record
+from pemamoe.records import PORTABLE_DIR, drop_portable_state, restore_portable_state, write_portable_state, write_record
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -41,7 +41,9 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
     skipping as that folder allows); return the folders of the runs that are finished. deadline: a
     `time.time()` after which nothing starts and a running population checkpoints and stops.
-    records_dir: write each finished run's record there (appendix 09d), as the population ends."""
+    records_dir: write each finished run's record there (appendix 09d), as the population ends;
+    resume a run from its portable state there when this machine's folder is behind, and leave a
+    portable state for each run the deadline stopped."""
     import torch
 
     from pemamoe.mappo import train_population
@@ -51,6 +53,9 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
     torch.set_num_threads(threads)
     specs = list(specs)
     dirs = [spec.run_dir(results_dir) for spec in specs]
+    if records_dir is not None:
+        for spec, run_dir in zip(specs, dirs):
+            restore_portable_state(run_dir, spec.scale, records_dir)
     start = time.perf_counter()
     train_population([spec.to_config() for spec in specs], dirs, resume=True, threads=threads, progress=False,
                      deadline=deadline)
@@ -60,8 +65,13 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
         if run_dir in finished and not marker.exists():
             atomic_write_json(marker, {"spec": dataclasses.asdict(spec), "seconds": time.perf_counter() - start,
                                        "population": len(specs)})
-        if run_dir in finished and records_dir is not None:
+        if records_dir is None:
+            continue
+        if run_dir in finished:
             write_record(run_dir, spec.scale, records_dir)
+            drop_portable_state(run_dir.name, spec.scale, records_dir)
+        else:  # stopped by the deadline: what it has done so far travels with the records
+            write_portable_state(run_dir, spec.scale, records_dir)
     return [str(d) for d in finished]
 
 
@@ -73,7 +83,7 @@ def _report_finished(group, finished, report) -> None:
             report(spec)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 8 (line 140)
+# %% notebooks/09c_sweep_execution.py, cell 8 (line 150)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -257,7 +267,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 13 (line 383)
+# %% notebooks/09c_sweep_execution.py, cell 13 (line 400)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
@@ -328,7 +338,7 @@ def status_summary(table, workers: int) -> str:
                    f"{max(hours / workers, longest):.2f} h of wall time.")
 
 
-# %% notebooks/09c_sweep_execution.py, cell 17 (line 474)
+# %% notebooks/09c_sweep_execution.py, cell 17 (line 491)
 def sweep_cli(argv=None) -> int:
     import argparse
 
@@ -389,6 +399,10 @@ def sweep_cli(argv=None) -> int:
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
+            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt"))
+            if moved:
+                print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
+                      f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
     except SweepInterrupted as stop:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
