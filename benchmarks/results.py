@@ -42,8 +42,7 @@ def _git(*args) -> str:
 def current_commit() -> str:
     """The short commit of HEAD, `+dirty` when the measured code has uncommitted changes."""
     commit = _git("rev-parse", "--short", "HEAD") or "unknown"
-    dirty = _git("status", "--porcelain", "--", "pemamoe", "notebooks", "benchmarks",
-                 f":(exclude){RESULTS.relative_to(ROOT).as_posix()}")
+    dirty = _git("status", "--porcelain", "--", "pemamoe", "notebooks", "benchmarks/*.py")
     return commit + ("+dirty" if dirty else "")
 
 
