@@ -18,7 +18,7 @@ help:
 	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
-	@echo "make bench                 print the performance figures"
+	@echo "make bench                 print the performance figures and write them to benchmarks/RESULTS.md"
 	@echo "make lock                  regenerate environment.lock from requirements.in"
 	@echo "make clean                 remove build outputs and caches (keeps .venv and results/)"
 

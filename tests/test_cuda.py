@@ -3,8 +3,8 @@ GPU, the environment on the CPU.
 
 These tests need a CUDA GPU and are skipped without one; CI has none. They run in one prepared
 call on a lent GPU machine through `benchmarks/device_check.sh`. At the commit that added them no
-session had been lent a GPU, so they had never run: the README's CUDA paragraph says when that
-changes.
+session had been lent a GPU, so they had never run: benchmarks/HISTORY.md's CUDA paragraph says
+when that changes.
 
 Here: a CUDA run trains, is a different run from a CPU one, makes the first PPO ratio exactly 1
 (routing replay) and reads back on the CPU. Member independence and resume on the GPU are the

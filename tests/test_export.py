@@ -212,19 +212,3 @@ def test_the_index_maps_every_notebook_and_the_modules_it_exports():
         modules = literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel)
         for module in modules:
             assert f"pemamoe/{module}.py" in rows[nb.name], f"00_index's row for {nb.name} does not name pemamoe/{module}.py"
-
-
-def test_the_readme_lists_every_notebook_and_the_modules_it_exports():
-    from pemamoe.core import figure_notebooks
-
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    rows = {}
-    for line in readme.splitlines():
-        columns = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("| `") else []
-        if len(columns) == 3:  # notebook | paper | exports
-            rows[columns[0].strip("`")] = columns[2]
-    for nb in figure_notebooks(ROOT):
-        assert nb.stem in rows, f"README's notebook table has no row for {nb.stem}"
-        rel = nb.relative_to(ROOT).as_posix()
-        for module in literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel):
-            assert f"pemamoe/{module}.py" in rows[nb.stem], f"README's row for {nb.stem} does not name pemamoe/{module}.py"
