@@ -550,7 +550,7 @@ def sweep_cli(argv=None) -> int:
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
-            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt"))
+            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt.zst"))
             if moved:
                 print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
                       f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)

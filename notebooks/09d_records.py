@@ -261,8 +261,8 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
 # A record exists only once a run has finished, and a medium population trains for hours: longer
 # than some machines live. So a sweep stopped by `--hours` (appendix 09c) also leaves, for each
 # run it did not finish, a **portable state** beside the records, in
-# `records/<scale>/in_progress/<run>.pt`, which is committed with them. It is the run's own sealed
-# checkpoint with one thing left out: the per-episode rows (the largest part of it, and raw data
+# `records/<scale>/in_progress/<run>.pt.zst`, which is committed with them. It is the run's own
+# sealed checkpoint, compressed, with one thing left out: the per-episode rows (the largest part of it, and raw data
 # that no record reads). Everything that decides the next numbers (parameters, optimizer moments,
 # generators, the environments' state, the per-iteration log that the record is computed from)
 # stays, so a run resumed from it on another machine computes the same bits, and its record is
@@ -276,18 +276,20 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
 
 # %%
 #| export
-PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt: unfinished runs (committed while a campaign runs)
+PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
+_PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
 
 def portable_state_path(records_dir, scale: str, run_name: str) -> Path:
     """Where the portable state of the unfinished run `run_name` lives."""
-    return Path(records_dir) / check_scale(scale) / PORTABLE_DIR / f"{run_name}.pt"
+    return Path(records_dir) / check_scale(scale) / PORTABLE_DIR / f"{run_name}.pt.zst"
 
 
 def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path | None:
-    """Pack the unfinished run in `run_dir` into its portable state (its checkpoint without the
-    per-episode rows, sealed); returns the path, or None when the run is finished or has no
-    checkpoint yet (then there is nothing to carry)."""
+    """Pack the unfinished run in `run_dir` into its portable state: its checkpoint without the
+    per-episode rows, sealed, zstd-compressed; returns the path, or None when the run is finished
+    or has no checkpoint yet (then there is nothing to carry)."""
+    import pyarrow as pa
     import torch
 
     from pemamoe.runs import load_checkpoint, seal_checkpoint
@@ -298,24 +300,50 @@ def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path |
         return None
     ck = load_checkpoint(run_dir / "checkpoint.pt", config)
     path = portable_state_path(records_dir, scale, config.run_name())
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:  # format and numerics stamps kept as the trainer wrote them
         torch.save({**ck, "episode_rows": []}, tmp)
         seal_checkpoint(tmp)
+        data = tmp.read_bytes()
+        tmp.write_bytes(_PORTABLE_MAGIC + len(data).to_bytes(8, "little")
+                        + pa.Codec("zstd", compression_level=9).compress(data, asbytes=True))
     return path
+
+
+def read_portable_state(path) -> bytes:
+    """The sealed checkpoint bytes of a portable state. RecordError when the file is not one."""
+    import pyarrow as pa
+
+    raw = Path(path).read_bytes()
+    head = len(_PORTABLE_MAGIC) + 8
+    if not raw.startswith(_PORTABLE_MAGIC) or len(raw) <= head:
+        raise RecordError(path, "is not a portable state (no pemamoe-portable header)")
+    size = int.from_bytes(raw[len(_PORTABLE_MAGIC):head], "little")
+    try:
+        return pa.Codec("zstd").decompress(raw[head:], decompressed_size=size, asbytes=True)
+    except (pa.ArrowException, OSError) as err:
+        raise RecordError(path, f"cannot be decompressed ({type(err).__name__}: {err})") from None
 
 
 def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool:
     """Copy the portable state of `run_dir`'s run (named by the folder) into the folder when the
     folder is not already as far along; returns whether it did. The folder gets `config.json`,
     the checkpoint and `moved.json` (from which iteration on its episode log is complete)."""
+    import tempfile
+
     from pemamoe.runs import RunFolderError, load_checkpoint
 
     run_dir = Path(run_dir)
     source = portable_state_path(records_dir, scale, run_dir.name)
     if not source.exists():
         return False
-    ck = load_checkpoint(source)  # its seal is checked: a damaged portable state is refused here
+    data = read_portable_state(source)
+    with tempfile.TemporaryDirectory() as scratch:
+        unpacked = Path(scratch) / "checkpoint.pt"
+        unpacked.write_bytes(data)
+        try:
+            ck = load_checkpoint(unpacked)  # its seal is checked: a damaged portable state is refused here
+        except RunFolderError as err:
+            raise RecordError(source, err.problem) from None
     config = TrainConfig.from_dict(ck["config"])
     if config.run_name() != run_dir.name:
         raise RecordError(source, f"holds run {config.run_name()!r}, not {run_dir.name!r}")
@@ -331,7 +359,7 @@ def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_json(run_dir / "config.json", config.to_dict())
     with atomic_path(here) as tmp:
-        tmp.write_bytes(source.read_bytes())
+        tmp.write_bytes(data)
     atomic_write_json(run_dir / "moved.json", {"episodes_from_iteration": int(ck["iteration"]),
                                                "note": "resumed from a portable state: episodes.parquet holds only the "
                                                        "episodes that ended after this iteration"})
@@ -345,7 +373,7 @@ def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> N
 
 def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
     """{scale: megabytes} of the portable states under records_dir."""
-    return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.pt")) / 1e6
+    return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.pt.zst")) / 1e6
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 

@@ -10,8 +10,8 @@ import pytest
 
 from pemamoe.execution import execute_population
 from pemamoe.records import (PORTABLE_DIR, RecordError, portable_state_mb, portable_state_path,
-                             restore_portable_state, write_portable_state)
-from pemamoe.runs import RunFolderError, load_checkpoint, parquet_rows, read_json
+                             read_portable_state, restore_portable_state, write_portable_state)
+from pemamoe.runs import load_checkpoint, parquet_rows, read_json
 from pemamoe.mappo import train_population
 from pemamoe.sweep import RunSpec, record_marker
 
@@ -32,7 +32,9 @@ def test_a_run_moved_mid_way_to_a_fresh_machine_records_the_same_bytes(tmp_path)
     for spec in specs:
         path = write_portable_state(spec.run_dir(first), "ci", committed)
         assert path == portable_state_path(committed, "ci", spec.to_config().run_name())
-        ck = load_checkpoint(path, spec.to_config())  # sealed, and a valid checkpoint of this run
+        unpacked = tmp_path / "unpacked.pt"
+        unpacked.write_bytes(read_portable_state(path))
+        ck = load_checkpoint(unpacked, spec.to_config())  # sealed, and a valid checkpoint of this run
         assert ck["iteration"] == 5 and ck["episode_rows"] == []
         assert path.stat().st_size < (spec.run_dir(first) / "checkpoint.pt").stat().st_size
     assert portable_state_mb(committed)["ci"] > 0
@@ -50,7 +52,7 @@ def test_a_run_moved_mid_way_to_a_fresh_machine_records_the_same_bytes(tmp_path)
         assert _record_bytes(record_marker(spec, clone)) == _record_bytes(record_marker(spec, tmp_path / "reference_records"))
         assert not portable_state_path(clone, "ci", run_dir.name).exists()  # the record carries the run now
         assert parquet_rows(run_dir / "episodes.parquet") < parquet_rows(spec.run_dir(tmp_path / "reference") / "episodes.parquet")
-    assert not any((clone / "ci" / PORTABLE_DIR).glob("*.pt"))
+    assert not any((clone / "ci" / PORTABLE_DIR).glob("*.pt.zst"))
 
 
 def test_a_deadline_stop_leaves_a_portable_state_that_restores_once(tmp_path):
@@ -58,19 +60,21 @@ def test_a_deadline_stop_leaves_a_portable_state_that_restores_once(tmp_path):
     records = tmp_path / "records"
     assert execute_population([spec], tmp_path / "a", deadline=time.time() + 8, records_dir=records) == []
     path = portable_state_path(records, "ci", spec.to_config().run_name())
-    stopped_at = load_checkpoint(path, spec.to_config())["iteration"]
-    assert 0 < stopped_at < 400 and not record_marker(spec, records).exists()
-
     fresh = spec.run_dir(tmp_path / "b")
     assert restore_portable_state(fresh, "ci", records)
-    assert load_checkpoint(fresh / "checkpoint.pt", spec.to_config())["iteration"] == stopped_at
+    stopped_at = load_checkpoint(fresh / "checkpoint.pt", spec.to_config())["iteration"]
+    assert 0 < stopped_at < 400 and not record_marker(spec, records).exists()
+    assert stopped_at == load_checkpoint(spec.run_dir(tmp_path / "a") / "checkpoint.pt", spec.to_config())["iteration"]
     assert not restore_portable_state(fresh, "ci", records)  # the folder is as far along already
     assert not restore_portable_state(spec.run_dir(tmp_path / "a"), "ci", records)  # the first machine's too
 
     data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0xFF
+    data[len(data) // 2] ^= 0xFF  # inside the compressed stream: decompression or the seal catches it
     path.write_bytes(bytes(data))
-    with pytest.raises(RunFolderError, match="content check"):
+    with pytest.raises(RecordError, match="content check|cannot be decompressed"):
+        restore_portable_state(spec.run_dir(tmp_path / "c"), "ci", records)
+    path.write_bytes(b"not a portable state")
+    with pytest.raises(RecordError, match="no pemamoe-portable header"):
         restore_portable_state(spec.run_dir(tmp_path / "c"), "ci", records)
 
 
