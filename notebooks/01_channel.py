@@ -54,9 +54,9 @@ from pemamoe.core import require_field
 # %% [markdown]
 # ## The configuration
 #
-# One frozen dataclass carries every number of the channel. The defaults follow the project
-# specification: 2 GHz carrier, 10 MHz of spectrum, one frequency colour (reuse factor 1, as in
-# the paper) with a leakage of $10^{-3}$ between colours, 0.1 W (20 dBm) per UAV, thermal noise
+# One frozen dataclass carries every number of the channel. The defaults are the values every
+# experiment here uses: 2 GHz carrier, 10 MHz of spectrum, one frequency colour (reuse factor 1,
+# as in the paper) with a leakage of $10^{-3}$ between colours, 0.1 W (20 dBm) per UAV, thermal noise
 # of $-174$ dBm/Hz, isotropic antennas, an implementation-loss factor $\alpha = 0.8$ on the
 # Shannon rate, Rician $K = 6$ dB for LoS links, Nakagami $m = 1$ (Rayleigh) for NLoS links, and
 # shadowing spreads of 4 dB / 7.82 dB (the 3GPP UMi values).
@@ -410,8 +410,8 @@ def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generat
 #
 # a single matrix product over the last axis for every user (and every batch element) at once.
 # $I_{n,u}$ is computed for *every* candidate server $u$, which is what the scheduler needs to
-# compare UAVs. With the conservative assumption of the specification, $P_{u'} = P_\text{max}$ for
-# every interferer.
+# compare UAVs. We make the conservative assumption that every interferer transmits at full power,
+# $P_{u'} = P_\text{max}$.
 #
 # A modelling note: the formula charges the interferer's *total* power against a user that only
 # occupies a slice $B_u$ of the colour. If the interferer spreads its power evenly over its

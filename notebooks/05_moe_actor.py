@@ -34,10 +34,6 @@
 # cost table. The machinery the experiments add on top (the method registry, the faster ways of
 # executing the experts, the population of networks trained as one set of tensors, and the
 # latency measurements) is in the appendix notebook `05b_population_nets.py`.
-#
-# At about 1,100 lines this notebook is longer than the others: the four actors, the two critics,
-# the gate with its five ingredients and the parameter counts that pin the architecture down are
-# all part of the method, and each comes with the check that shows it does what the text says.
 
 # %%
 #| default_exp nets

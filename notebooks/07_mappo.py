@@ -18,10 +18,10 @@
 # notebook 06 are wired into one PPO loop, `train(config)`, that every experiment of the paper
 # runs (the four methods MLP, MoE, SMoE and PE-MAMoE, the noise sweep and the tricks ablation).
 #
-# The run's configuration object and the trainer's bookkeeping (episode accounting, the log row,
-# checkpoint encoding) are in appendix 07c, and run folders in 07b, so what remains here is the
-# method. The notebook is still longer than about 800 lines because the rollout, the update and
-# the training loop are the algorithm and read best top to bottom, in one place.
+# This notebook is the method, to be read top to bottom: the rollout, the advantages, the update
+# and the training loop. The machinery around it is in three appendices: run folders in 07b, the
+# run's configuration and the trainer's bookkeeping (episode accounting, the log row, checkpoint
+# encoding) in 07c, and populations of runs, resuming and reading a run back in 07d.
 #
 # **Centralised training, decentralised execution (CTDE).** Each of the $U = 3$ UAVs acts on its
 # *own* local observation: the actor never sees the other UAVs' observations or the global state,
@@ -54,53 +54,15 @@
 #
 # ## The run as a tensor axis
 #
-# A paper-scale comparison is dozens of runs (methods x seeds x ablations), and each run's
-# networks are tiny: a PPO minibatch step on 192 agent rows spends most of its time in fixed
-# per-call costs, not in arithmetic. So the trainer trains a **population** of R runs in one
-# process, the way PureJaxRL vectorises seeds: `train_population(configs, run_dirs)` steps R x B
-# environments and updates R networks with one set of tensor operations whose leading axis is the
-# run. `train(config, run_dir)` is simply the population of one; there is no second loop.
-#
-# ```
-#                      shared by all members                       per member r (row r of every tensor)
-#   phase clock  ──►  set_phase / switch / iteration count     ─►  environments r*B .. r*B+B-1 (own seeds, own streams)
-#   method, network kind, sizes, rollout and update settings   ─►  parameters flat[r] (actor, critic), AdamW moments and steps
-#                                                               ─►  action / gate noise generator, minibatch permutations
-#   one batched matmul per layer over (R, rows, features)      ─►  learning rate, clip, target KL, entropy, temperature,
-#   one optimizer step over (R, P)                              ─►  phase-controller state (anchor, noise budget, freeze)
-#                                                               ─►  run folder: config, metrics, episodes, checkpoint, done
-# ```
-#
-# Members may differ in their seed, their phase-controller settings (ablation switches, noise
-# gamma) and `force_controller`; `check_population` refuses anything else, naming the field.
-#
-# **Why a member's result does not depend on its neighbours.** Every operation of the loop is
-# one of three kinds: elementwise (activations, the optimizer's update, clipping by a per-member
-# factor), a reduction within one member's slice (losses, advantage normalisation, gradient norms,
-# the KL early stop), or a batched matrix product whose batch entries are computed separately.
-# Each member draws its randomness from its own generators, in the order a run alone would, and a
-# member that stopped early at its target KL keeps its parameters, moments, step counts and
-# random streams untouched while the others continue. One operation did depend on the population:
-# torch computes a batched product with a single output column (the value head) through a
-# different matrix-vector path for one batch entry than for several, which changed the last bit
-# of the values; the value head is therefore a product and a row sum. The tests train the same
-# member alone, in populations of two and three, in different orders and next to members with
-# other ablations, and compare metrics, episodes and checkpoints bit for bit.
-#
-# **Devices.** `TrainConfig.device` ("cpu", "cuda" or "auto") places the networks, the buffers and
-# the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
-# the resolved device is part of the run's identity (its hash).
-#
-# **What it buys, and where it stops.** `make bench` measures it (figures in the README; the rates
-# with the training code of `8ca3ef6`, the profile with the benchmark of `be55e3e`): on one core, a 16-member PE-MAMoE population at the paper preset trains 3,039
-# member environment steps per second, 3.7x a lone run, well short of the 10,000 the population
-# issue asked for. The same benchmark profiles a 16-member iteration: the matrix products alone
-# take 29 % of it, so even with every other cost removed the population could not pass about
-# 10,150 steps per second. Going further needs fewer or faster products. The gated networks
-# compute all three experts for every row and keep one, because no top-1 formulation has yet kept
-# a member's bits independent of its neighbours; and the router and noise-gate products (149
-# inputs, 3 outputs) run far below the core's speed, while fusing them into the experts' product
-# changes their last bits and with them every cached result.
+# A paper-scale comparison is dozens of runs, and each run's networks are tiny, so a minibatch
+# step spends most of its time in fixed per-call costs rather than arithmetic. The trainer
+# therefore trains a **population** of R runs in one process: `train_population(configs,
+# run_dirs)` steps R x B environments and updates R networks with one set of tensor operations
+# whose leading axis is the run, and `train(config, run_dir)` is the population of one. That is
+# the leading axis R of the tensors below. Every member's result is bit-identical to training its
+# config alone. Which settings members may differ in, why a member's numbers do not depend on its
+# neighbours, what the population buys in speed, and how members resume from checkpoints (and
+# catch up with each other) is machinery a reader of the method can skip: it is in appendix 07d.
 
 # %%
 #| default_exp mappo
@@ -114,29 +76,23 @@ results_dir = "results"
 # %%
 #| export
 import dataclasses
-import json
 import math
 import sys
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
-    EpisodeTracker, _Determinism, _decode, _encode, _iteration_row, _member_phases, _merged_phases, _progress_bar,
-    RowLog, _torch_save_atomic, _write_parquet_atomic, explained_variance, merge_env_states, split_env_state)
-from pemamoe.core import SCALES
+    EpisodeTracker, _iteration_row, _member_phases, _merged_phases, _progress_bar, RowLog, RunningNorm, ValueNorms,
+    explained_variance, merge_env_states, split_env_state)
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.nets import (NetConfig, PopulationActor, PopulationCritic, RoutingSample, make_actor, make_critic,
-                          routing_noise_std)
+from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
 from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
@@ -148,12 +104,14 @@ from pemamoe.population_plasticity import (
     plasticity_method,
 )
 from pemamoe.phases import PhaseSchedule
-from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
-                          verify_done, write_done)
+from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
+    EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, RunResult, _build, check_population, evaluate_policy, load_run,
+    plasticity_name, population_key, train_members)
+from pemamoe.runs import write_done
 # the configuration (appendix 07c): callers import TrainConfig and the presets from here
 from pemamoe.train_config import (  # re-export (public names only)
     DEVICES, MEDIUM_PHASE_ITERS, METHODS, PAPER_PHASE_LENGTH, PAPER_UPDATE_EPOCHS, TIMING_COLUMNS, TrainConfig,
-    _is_int, _plain, resolve_device, scale_controller)
+    _plain, resolve_device, scale_controller)
 
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose
@@ -181,14 +139,6 @@ from pemamoe.train_config import (  # re-export (public names only)
 # decay" with Adam today. At $\text{lr}\times\text{wd} = 3\times10^{-8}$ per step the decay is
 # tiny either way; it also applies to the log-std, pulling it towards 0 by a negligible amount.
 #
-# **Value normalisation.** A slot's team reward is a QoS sum of up to several hundred minus
-# energy, collision and overlap penalties, so discounted returns reach the thousands and change
-# scale at each phase switch (the class rewards go 5 → 10 → 20). A critic regressing such targets
-# directly produces huge value-loss gradients. We use MAPPO's remedy: a running mean and standard
-# deviation of the returns (`RunningNorm`, checkpointed with the run); the critic predicts
-# normalised values, the rollout de-normalises them for GAE, and the value loss compares
-# normalised predictions with normalised targets. Switch it off with `value_norm=False`.
-#
 # **Separate gradient clipping.** With one optimiser over actor and critic, a single global norm
 # clip would let the critic's gradient eat the actor's budget (or the reverse). MAPPO keeps two
 # optimisers and clips each; we keep one AdamW (the phase controller needs one optimiser with named
@@ -197,30 +147,13 @@ from pemamoe.train_config import (  # re-export (public names only)
 # %% [markdown]
 # ## The configuration
 #
-# `TrainConfig` holds every number of a run. Four presets come from `TrainConfig.for_scale`:
-#
-# * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
-# * **small**: the budget of `make figures`: 39 runs (four methods × three seeds, the ablations
-#   and the noise sweep); the sweep took 18 min 34 s on two cores with two worker processes
-#   (measured at `dc5e4d6`, README).
-#   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts
-#   60 iterations (540 iterations, 276k environment steps in all) and the update runs 4 epochs of
-#   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
-#   which prints the throughput of populations of 1, 4 and 16 runs and the projected sweep times;
-#   the README quotes its latest figures with the commit that measured them.
-# * **medium**: the scale at which learning is visible. It keeps the small update settings and
-#   gives each phase `MEDIUM_PHASE_ITERS` iterations, three phases twice over (six phases). Both
-#   numbers come from the learning-budget study of notebook 09b, which trains every method in each
-#   single phase for two million steps; that notebook states what the study found and whether this
-#   phase length lets every method get close to its plateau. The study also picks the update
-#   settings: per compute second the small ones and the paper's (64 environments, 8 epochs x 32
-#   minibatches) are close, but the paper's cost about twice as much per environment step and level
-#   off no higher (`paper_figures/learning_budget_compute.md` and `learning_budget.md`, study runs
-#   at `d02f78f`), and a phase is counted in environment steps. Two cycles instead of the paper's
-#   three, because a third would add half again to a sweep that already runs several times over
-#   its two-hour budget (README); two cycles still show every switch the paper is about: each phase
-#   is entered cold, left, and entered again.
-# * **ci**: a handful of iterations crossing two phase switches, seconds per run.
+# `TrainConfig` holds every number of a run, and `TrainConfig.for_scale(scale, method, seed)`
+# gives four presets: **paper**, the training table exactly (10,800 iterations of 2048 environment
+# steps); **medium**, the scale at which learning is visible (longer phases, three phases twice
+# over); **small**, the budget of `make figures`; and **ci**, a handful of iterations crossing two
+# phase switches, seconds per run. Why the smaller presets hold the numbers they hold, a table of
+# the four side by side, and the code of `TrainConfig` (its checks, `config.json`, the hash that
+# names a run's folder) are in appendix 07c (`pemamoe.train_config`); this module re-exports them.
 #
 # **Time-compressed schedules.** The phase controller's windows are counted in iterations
 # (LR warm-up 200, conservative window 80, router freeze 30, KL-anchor decay 0.985 per iteration,
@@ -234,26 +167,6 @@ from pemamoe.train_config import (  # re-export (public names only)
 # The controller runs only for `method="pemamoe"`; `force_controller=True` runs it for a baseline
 # as well (the noise sweep's "MoE with expert noise alone" uses it). A baseline's controller
 # settings are left out of its config hash, since they cannot change its run.
-#
-# The code behind these presets, and `TrainConfig` itself (its fields and their checks, `to_dict`
-# and `from_dict` for `config.json`, the identity and hash that name a run's folder), is in the
-# appendix notebook 07c (`pemamoe.train_config`); this notebook's module imports it from there and
-# re-exports it.
-
-# %% [markdown]
-# The presets side by side (the columns that differ, and the rescaled controller windows):
-
-# %%
-_rows = []
-for _s in SCALES:
-    _c = TrainConfig.for_scale(_s)
-    _rows.append({"scale": _s, "num_envs": _c.num_envs, "rollout_steps": _c.rollout_steps,
-                  "env steps/iter": _c.batch_env_steps, "iterations": _c.iterations, "L": _c.phase_length_iters,
-                  "epochs": _c.update_epochs, "minibatches": _c.num_minibatches,
-                  "total env steps": _c.total_env_steps, "lr warm-up": _c.controller.lr_warmup_iters,
-                  "conservative": _c.controller.conservative_iters, "freeze": _c.controller.router_freeze_iters,
-                  "noise epochs": _c.controller.noise_epochs, "kl decay": round(_c.controller.kl_decay, 4)})
-pd.DataFrame(_rows)
 
 # %% [markdown]
 # ## The phase clock
@@ -345,53 +258,15 @@ _adv.squeeze().tolist()
 # %% [markdown]
 # ## Value normalisation
 #
-# `RunningNorm` keeps the count, mean and variance of every return it has seen (the parallel
-# Welford update of Chan et al., in float64). Before each update it absorbs the new batch of
-# returns; the critic then regresses $(\hat R - \mu)/\sigma$ and the rollout reads values back as
-# $\mu + \sigma\,\hat v$. With `value_norm=False` it is the identity.
-
-# %%
-#| export
-class RunningNorm:
-    """Running mean / variance of scalar targets (float64); identity when enabled=False."""
-
-    def __init__(self, enabled: bool = True, eps: float = 1e-8):
-        self.enabled, self.eps = bool(enabled), float(eps)
-        self.count, self.mean, self.var = 0.0, 0.0, 1.0
-
-    @property
-    def std(self) -> float:
-        return math.sqrt(self.var + self.eps) if self.enabled and self.count > 0 else 1.0
-
-    def _mean(self) -> float:
-        return self.mean if self.enabled and self.count > 0 else 0.0
-
-    def update(self, x) -> None:
-        if not self.enabled:
-            return
-        x = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
-        n, m, v = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
-        if self.count == 0:
-            self.count, self.mean, self.var = n, m, v
-            return
-        tot = self.count + n
-        delta = m - self.mean
-        self.mean += delta * n / tot
-        self.var = (self.var * self.count + v * n + delta**2 * self.count * n / tot) / tot
-        self.count = tot
-
-    def normalize(self, x):
-        return (x - self._mean()) / self.std
-
-    def denormalize(self, x):
-        return x * self.std + self._mean()
-
-    def state_dict(self) -> dict:
-        return {"enabled": self.enabled, "count": self.count, "mean": self.mean, "var": self.var}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.enabled = bool(state["enabled"])
-        self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
+# A slot's team reward is a QoS sum of up to several hundred minus energy, collision and overlap
+# penalties, so discounted returns reach the thousands and change scale at each phase switch (the
+# class rewards go 5 → 10 → 20). A critic regressing such targets directly produces huge
+# value-loss gradients. We use MAPPO's remedy: a running mean $\mu$ and standard deviation
+# $\sigma$ of every return seen so far, updated with each new batch before the update. The critic
+# regresses the normalised return $(\hat R - \mu)/\sigma$, and the rollout reads its values back
+# as $\mu + \sigma\,\hat v$ for GAE. Switch it off with `value_norm=False`. The statistics are
+# bookkeeping (`RunningNorm`, a parallel Welford update in float64, checkpointed with the run, and
+# `ValueNorms`, one per member of a population): appendix 07c.
 
 # %% [markdown]
 # ## Rollout
@@ -541,28 +416,6 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 
 # %%
 #| export
-class ValueNorms:
-    """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
-
-    def __init__(self, configs):
-        self.norms = [RunningNorm(c.value_norm) for c in configs]
-
-    def _column(self, values, like):
-        t = torch.tensor(values, dtype=torch.float64)
-        return t.reshape(-1, *([1] * (like.ndim - 1)))
-
-    def normalize(self, x):
-        return (x - self._column([n._mean() for n in self.norms], x)) / self._column([n.std for n in self.norms], x)
-
-    def denormalize(self, x):
-        return x * self._column([n.std for n in self.norms], x) + self._column([n._mean() for n in self.norms], x)
-
-    def update(self, returns) -> None:
-        """returns (R, ...): each member's norm sees its own slice."""
-        for r, n in enumerate(self.norms):
-            n.update(returns[r])
-
-
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -710,8 +563,10 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
 # moments and step counts, the return normaliser, the phase controller, the random states, the
 # environments' complete state, the current observations, the running episodes and the log rows
 # so far), so a run resumed from it continues bit for bit. How a checkpoint is encoded, the run
-# folder's files and the columns of the per-iteration log row are in appendix 07c; how a folder is
-# locked, sealed and checked before it is trusted, in appendix 07b.
+# folder's files and the columns of the per-iteration log row are in appendix 07c; how the loop
+# writes and reads its members' checkpoints (`MemberStates`) and how `train_population` resumes
+# members and lets them catch up, in 07d; how a folder is locked, sealed and checked before it is
+# trusted, in 07b.
 
 # %%
 #| export
@@ -738,89 +593,6 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     pick_o = np.sort(rng.permutation(len(obs_all))[:config.probe_size])
     pick_s = np.sort(rng.permutation(len(state_all))[:min(config.probe_size, len(state_all))])
     return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
-
-
-@dataclass
-class RunResult:
-    """What `train` returns (also rebuilt from a finished run directory by `load_run`)."""
-
-    config: TrainConfig
-    metrics: pd.DataFrame  # one row per iteration
-    episodes: pd.DataFrame  # one row per finished training episode
-    actor: nn.Module
-    critic: nn.Module
-    run_dir: Path | None = None
-    finished: bool = True  # False when stopped early by max_iterations
-    resumed_from: int | None = None  # iteration the run continued from, if it resumed
-    from_cache: bool = False  # True when done.json was found and nothing was recomputed
-
-
-def _build(config: TrainConfig, obs_dim: int, state_dim: int):
-    """One member's single-run actor and critic, initialised from its seed alone."""
-    torch.manual_seed(config.seed)
-    kind = config.method_spec().network
-    return make_actor(kind, obs_dim, 2, config.net), make_critic(kind, state_dim, config.net)
-
-
-def load_run(run_dir) -> RunResult:
-    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint).
-    finished is True only when done.json verifies (pemamoe.runs.verify_done; a bad one raises)."""
-    run_dir = check_run_dir(run_dir)
-    config = read_config(run_dir / "config.json", TrainConfig)
-    done = verify_done(run_dir, config)
-    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None,
-                           resuming=done is None)
-    env_cfg = config.env_config()
-    actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
-    actor.load_state_dict(ckpt["actor"])
-    critic.load_state_dict(ckpt["critic"])
-    return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
-                     actor, critic, run_dir, finished=done is not None, from_cache=True)
-
-
-# Fields that members of one population may set differently; every other field is shared.
-# (fixed_phase: members may sit in different fixed phases, but either all cycle or none does.)
-MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase")
-
-
-def population_key(config: TrainConfig) -> str:
-    """What members of one population must share: the run identity without MEMBER_FIELDS."""
-    ident = {k: v for k, v in config.identity().items() if k not in MEMBER_FIELDS}
-    ident["phase_fixed"] = config.fixed_phase is not None
-    return json.dumps(ident, sort_keys=True, separators=(",", ":"))
-
-
-def check_population(configs) -> None:
-    """Raise ValueError naming the first field on which two members disagree in a shared setting."""
-    if not configs:
-        raise ValueError("a population needs at least one TrainConfig")
-    for c in configs:
-        if not isinstance(c, TrainConfig):
-            raise ValueError(f"population members must be TrainConfig objects, got {type(c).__name__}")
-    ref = configs[0].identity()
-    for c in configs[1:]:
-        other = c.identity()
-        for key in sorted(set(ref) | set(other)):
-            if key in MEMBER_FIELDS:
-                continue
-            if ref.get(key) != other.get(key):
-                raise ValueError(f"population members must share {key!r}: {ref.get(key)!r} (seed {configs[0].seed}) "
-                                 f"vs {other.get(key)!r} (seed {c.seed}); members may differ only in "
-                                 f"{', '.join(MEMBER_FIELDS)}")
-    fixed = {c.fixed_phase is not None for c in configs}
-    if len(fixed) > 1:
-        raise ValueError("population members must share whether 'fixed_phase' is set: members with a fixed "
-                         "phase cannot train next to members whose phases cycle")
-    names = {plasticity_name(c) for c in configs}
-    if len(names - {"none", "phase_controller"}) > 0 and len(names) > 1:
-        raise ValueError(f"population members must share one plasticity method, got {sorted(names)}")
-
-
-def plasticity_name(config: TrainConfig) -> str:
-    spec = config.method_spec()
-    return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
-
-
 
 # %% [markdown]
 # ### `train`
@@ -852,72 +624,16 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     """Train R runs in one process as one population (the run is a tensor axis).
 
     configs: TrainConfigs that differ only in MEMBER_FIELDS (seed, controller settings such as
-    ablation switches and noise gamma, force_controller). run_dirs: one folder per member (or
-    None). Every member's result is bit-identical to training its config alone: same files, same
-    metrics. Members with a finished folder are read back. Members whose checkpoints stopped at
-    different iterations start as sub-populations: the one furthest behind trains up to the next
-    one's iteration, checkpoints, and joins it (a killed sweep resumes as one population again,
-    not as a queue of small ones; this needs the lagging members' folders, so with run_dir None
-    they train to the end first). deadline: a `time.time()` at which training stops at the end of
-    the current iteration with a checkpoint of every member (a resume continues bit for bit);
-    members that had not started by then are None. Returns one RunResult per config.
+    ablation switches and noise gamma, force_controller, fixed_phase). run_dirs: one folder per
+    member (or None). Every member's result is bit-identical to training its config alone: same
+    files, same metrics. Members with a finished folder are read back; members whose checkpoints
+    stopped at different iterations catch up with each other and join (`train_members`, appendix
+    07d). deadline: a `time.time()` at which training stops at the end of the current iteration
+    with a checkpoint of every member; members that had not started by then are None. Returns one
+    RunResult per config.
     """
-    configs = list(configs)
-    check_population(configs)
-    if threads is not None and (not _is_int(threads) or threads < 1):
-        raise ValueError(f"train: threads must be an int >= 1 or None, got {threads!r}")
-    if max_iterations is not None and (not _is_int(max_iterations) or max_iterations < 1):
-        raise ValueError(f"train: max_iterations must be an int >= 1 or None, got {max_iterations!r}")
-    if run_dirs is not None and len(run_dirs) != len(configs):
-        raise ValueError(f"run_dirs has {len(run_dirs)} entries for {len(configs)} configs")
-    dirs = [None if d is None else check_run_dir(d) for d in (run_dirs or [None] * len(configs))]
-    named = [d.resolve() for d in dirs if d is not None]
-    if len(set(named)) != len(named):
-        raise ValueError("two members of a population share one run_dir")
-    results, pending, locks = [None] * len(configs), {}, []
-    try:
-        for r, (config, run_dir) in enumerate(zip(configs, dirs)):
-            ckpt = None
-            if run_dir is not None:
-                if resume and verify_done(run_dir, config):  # a finished run is read without the lock
-                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
-                    continue
-                locks.append(lock_run(run_dir))  # one writer per folder, for the member's whole run
-                prepare_run_dir(run_dir, config, resume)
-                if resume and verify_done(run_dir, config):  # finished between the check and the lock
-                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
-                    continue
-                path = run_dir / "checkpoint.pt"
-                if resume and path.exists():
-                    ckpt = load_checkpoint(path, config)  # refuses another run's checkpoint, names a torn one
-            start = 0 if ckpt is None else int(ckpt["iteration"])
-            pending.setdefault(start, []).append((r, ckpt))
-        first_start = {r: start for start, members in pending.items() for r, _ in members}
-        with _Determinism(threads):
-            while pending:
-                start = min(pending)
-                members = pending.pop(start)
-                # Catch up with the next sub-population, then train as one (members are independent
-                # of their neighbours, so this changes no bit). Needs every member's folder to reload.
-                catch_up = bool(pending) and all(dirs[r] is not None for r, _ in members)
-                after = min(pending) if catch_up else None
-                stop = max_iterations if after is None else min(after, max_iterations or after)
-                group = _train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                     [ck for _, ck in members], stop, verbose, progress, deadline)
-                if deadline is not None and time.time() >= deadline:  # out of time: start nothing more
-                    for (r, _), res in zip(members, group):
-                        results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
-                    break
-                if catch_up and stop == after and stop < configs[members[0][0]].iterations:
-                    joined = [(r, load_checkpoint(dirs[r] / "checkpoint.pt", configs[r])) for r, _ in members]
-                    pending[stop] = sorted(pending[stop] + joined, key=lambda m: m[0])
-                    continue
-                for (r, _), res in zip(members, group):
-                    results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
-    finally:
-        for lock in locks:
-            lock.release()
-    return results
+    return train_members(configs, run_dirs, resume, _train_group, max_iterations=max_iterations, threads=threads,
+                         verbose=verbose, progress=progress, deadline=deadline)
 
 
 def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress, deadline=None) -> list:
@@ -957,52 +673,17 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
     metrics_rows, episode_rows, elapsed = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)], [0.0] * R
     torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
 
+    members = MemberStates(configs, singles, actor, critic, actor_opt, critic_opt, plasticity, norms, tracker,
+                           generators, rngs, metrics_rows, episode_rows, elapsed, torch_threads)  # appendix 07d
     if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
-        env_states = []
-        for r, ck in enumerate(ckpts):
-            with torch.no_grad():
-                a, c = singles[r]
-                a.load_state_dict(ck["actor"]), c.load_state_dict(ck["critic"])
-                actor.flat[r] = actor.layout.flatten([a])[0].to(device)
-                critic.flat[r] = critic.layout.flatten([c])[0].to(device)
-            actor_opt.load_member_state(r, ck["optimizer"]["actor"])
-            critic_opt.load_member_state(r, ck["optimizer"]["critic"])
-            plasticity.load_state_dict(r, ck["plasticity"])
-            norms.norms[r].load_state_dict(ck["value_norm"])
-            tracker.load_member_state(r, ck["tracker"])
-            env_states.append(_decode(ck["env"]))
-            obs[r * B:(r + 1) * B], state[r * B:(r + 1) * B] = ck["obs"].numpy(), ck["state"].numpy()
-            generators[r].set_state(ck["torch_rng"])
-            rngs[r].bit_generator.state = ck["numpy_rng"]
-            global_step, elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
-            metrics_rows[r] = RowLog.from_checkpoint(ck["metrics_rows"])
-            episode_rows[r] = RowLog.from_checkpoint(ck["episode_rows"])
-            torch_threads[r].update(ck.get("torch_threads", ()))
-            start = resumed_from = int(ck["iteration"])
-        venv.load_state_dict(merge_env_states(env_states))
+        start, global_step = members.restore(ckpts, venv, obs, state, device)
+        resumed_from = start
 
     def save(r, iteration, env_state):
         """Member r's checkpoint and logs; env_state: the whole population's (taken once per checkpoint)."""
-        if run_dirs[r] is None:
-            return
-        env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
-        _torch_save_atomic({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
-            "config": configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
-            "elapsed": elapsed[r] + time.perf_counter() - wall_start,
-            "actor": actor.member(r, singles[r][0]).state_dict(), "critic": critic.member(r, singles[r][1]).state_dict(),
-            "optimizer": {"actor": actor_opt.member_state(r), "critic": critic_opt.member_state(r)},
-            "plasticity": plasticity.state_dict(r), "value_norm": norms.norms[r].state_dict(),
-            "tracker": tracker.member_state(r), "env": _encode(env_state),
-            "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()), "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
-            "torch_rng": generators[r].get_state(), "numpy_rng": rngs[r].bit_generator.state,
-            "metrics_rows": metrics_rows[r].packed(), "episode_rows": episode_rows[r].packed(),
-            "torch_threads": sorted(torch_threads[r]),
-        }, run_dirs[r] / "checkpoint.pt")
-        final = iteration == configs[r].iterations  # the logs done.json seals: every row converted at once
-        _write_parquet_atomic(metrics_rows[r], run_dirs[r] / "metrics.parquet", final)
-        _write_parquet_atomic(episode_rows[r], run_dirs[r] / "episodes.parquet", final)
-        if final:
-            metrics_rows[r].release(), episode_rows[r].release()
+        if run_dirs[r] is not None:
+            members.save(r, run_dirs[r], iteration, global_step, elapsed[r] + time.perf_counter() - wall_start,
+                         env_state, obs, state)
 
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
     label = c0.method if R == 1 else f"{c0.method} x{R}"
@@ -1105,60 +786,6 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
                                  finished=finished, resumed_from=resumed_from))
     return results
 
-
-# %% [markdown]
-# ## Deterministic evaluation
-#
-# For figures that need a policy's behaviour rather than its training curve, `evaluate_policy`
-# runs fresh episodes in a given phase with the **mean** action and returns one row per episode.
-# A gated actor is evaluated with noiseless gating by default (the execution-time policy: each row
-# goes to the router's own choice); `routing="trained"` keeps the routing noise it trained with.
-# The two differ for an actor that came to rely on the noise (notebook 05).
-
-# %%
-#| export
-EVAL_ROUTINGS = ("noiseless", "trained")
-
-
-@torch.no_grad()
-def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
-                    num_envs: int | None = None, temperature: float = 1.0, routing: str = "noiseless") -> pd.DataFrame:
-    """Evaluation with the mean action: `episodes` episodes in `phase`; one row per episode (team
-    return, length, the system metrics, mean |action|). routing="noiseless" routes each row to the
-    router's own top choice (no torch randomness); "trained" keeps the routing noise the actor
-    trained with (its config's sigma for fixed noise), drawn from a generator seeded by `seed`:
-    a gated actor that learned to rely on the noise behaves differently under the two."""
-    if routing not in EVAL_ROUTINGS:
-        raise ValueError(f"routing must be one of {', '.join(EVAL_ROUTINGS)}, got {routing!r}")
-    env_cfg = dataclasses.replace(env_cfg or EnvConfig(), phase_clock="external")
-    num_envs = num_envs or min(int(episodes), 16)
-    venv = UAVVectorEnv(num_envs, seed, cfg=env_cfg)
-    venv.set_phase(phase)
-    obs, _, _ = venv.reset()
-    tracker = EpisodeTracker(num_envs)
-    rows, action_abs = [], np.zeros(num_envs)
-    B, U = num_envs, venv.n_agents
-    with torch.random.fork_rng(devices=[]):  # the trained noise draws leave the global generator as it was
-        torch.manual_seed(seed)
-        while len(rows) < episodes:
-            x = torch.from_numpy(obs).reshape(B * U, -1)
-            dist, _ = actor(x, temperature, None, deterministic_gate=routing == "noiseless")
-            obs = _evaluation_step(venv, tracker, dist.mean.reshape(B, U, -1).numpy(), action_abs, rows)
-    df = pd.DataFrame(rows[:episodes]).drop(columns=["iteration"])
-    df["episode"] = np.arange(len(df))
-    df["routing"] = routing
-    return df
-
-
-def _evaluation_step(venv, tracker, action, action_abs, rows):
-    """One step of every evaluation env with `action` (B, U, A); finished episodes go to `rows`."""
-    action_abs += np.abs(np.clip(action, -1, 1)).mean(axis=(1, 2))
-    obs, _, reward, term, trunc, info = venv.step(action)
-    for r in tracker.update(np.asarray(reward, dtype=float), info, term, trunc, 0):
-        r["mean_abs_action"] = float(action_abs[r["env"]] / r["length"])
-        action_abs[r["env"]] = 0.0
-        rows.append(r)
-    return obs
 
 # %% [markdown]
 # ## Demonstration: one PE-MAMoE run and one MLP run

@@ -21,10 +21,11 @@
 #   `__post_init__`, the derived quantities), how a config is written to `config.json` and read
 #   back (`to_dict`, `from_dict`), the identity that names a run's folder (`identity`,
 #   `config_hash`, `run_name`), the code of the presets (`for_scale`, `scale_controller`,
-#   `MEDIUM_PHASE_ITERS`) and the device choice (`resolve_device`). *Why* the presets hold the
-#   numbers they hold is explained in notebook 07, next to the table that compares them.
+#   `MEDIUM_PHASE_ITERS`), why the presets hold the numbers they hold, and the device choice
+#   (`resolve_device`).
 # * `pemamoe.bookkeeping`: the per-environment episode accounting (`EpisodeTracker`), the
-#   per-iteration log row, the encoding of a checkpoint into tensors and plain types, the atomic
+#   per-iteration log row, the running normaliser of the returns (`RunningNorm`, one per member in
+#   `ValueNorms`), the encoding of a checkpoint into tensors and plain types, the atomic
 #   writers, the deterministic-torch context, and the split and merge of a population's
 #   environment state into one state per member.
 #
@@ -98,6 +99,34 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 # the method's controller preset from the registry, rescales its windows with `scale_controller`
 # and then applies the overrides, which may name a field of `TrainConfig`, of
 # `PhaseControllerConfig` or of `NetConfig`, or switch mechanisms off with `without=(...)`.
+#
+# The four presets, and why they hold these numbers:
+#
+# * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
+# * **small**: the budget of `make figures`: 39 runs (four methods × three seeds, the ablations
+#   and the noise sweep); the sweep took 18 min 34 s on two cores with two worker processes
+#   (measured at `dc5e4d6`, README).
+#   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts
+#   60 iterations (540 iterations, 276k environment steps in all) and the update runs 4 epochs of
+#   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
+#   which prints the throughput of populations of 1, 4 and 16 runs and the projected sweep times;
+#   the README quotes its latest figures with the commit that measured them.
+# * **medium**: the scale at which learning is visible. It keeps the small update settings and
+#   gives each phase `MEDIUM_PHASE_ITERS` iterations, three phases twice over (six phases). Both
+#   numbers come from the learning-budget study of notebook 09b, which trains every method in each
+#   single phase for two million steps; that notebook states what the study found and whether this
+#   phase length lets every method get close to its plateau. The study also picks the update
+#   settings: per compute second the small ones and the paper's (64 environments, 8 epochs x 32
+#   minibatches) are close, but the paper's cost about twice as much per environment step and level
+#   off no higher (`paper_figures/learning_budget_compute.md` and `learning_budget.md`, study runs
+#   at `d02f78f`), and a phase is counted in environment steps. Two cycles instead of the paper's
+#   three, because a third would add half again to a sweep that already runs several times over
+#   its two-hour budget (README); two cycles still show every switch the paper is about: each phase
+#   is entered cold, left, and entered again.
+# * **ci**: a handful of iterations crossing two phase switches, seconds per run.
+#
+# Notebook 07 explains the rescaling of the phase controller's windows to the shorter phases
+# (`scale_controller`), and a table at the end of this section compares the presets.
 
 # %%
 #| export
@@ -434,6 +463,25 @@ assert TrainConfig.for_scale("paper").controller == PhaseControllerConfig()
 {k: v for k, v in _cfg.identity().items() if k not in ("env", "controller", "net")}
 
 # %% [markdown]
+# The presets side by side (the columns that differ, and the rescaled controller windows):
+
+# %%
+import pandas as pd
+
+from pemamoe.core import SCALES
+
+_rows = []
+for _s in SCALES:
+    _c = TrainConfig.for_scale(_s)
+    _rows.append({"scale": _s, "num_envs": _c.num_envs, "rollout_steps": _c.rollout_steps,
+                  "env steps/iter": _c.batch_env_steps, "iterations": _c.iterations, "L": _c.phase_length_iters,
+                  "epochs": _c.update_epochs, "minibatches": _c.num_minibatches,
+                  "total env steps": _c.total_env_steps, "lr warm-up": _c.controller.lr_warmup_iters,
+                  "conservative": _c.controller.conservative_iters, "freeze": _c.controller.router_freeze_iters,
+                  "noise epochs": _c.controller.noise_epochs, "kl decay": round(_c.controller.kl_decay, 4)})
+pd.DataFrame(_rows)
+
+# %% [markdown]
 # ## Episodes and the per-iteration log row
 #
 # `EpisodeTracker` keeps running sums of each environment's current episode (team return, length,
@@ -617,6 +665,99 @@ for _ in range(40):
 assert all([row["episode"] for row in rows] == list(range(len(rows))) for rows in _rows)
 assert all(row["env"] in (0, 1) for rows in _rows for row in rows)
 pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminated", "truncated"]]
+
+# %% [markdown]
+# ## The return normaliser
+#
+# Notebook 07 explains why the critic regresses normalised returns. `RunningNorm` keeps the count,
+# mean and variance of every return it has seen, in float64, and absorbs a new batch with the
+# parallel update of Chan et al.: with $n_a$ values of mean $\mu_a$ and variance $\sigma_a^2$ so
+# far, a batch of $n_b$ values of mean $\mu_b$ and variance $\sigma_b^2$, and $\delta = \mu_b - \mu_a$,
+# $$n = n_a + n_b, \qquad \mu = \mu_a + \delta\,\frac{n_b}{n}, \qquad
+#   \sigma^2 = \frac{n_a\sigma_a^2 + n_b\sigma_b^2 + \delta^2\,n_a n_b / n}{n}.$$
+# With `enabled=False` (`value_norm=False`) it is the identity. Its state is part of the
+# checkpoint. `ValueNorms` holds one per member of a population and applies them to tensors whose
+# leading axis is the member.
+
+# %%
+#| export bookkeeping
+import math
+
+
+class RunningNorm:
+    """Running mean / variance of scalar targets (float64); identity when enabled=False."""
+
+    def __init__(self, enabled: bool = True, eps: float = 1e-8):
+        self.enabled, self.eps = bool(enabled), float(eps)
+        self.count, self.mean, self.var = 0.0, 0.0, 1.0
+
+    @property
+    def std(self) -> float:
+        return math.sqrt(self.var + self.eps) if self.enabled and self.count > 0 else 1.0
+
+    def _mean(self) -> float:
+        return self.mean if self.enabled and self.count > 0 else 0.0
+
+    def update(self, x) -> None:
+        if not self.enabled:
+            return
+        x = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
+        n, m, v = float(x.numel()), float(x.mean()), float(x.var(unbiased=False))
+        if self.count == 0:
+            self.count, self.mean, self.var = n, m, v
+            return
+        tot = self.count + n
+        delta = m - self.mean
+        self.mean += delta * n / tot
+        self.var = (self.var * self.count + v * n + delta**2 * self.count * n / tot) / tot
+        self.count = tot
+
+    def normalize(self, x):
+        return (x - self._mean()) / self.std
+
+    def denormalize(self, x):
+        return x * self.std + self._mean()
+
+    def state_dict(self) -> dict:
+        return {"enabled": self.enabled, "count": self.count, "mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.enabled = bool(state["enabled"])
+        self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
+
+
+class ValueNorms:
+    """One RunningNorm per member, applied to (R, ...) tensors (member on the leading axis)."""
+
+    def __init__(self, configs):
+        self.norms = [RunningNorm(c.value_norm) for c in configs]
+
+    def _column(self, values, like):
+        t = torch.tensor(values, dtype=torch.float64)
+        return t.reshape(-1, *([1] * (like.ndim - 1)))
+
+    def normalize(self, x):
+        return (x - self._column([n._mean() for n in self.norms], x)) / self._column([n.std for n in self.norms], x)
+
+    def denormalize(self, x):
+        return x * self._column([n.std for n in self.norms], x) + self._column([n._mean() for n in self.norms], x)
+
+    def update(self, returns) -> None:
+        """returns (R, ...): each member's norm sees its own slice."""
+        for r, n in enumerate(self.norms):
+            n.update(returns[r])
+
+# %% [markdown]
+# Batches absorbed one at a time give the mean and variance of all of them at once:
+
+# %%
+_norm = RunningNorm()
+_x = torch.randn(1000, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)) * 30 + 500
+for _chunk in _x.split(300):
+    _norm.update(_chunk)
+assert math.isclose(_norm.mean, float(_x.mean()), rel_tol=1e-12)
+assert math.isclose(_norm.var, float(_x.var(unbiased=False)), rel_tol=1e-9)
+print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {float(_norm.normalize(_x[0])):.3f}")
 
 # %% [markdown]
 # ## Checkpoints and the run folder

@@ -28,9 +28,7 @@
 #
 # Runs execute on a local process pool by default (each worker single-threaded so 2 cores are not
 # oversubscribed) or as Ray tasks, on a local Ray instance or on a cluster given its address; how,
-# and the command line, is the subject of appendix 09c. The notebook stays longer than about 800
-# lines because every figure of section VI is drawn here beside the statistics it reports (IQM,
-# bootstrap intervals, probability of improvement) and the run lists it reads.
+# and the command line, is the subject of appendix 09c.
 
 # %%
 #| default_exp sweep

@@ -3,7 +3,7 @@
 
 __all__ = ['RUN_COLUMNS', 'method_order', 'is_proposed', 'run_labels', 'RECORD_EPISODE_COLUMNS', 'load_runs', 'SUMMARY_METRICS', 'iqm', 'run_scores', 'normalise_scores', 'bootstrap_iqm', 'probability_of_improvement', 'relative_change', 'claim_verdict', 'REFERENCE_POLICIES', 'CURVE_COLUMNS', 'heuristic_episodes', 'reference_levels', 'smooth', 'switch_iterations', 'phase_visits', 'phase_blocks', 'plot_reference_levels', 'plot_over_training', 'experts_by_usage', 'provenance']
 
-# %% notebooks/09_experiments.py, cell 13 (line 463)
+# %% notebooks/09_experiments.py, cell 13 (line 461)
 import dataclasses
 import hashlib
 import json
@@ -81,7 +81,7 @@ def load_runs(records) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 15 (line 555)
+# %% notebooks/09_experiments.py, cell 15 (line 553)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -196,7 +196,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 686)
+# %% notebooks/09_experiments.py, cell 17 (line 684)
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -248,7 +248,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 753)
+# %% notebooks/09_experiments.py, cell 19 (line 751)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

@@ -3,7 +3,7 @@
 
 __all__ = ['ParamLayout', 'PopulationActor', 'PopulationCritic', 'gaussian_entropy', 'gaussian_kl', 'gaussian_log_prob', 'loop_experts', 'masked_mixed', 'run_experts', 'run_gate', 'run_linear', 'run_load_balance', 'topk_weights', 'EXPERT_IMPLS', 'TOP1_WEIGHTS', 'ROUTING_NOISES', 'CRITIC_GATINGS', 'ACTIVE_MODES', 'MAC_MODES', 'PAPER_OBS_DIM', 'PAPER_ACTOR_PARAMS', 'PAPER_ACTIVE_PARAMS', 'NetConfig', 'PAPER_NET', 'routing_noise_std', 'ExpertBank', 'RoutingSample', 'GateOutput', 'load_balance_loss', 'GatedExperts', 'GaussianActor', 'MLPActor', 'MoEActor', 'SMoEActor', 'MLPCritic', 'MoECritic', 'SMoECritic', 'NETWORKS', 'register_network', 'network_kind', 'make_actor', 'critic_kind', 'make_critic', 'count_parameters', 'active_parameters', 'macs_per_step']
 
-# %% notebooks/05_moe_actor.py, cell 4 (line 51)
+# %% notebooks/05_moe_actor.py, cell 4 (line 47)
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -22,7 +22,7 @@ from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gau
                              run_linear, run_load_balance, topk_weights)
 
 
-# %% notebooks/05_moe_actor.py, cell 8 (line 149)
+# %% notebooks/05_moe_actor.py, cell 8 (line 145)
 EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 TOP1_WEIGHTS = ("straight_through", "switch", "paper")
 ROUTING_NOISES = ("learned", "fixed", "annealed", "off")
@@ -95,7 +95,7 @@ def routing_noise_std(cfg: NetConfig, iteration: int, iterations: int) -> float:
     return 0.0
 
 
-# %% notebooks/05_moe_actor.py, cell 10 (line 249)
+# %% notebooks/05_moe_actor.py, cell 10 (line 245)
 class ExpertBank(nn.Module):
     """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
 
@@ -175,7 +175,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05_moe_actor.py, cell 12 (line 368)
+# %% notebooks/05_moe_actor.py, cell 12 (line 364)
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -326,7 +326,7 @@ class GatedExperts(nn.Module):
         return GateOutput(features, probs, experts, weights, lb, RoutingSample(noise, experts, tau))
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 618)
+# %% notebooks/05_moe_actor.py, cell 15 (line 614)
 def _flatten_routing(routing, batch):
     return None if routing is None else routing.reshape(batch)
 
@@ -339,7 +339,7 @@ def _count(module) -> int:
     return 0 if module is None else sum(p.numel() for p in module.parameters())
 
 
-# %% notebooks/05_moe_actor.py, cell 16 (line 632)
+# %% notebooks/05_moe_actor.py, cell 16 (line 628)
 class GaussianActor(nn.Module):
     """Base class: feature extractor + shared linear mean head + state-independent log-std."""
 
@@ -544,7 +544,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 18 (line 852)
+# %% notebooks/05_moe_actor.py, cell 18 (line 848)
 class MLPCritic(nn.Module):
     kind = "mlp"
 
@@ -613,7 +613,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 21 (line 950)
+# %% notebooks/05_moe_actor.py, cell 21 (line 946)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)
 
 

@@ -3,7 +3,7 @@
 
 __all__ = ['BACKENDS', 'SweepInterrupted', 'execute_population', 'sweep_cli', 'RunSpec', 'group_specs', 'DEFAULT_POPULATION', 'check_counts', 'pending_runs', 'record_marker', 'run_sweep', 'sweep_records', 'NOISE_GAMMAS', 'TRICKS', 'default_seeds', 'main_specs', 'trick_specs', 'noise_specs', 'BUDGET_STEPS', 'BUDGET_UPDATES', 'budget_specs', 'GATING_STEPS', 'GATING_READINGS', 'GATING_NOISE', 'gating_specs', 'EXPERIMENTS', 'experiment_specs']
 
-# %% notebooks/09_experiments.py, cell 4 (line 51)
+# %% notebooks/09_experiments.py, cell 4 (line 49)
 import math
 import os
 import time
@@ -23,7 +23,7 @@ from pemamoe.records import RECORDS_DIR, RecordError, record_files, verify_recor
 from pemamoe.runs import verify_done
 
 
-# %% notebooks/09_experiments.py, cell 6 (line 80)
+# %% notebooks/09_experiments.py, cell 6 (line 78)
 @dataclass(frozen=True)
 class RunSpec:
     """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
@@ -71,7 +71,7 @@ class RunSpec:
         return ", ".join(parts)
 
 
-# %% notebooks/09_experiments.py, cell 8 (line 145)
+# %% notebooks/09_experiments.py, cell 8 (line 143)
 def group_specs(specs, population: int, workers: int = 1) -> list:
     """Pending runs as populations: runs whose configs share everything but the member fields
     (seed, controller settings, force_controller) go together, at most `population` per group,
@@ -205,7 +205,7 @@ def _record_ok(marker, config) -> bool:
         return False
 
 
-# %% notebooks/09_experiments.py, cell 10 (line 292)
+# %% notebooks/09_experiments.py, cell 10 (line 290)
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",

@@ -3,7 +3,7 @@
 
 __all__ = ['METHODS', 'DEVICES', 'SEED_LIMIT', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TRAINING_NUMERICS', 'TIMING_COLUMNS', 'resolve_device', 'TrainConfig', 'MEDIUM_PHASE_ITERS', 'scale_controller']
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 5 (line 57)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 5 (line 58)
 import dataclasses
 import hashlib
 import json
@@ -19,7 +19,7 @@ from pemamoe.nets import NetConfig
 from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerConfig
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 7 (line 102)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 7 (line 131)
 METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed

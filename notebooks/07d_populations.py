@@ -1,0 +1,486 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 07d · Appendix: populations of runs, resuming, reading a run back and evaluating it
+#
+# Notebook 07 is the method: the rollout, GAE, the PPO update and the loop that ties them
+# together. That loop trains a *population* of runs at once, and a run can stop and resume from
+# its checkpoint. This appendix holds the machinery around the loop that a reader of the method
+# can skip, in one module, `pemamoe.populations`:
+#
+# * which runs may share a population (`MEMBER_FIELDS`, `check_population`, `population_key`,
+#   the sweep's grouping key) and which plasticity method a member runs (`plasticity_name`);
+# * what a run returns (`RunResult`) and how a finished run folder is read back (`load_run`);
+# * `train_members`, the bookkeeping of `train_population` around the loop: argument checks,
+#   finished members read back, folders locked and prepared, checkpoints loaded, and members that
+#   stopped at different iterations caught up and joined into one population;
+# * `MemberStates`, the parts of the members that a checkpoint stores, with the code that writes
+#   one member's checkpoint and logs and reads every member's checkpoint back;
+# * `evaluate_policy`, fresh episodes with a trained actor's mean action (no learning).
+#
+# The module does not import `pemamoe.mappo`: `train_population` hands its training loop to
+# `train_members` as an argument, and `pemamoe.mappo` re-exports the names callers import from it
+# (`from pemamoe.mappo import load_run` works, as does `from pemamoe.populations import load_run`).
+# The run folders' rules are in appendix 07b, the configuration and the checkpoint encoding in 07c.
+#
+# ## The run as a tensor axis
+#
+# A paper-scale comparison is dozens of runs (methods x seeds x ablations), and each run's
+# networks are tiny: a PPO minibatch step on 192 agent rows spends most of its time in fixed
+# per-call costs, not in arithmetic. So the trainer trains a **population** of R runs in one
+# process, the way PureJaxRL vectorises seeds: `train_population(configs, run_dirs)` steps R x B
+# environments and updates R networks with one set of tensor operations whose leading axis is the
+# run. `train(config, run_dir)` is simply the population of one; there is no second loop.
+#
+# ```
+#                      shared by all members                       per member r (row r of every tensor)
+#   phase clock  ──►  set_phase / switch / iteration count     ─►  environments r*B .. r*B+B-1 (own seeds, own streams)
+#   method, network kind, sizes, rollout and update settings   ─►  parameters flat[r] (actor, critic), AdamW moments and steps
+#                                                               ─►  action / gate noise generator, minibatch permutations
+#   one batched matmul per layer over (R, rows, features)      ─►  learning rate, clip, target KL, entropy, temperature,
+#   one optimizer step over (R, P)                              ─►  phase-controller state (anchor, noise budget, freeze)
+#                                                               ─►  run folder: config, metrics, episodes, checkpoint, done
+# ```
+#
+# Members may differ in their seed, their phase-controller settings (ablation switches, noise
+# gamma), `force_controller` and `fixed_phase` (different fixed phases, but either all members
+# cycle or none does); `check_population` refuses anything else, naming the field.
+#
+# **Why a member's result does not depend on its neighbours.** Every operation of the loop is
+# one of three kinds: elementwise (activations, the optimizer's update, clipping by a per-member
+# factor), a reduction within one member's slice (losses, advantage normalisation, gradient norms,
+# the KL early stop), or a batched matrix product whose batch entries are computed separately.
+# Each member draws its randomness from its own generators, in the order a run alone would, and a
+# member that stopped early at its target KL keeps its parameters, moments, step counts and
+# random streams untouched while the others continue. One operation did depend on the population:
+# torch computes a batched product with a single output column (the value head) through a
+# different matrix-vector path for one batch entry than for several, which changed the last bit
+# of the values; the value head is therefore a product and a row sum. The tests train the same
+# member alone, in populations of two and three, in different orders and next to members with
+# other ablations, and compare metrics, episodes and checkpoints bit for bit.
+#
+# **Devices.** `TrainConfig.device` ("cpu", "cuda" or "auto") places the networks, the buffers and
+# the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
+# the resolved device is part of the run's identity (its hash).
+#
+# **What it buys, and where it stops.** `make bench` measures it (figures in the README; the rates
+# with the training code of `8ca3ef6`, the profile with the benchmark of `be55e3e`): on one
+# core, a 16-member PE-MAMoE population at the paper preset trains 3,039 member environment steps
+# per second, 3.7x a lone run. The same benchmark profiles a 16-member iteration: the matrix
+# products alone take 29 % of it, so even with every other cost removed the population could not
+# pass about 10,150 steps per second. Going further needs fewer or faster products. The gated networks
+# compute all three experts for every row and keep one, because no top-1 formulation has yet kept
+# a member's bits independent of its neighbours; and the router and noise-gate products (149
+# inputs, 3 outputs) run far below the core's speed, while fusing them into the experts' product
+# changes their last bits and with them every cached result.
+
+# %%
+#| default_exp populations
+
+# %% tags=["parameters"]
+scale = "small"  # `make figures` passes these to every notebook; this one draws no figure
+figures_dir = "paper_figures"
+
+# %%
+#| export
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+import torch.nn as nn
+
+from pemamoe.bookkeeping import (EpisodeTracker, RowLog, _decode, _Determinism, _encode, _torch_save_atomic,
+                                  _write_parquet_atomic, merge_env_states, split_env_state)
+from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
+from pemamoe.nets import make_actor, make_critic
+from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
+                          verify_done)
+from pemamoe.train_config import TrainConfig, _is_int
+
+# %% [markdown]
+# ## Who may share a population
+#
+# Members of one population share everything that shapes the tensors and the loop (method,
+# network sizes, rollout and update settings, the environment) and may differ only in
+# `MEMBER_FIELDS`. `population_key` is what they must share, as a string: the sweep groups its runs
+# by it. `check_population` names the first shared field on which two members disagree.
+# `plasticity_name` is the plasticity method a member runs: its method's, or the phase controller
+# for a baseline with `force_controller`. Members with no plasticity method and members with the
+# phase controller may mix: the controller serves both, and a member for which it is off behaves
+# exactly as one with no plasticity method.
+
+# %%
+#| export
+# Fields that members of one population may set differently; every other field is shared.
+# (fixed_phase: members may sit in different fixed phases, but either all cycle or none does.)
+MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase")
+
+
+def population_key(config: TrainConfig) -> str:
+    """What members of one population must share: the run identity without MEMBER_FIELDS."""
+    ident = {k: v for k, v in config.identity().items() if k not in MEMBER_FIELDS}
+    ident["phase_fixed"] = config.fixed_phase is not None
+    return json.dumps(ident, sort_keys=True, separators=(",", ":"))
+
+
+def check_population(configs) -> None:
+    """Raise ValueError naming the first field on which two members disagree in a shared setting."""
+    if not configs:
+        raise ValueError("a population needs at least one TrainConfig")
+    for c in configs:
+        if not isinstance(c, TrainConfig):
+            raise ValueError(f"population members must be TrainConfig objects, got {type(c).__name__}")
+    ref = configs[0].identity()
+    for c in configs[1:]:
+        other = c.identity()
+        for key in sorted(set(ref) | set(other)):
+            if key in MEMBER_FIELDS:
+                continue
+            if ref.get(key) != other.get(key):
+                raise ValueError(f"population members must share {key!r}: {ref.get(key)!r} (seed {configs[0].seed}) "
+                                 f"vs {other.get(key)!r} (seed {c.seed}); members may differ only in "
+                                 f"{', '.join(MEMBER_FIELDS)}")
+    fixed = {c.fixed_phase is not None for c in configs}
+    if len(fixed) > 1:
+        raise ValueError("population members must share whether 'fixed_phase' is set: members with a fixed "
+                         "phase cannot train next to members whose phases cycle")
+    names = {plasticity_name(c) for c in configs}
+    if len(names - {"none", "phase_controller"}) > 0 and len(names) > 1:
+        raise ValueError(f"population members must share one plasticity method, got {sorted(names)}")
+
+
+def plasticity_name(config: TrainConfig) -> str:
+    spec = config.method_spec()
+    return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
+
+# %% [markdown]
+# ## The result of a run, and reading it back
+#
+# `train` returns a `RunResult`: the config, the metrics and episode logs as tables, and the two
+# networks as single-run modules. `load_run` rebuilds the same object from a finished folder
+# (`from_cache=True`): the networks come from the last checkpoint, and the folder counts as
+# finished only when its `done.json` verifies (appendix 07b). `_build` makes one member's actor and
+# critic from its seed alone; the trainer builds every member with it before stacking them into a
+# population.
+
+# %%
+#| export
+@dataclass
+class RunResult:
+    """What `train` returns (also rebuilt from a finished run directory by `load_run`)."""
+
+    config: TrainConfig
+    metrics: pd.DataFrame  # one row per iteration
+    episodes: pd.DataFrame  # one row per finished training episode
+    actor: nn.Module
+    critic: nn.Module
+    run_dir: Path | None = None
+    finished: bool = True  # False when stopped early by max_iterations
+    resumed_from: int | None = None  # iteration the run continued from, if it resumed
+    from_cache: bool = False  # True when done.json was found and nothing was recomputed
+
+
+def _build(config: TrainConfig, obs_dim: int, state_dim: int):
+    """One member's single-run actor and critic, initialised from its seed alone."""
+    torch.manual_seed(config.seed)
+    kind = config.method_spec().network
+    return make_actor(kind, obs_dim, 2, config.net), make_critic(kind, state_dim, config.net)
+
+
+def load_run(run_dir) -> RunResult:
+    """The stored result of a run directory (metrics, episodes, networks from the last checkpoint).
+    finished is True only when done.json verifies (pemamoe.runs.verify_done; a bad one raises)."""
+    run_dir = check_run_dir(run_dir)
+    config = read_config(run_dir / "config.json", TrainConfig)
+    done = verify_done(run_dir, config)
+    ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None,
+                           resuming=done is None)
+    env_cfg = config.env_config()
+    actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
+    actor.load_state_dict(ckpt["actor"])
+    critic.load_state_dict(ckpt["critic"])
+    return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
+                     actor, critic, run_dir, finished=done is not None, from_cache=True)
+
+# %% [markdown]
+# ## Resume and catch-up
+#
+# `train_population(configs, run_dirs)` checks its arguments and hands everything but the loop to
+# `train_members`. A member whose folder holds a verified `done.json` is read back, not retrained.
+# Every other member's folder is locked for the whole run (one writer per folder) and prepared, and
+# its checkpoint, if there is one, is loaded; `load_checkpoint` refuses another run's checkpoint
+# and names a torn one.
+#
+# Members then start from the iteration of their checkpoint, and members of one population may
+# have stopped at different iterations (a sweep killed while its members were checkpointing). They
+# do not train as a queue of small populations: the group furthest behind trains up to the next
+# group's iteration, checkpoints, and is loaded again into that group, and so on until all train as
+# one. Since a member's numbers do not depend on its neighbours, this changes no bit; it needs every
+# lagging member's folder to reload from, so without folders the laggards train to the end first.
+# A `deadline` stops every group at the end of its current iteration with a checkpoint of each
+# member; members that had not started by then are `None`.
+
+# %%
+#| export
+def train_members(configs: list, run_dirs: list | None, resume: bool, train_group, *, max_iterations: int | None,
+                  threads: int | None, verbose: bool, progress: bool | None, deadline: float | None) -> list:
+    """`train_population`'s bookkeeping around the training loop `train_group` (mappo's `_train_group`).
+
+    Checks the arguments, reads back finished members, locks and prepares every other member's
+    folder, loads its checkpoint, and trains members grouped by the iteration they start from: the
+    group furthest behind trains up to the next group's iteration, checkpoints and joins it.
+    train_group(configs, run_dirs, ckpts, stop, verbose, progress, deadline) trains one group that
+    starts at one iteration and returns one RunResult per member. Returns one RunResult per config.
+    """
+    configs = list(configs)
+    check_population(configs)
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise ValueError(f"train: threads must be an int >= 1 or None, got {threads!r}")
+    if max_iterations is not None and (not _is_int(max_iterations) or max_iterations < 1):
+        raise ValueError(f"train: max_iterations must be an int >= 1 or None, got {max_iterations!r}")
+    if run_dirs is not None and len(run_dirs) != len(configs):
+        raise ValueError(f"run_dirs has {len(run_dirs)} entries for {len(configs)} configs")
+    dirs = [None if d is None else check_run_dir(d) for d in (run_dirs or [None] * len(configs))]
+    named = [d.resolve() for d in dirs if d is not None]
+    if len(set(named)) != len(named):
+        raise ValueError("two members of a population share one run_dir")
+    results, pending, locks = [None] * len(configs), {}, []
+    try:
+        for r, (config, run_dir) in enumerate(zip(configs, dirs)):
+            ckpt = None
+            if run_dir is not None:
+                if resume and verify_done(run_dir, config):  # a finished run is read without the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                locks.append(lock_run(run_dir))  # one writer per folder, for the member's whole run
+                prepare_run_dir(run_dir, config, resume)
+                if resume and verify_done(run_dir, config):  # finished between the check and the lock
+                    results[r] = dataclasses.replace(load_run(run_dir), config=config)
+                    continue
+                path = run_dir / "checkpoint.pt"
+                if resume and path.exists():
+                    ckpt = load_checkpoint(path, config)  # refuses another run's checkpoint, names a torn one
+            start = 0 if ckpt is None else int(ckpt["iteration"])
+            pending.setdefault(start, []).append((r, ckpt))
+        first_start = {r: start for start, members in pending.items() for r, _ in members}
+        with _Determinism(threads):
+            while pending:
+                start = min(pending)
+                members = pending.pop(start)
+                # Catch up with the next sub-population, then train as one (members are independent
+                # of their neighbours, so this changes no bit). Needs every member's folder to reload.
+                catch_up = bool(pending) and all(dirs[r] is not None for r, _ in members)
+                after = min(pending) if catch_up else None
+                stop = max_iterations if after is None else min(after, max_iterations or after)
+                group = train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
+                                    [ck for _, ck in members], stop, verbose, progress, deadline)
+                if deadline is not None and time.time() >= deadline:  # out of time: start nothing more
+                    for (r, _), res in zip(members, group):
+                        results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
+                    break
+                if catch_up and stop == after and stop < configs[members[0][0]].iterations:
+                    joined = [(r, load_checkpoint(dirs[r] / "checkpoint.pt", configs[r])) for r, _ in members]
+                    pending[stop] = sorted(pending[stop] + joined, key=lambda m: m[0])
+                    continue
+                for (r, _), res in zip(members, group):
+                    results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
+    finally:
+        for lock in locks:
+            lock.release()
+    return results
+
+
+# %% [markdown]
+# ## A member's checkpoint, written and read back
+#
+# The training loop keeps its members' state in plain local variables; `MemberStates` bundles the
+# ones a checkpoint stores, so that writing and reading a checkpoint live here rather than in the
+# loop. `save` writes one member's checkpoint (what it holds: appendix 07c), then its
+# `metrics.parquet` and `episodes.parquet`; the last write of a finished run converts every row at
+# once and releases the rows (the logs `done.json` seals). `restore` loads every member's
+# checkpoint back into the population, in the same order of fields, so that the next iteration
+# reads exactly what it would have read without the interruption. The lists are the loop's own:
+# `restore` fills them in place.
+
+# %%
+#| export
+@dataclass
+class MemberStates:
+    """The parts of a population's members that a checkpoint stores (lists: one entry per member)."""
+
+    configs: list
+    singles: list  # (actor, critic) single-run modules per member
+    actor: nn.Module  # the PopulationActor
+    critic: nn.Module  # the PopulationCritic
+    actor_opt: object  # RunAdamW of the actor
+    critic_opt: object  # RunAdamW of the critic
+    plasticity: object  # the population's plasticity method
+    norms: object  # ValueNorms
+    tracker: EpisodeTracker  # running episodes of all R*B environments
+    generators: list  # torch generators (actions, gate noise)
+    rngs: list  # numpy generators (minibatch permutations)
+    metrics_rows: list  # RowLog of metrics rows
+    episode_rows: list  # RowLog of episode rows
+    elapsed: list  # training seconds before this process
+    torch_threads: list  # sets of the torch thread counts used
+
+    def restore(self, ckpts, venv, obs, state, device) -> tuple:
+        """Load every member's checkpoint (all of one iteration) into the population, the vector
+        environment `venv` and the current `obs` and `state` arrays (in place).
+        Returns (iteration, global_step) of the checkpoints."""
+        B = self.configs[0].num_envs
+        env_states = []
+        for r, ck in enumerate(ckpts):
+            with torch.no_grad():
+                a, c = self.singles[r]
+                a.load_state_dict(ck["actor"]), c.load_state_dict(ck["critic"])
+                self.actor.flat[r] = self.actor.layout.flatten([a])[0].to(device)
+                self.critic.flat[r] = self.critic.layout.flatten([c])[0].to(device)
+            self.actor_opt.load_member_state(r, ck["optimizer"]["actor"])
+            self.critic_opt.load_member_state(r, ck["optimizer"]["critic"])
+            self.plasticity.load_state_dict(r, ck["plasticity"])
+            self.norms.norms[r].load_state_dict(ck["value_norm"])
+            self.tracker.load_member_state(r, ck["tracker"])
+            env_states.append(_decode(ck["env"]))
+            obs[r * B:(r + 1) * B], state[r * B:(r + 1) * B] = ck["obs"].numpy(), ck["state"].numpy()
+            self.generators[r].set_state(ck["torch_rng"])
+            self.rngs[r].bit_generator.state = ck["numpy_rng"]
+            global_step, self.elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
+            self.metrics_rows[r] = RowLog.from_checkpoint(ck["metrics_rows"])
+            self.episode_rows[r] = RowLog.from_checkpoint(ck["episode_rows"])
+            self.torch_threads[r].update(ck.get("torch_threads", ()))
+            start = int(ck["iteration"])
+        venv.load_state_dict(merge_env_states(env_states))
+        return start, global_step
+
+    def save(self, r, run_dir, iteration, global_step, elapsed, env_state, obs, state) -> None:
+        """Member r's checkpoint and logs in run_dir. elapsed: its training seconds so far;
+        env_state: the whole population's environment state (taken once per checkpoint); obs, state:
+        the population's current observations and global states."""
+        B = self.configs[r].num_envs
+        env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
+        _torch_save_atomic({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
+            "config": self.configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
+            "elapsed": elapsed,
+            "actor": self.actor.member(r, self.singles[r][0]).state_dict(),
+            "critic": self.critic.member(r, self.singles[r][1]).state_dict(),
+            "optimizer": {"actor": self.actor_opt.member_state(r), "critic": self.critic_opt.member_state(r)},
+            "plasticity": self.plasticity.state_dict(r), "value_norm": self.norms.norms[r].state_dict(),
+            "tracker": self.tracker.member_state(r), "env": _encode(env_state),
+            "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()),
+            "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
+            "torch_rng": self.generators[r].get_state(), "numpy_rng": self.rngs[r].bit_generator.state,
+            "metrics_rows": self.metrics_rows[r].packed(), "episode_rows": self.episode_rows[r].packed(),
+            "torch_threads": sorted(self.torch_threads[r]),
+        }, run_dir / "checkpoint.pt")
+        final = iteration == self.configs[r].iterations  # the logs done.json seals: every row converted at once
+        _write_parquet_atomic(self.metrics_rows[r], run_dir / "metrics.parquet", final)
+        _write_parquet_atomic(self.episode_rows[r], run_dir / "episodes.parquet", final)
+        if final:
+            self.metrics_rows[r].release(), self.episode_rows[r].release()
+
+# %% [markdown]
+# ## Deterministic evaluation
+#
+# For figures that need a policy's behaviour rather than its training curve (notebook 05c),
+# `evaluate_policy` runs fresh episodes in a given phase with the **mean** action and returns one
+# row per episode. A gated actor is evaluated with noiseless gating by default (the execution-time
+# policy: each row goes to the router's own choice); `routing="trained"` keeps the routing noise it
+# trained with. The two differ for an actor that came to rely on the noise (notebook 05).
+
+# %%
+#| export
+EVAL_ROUTINGS = ("noiseless", "trained")
+
+
+@torch.no_grad()
+def evaluate_policy(actor, env_cfg: EnvConfig | None = None, episodes: int = 8, seed: int = 0, phase: int = 0,
+                    num_envs: int | None = None, temperature: float = 1.0, routing: str = "noiseless") -> pd.DataFrame:
+    """Evaluation with the mean action: `episodes` episodes in `phase`; one row per episode (team
+    return, length, the system metrics, mean |action|). routing="noiseless" routes each row to the
+    router's own top choice (no torch randomness); "trained" keeps the routing noise the actor
+    trained with (its config's sigma for fixed noise), drawn from a generator seeded by `seed`:
+    a gated actor that learned to rely on the noise behaves differently under the two."""
+    if routing not in EVAL_ROUTINGS:
+        raise ValueError(f"routing must be one of {', '.join(EVAL_ROUTINGS)}, got {routing!r}")
+    env_cfg = dataclasses.replace(env_cfg or EnvConfig(), phase_clock="external")
+    num_envs = num_envs or min(int(episodes), 16)
+    venv = UAVVectorEnv(num_envs, seed, cfg=env_cfg)
+    venv.set_phase(phase)
+    obs, _, _ = venv.reset()
+    tracker = EpisodeTracker(num_envs)
+    rows, action_abs = [], np.zeros(num_envs)
+    B, U = num_envs, venv.n_agents
+    with torch.random.fork_rng(devices=[]):  # the trained noise draws leave the global generator as it was
+        torch.manual_seed(seed)
+        while len(rows) < episodes:
+            x = torch.from_numpy(obs).reshape(B * U, -1)
+            dist, _ = actor(x, temperature, None, deterministic_gate=routing == "noiseless")
+            obs = _evaluation_step(venv, tracker, dist.mean.reshape(B, U, -1).numpy(), action_abs, rows)
+    df = pd.DataFrame(rows[:episodes]).drop(columns=["iteration"])
+    df["episode"] = np.arange(len(df))
+    df["routing"] = routing
+    return df
+
+
+def _evaluation_step(venv, tracker, action, action_abs, rows):
+    """One step of every evaluation env with `action` (B, U, A); finished episodes go to `rows`."""
+    action_abs += np.abs(np.clip(action, -1, 1)).mean(axis=(1, 2))
+    obs, _, reward, term, trunc, info = venv.step(action)
+    for r in tracker.update(np.asarray(reward, dtype=float), info, term, trunc, 0):
+        r["mean_abs_action"] = float(action_abs[r["env"]] / r["length"])
+        action_abs[r["env"]] = 0.0
+        rows.append(r)
+    return obs
+
+# %% [markdown]
+# ## Demonstration
+#
+# Two members that differ in a shared setting are refused, naming it; two seeds of one run share a
+# population key. Then, at the `ci` preset whatever the notebook's scale (this is bookkeeping, not
+# learning): one member is interrupted after two iterations, and a population of three resumes it
+# next to two fresh members. The fresh ones train up to iteration 2, join it, and the three finish
+# as one population; reading the finished folders back recomputes nothing. Last, member 0's
+# actor, read back from its folder, is evaluated for two episodes in phase 1.
+
+# %%
+import tempfile
+
+_ci = lambda seed, **kw: TrainConfig.for_scale("ci", method="mlp", seed=seed, **kw)  # noqa: E731
+try:
+    check_population([_ci(0), _ci(1, num_envs=8)])
+except ValueError as err:
+    print("refused:", err)
+assert population_key(_ci(0)) == population_key(_ci(1)) != population_key(_ci(0, num_envs=8))
+
+# %%
+from pemamoe.mappo import train, train_population
+
+with tempfile.TemporaryDirectory() as tmp:
+    folders = [Path(tmp) / f"m{s}" for s in range(3)]
+    configs = [_ci(s, checkpoint_every=1) for s in range(3)]
+    first = train(configs[0], folders[0], max_iterations=2)
+    print(f"member 0 stopped at iteration {len(first.metrics)} of {configs[0].iterations} (finished: {first.finished})")
+    out = train_population(configs, folders)
+    print("resumed_from:", [r.resumed_from for r in out], "| finished:", [r.finished for r in out])
+    back = [load_run(f) for f in folders]
+    assert all(b.from_cache and b.finished for b in back)
+    assert all(b.metrics["episode_return"].equals(r.metrics["episode_return"]) for b, r in zip(back, out))
+    actor = back[0].actor
+
+evaluate_policy(actor, configs[0].env_config(), episodes=2, seed=0, phase=1)
