@@ -407,11 +407,10 @@ class TrainConfig:
         return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
 
 
-# The medium phase: 2,000 iterations x 512 = 1,024,000 environment steps. In the learning-budget
-# study (notebook 09b; runs of the code at d02f78f, all four methods finished) the slowest case, MoE
-# in phase 1, first reached 85 % of its plateau after 1.0M steps; every other method and phase
-# needed 900k or fewer.
-MEDIUM_PHASE_ITERS = 2000
+# The medium phase: 2,200 iterations x 512 = 1,126,400 environment steps. In the learning-budget
+# study (notebook 09b; records committed at 6ead1c1) the slowest case, MoE in phase 1, first
+# reached 85 % of its plateau after 1.1M steps; every other method and phase needed 900k or fewer.
+MEDIUM_PHASE_ITERS = 2200
 
 
 def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:
@@ -772,7 +771,7 @@ print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {floa
 # are written to a temporary name and renamed, so a killed run leaves the previous complete file,
 # never a torn one.
 #
-# The log rows are the bulk of a late checkpoint (a `medium` run's reach 12,000 metric rows of 112
+# The log rows are the bulk of a late checkpoint (a `medium` run's reach 13,200 metric rows of 112
 # numbers and some 190,000 episode rows), and `torch.save` pickles every one of those millions of
 # numbers through its Python-level pickler: about 3 s per member per checkpoint at 7,000
 # iterations, so a 12-member population spent 40 s of every 100 iterations writing checkpoints
@@ -786,7 +785,7 @@ print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {floa
 # of formats 3 and 2 (rows stored as lists) are still read.
 #
 # Packing all rows at every checkpoint still makes a run's checkpoints cost grow with the square of
-# its length: a `medium` run rewrites its rows 120 times, the last time 12,000 metric and some
+# its length: a `medium` run rewrites its rows 132 times, the last time 13,200 metric and some
 # 190,000 episode rows. A `RowLog` is a member's list of rows that remembers what it has already
 # encoded. Rows are only ever appended, never changed, so each checkpoint pickles only the rows
 # added since the previous one and stores the list of pickled chunks (checkpoint format 4). Each

@@ -282,31 +282,32 @@ speed
 # ## What we read from the study
 #
 # The numbers below are those of `paper_figures/learning_budget.md` and
-# `learning_budget_compute.md`, from the study's runs of the code at `d02f78f`.
+# `learning_budget_compute.md`, from the study's records (`records/small/`, trained at numerics
+# version 2 with the gating defaults of notebook 05c, committed at `6ead1c1`).
 #
 # * **Every method learns in every phase, and none gets near the k-means heuristic outside phase
-#   0.** In phase 0 MLP and dense MoE level off near 0.79 coverage (k-means: 0.92, random: 0.32);
-#   in phases 1 and 2 they reach about 0.51-0.53 and 0.37-0.39, against 0.80 and 0.72 for k-means.
+#   0.** In phase 0 MLP and dense MoE level off at 0.79-0.81 coverage (k-means: 0.92, random: 0.32);
+#   in phases 1 and 2 they reach about 0.50-0.53 and 0.38-0.39, against 0.80 and 0.72 for k-means.
 #   Those phases have faster, more erratic users and a smaller service radius (150 m instead of
 #   200 m); the heuristic, which reads every user's position each slot and flies to the centroid of
 #   its users, copes with that far better than the learned policies do within 2M steps.
-# * **The two top-1 routed methods level off lower.** SMoE and PE-MAMoE plateau at 0.66-0.67 in
-#   phase 0 and 0.30-0.39 in phases 1 and 2, clearly below MLP and MoE. Their small "steps to 85 %"
-#   in phases 1 and 2 (200k-300k, against 700k-1.0M for MLP and MoE) reflect that low, early
-#   plateau, not fast learning. In a fixed phase PE-MAMoE is SMoE with the controller's settings
-#   and nothing to react to, so this says the sparse network itself learns less in 2M steps;
-#   whether the switch-time mechanisms make up for it under phase changes is what the medium
-#   sweep tests.
+# * **The two top-1 routed methods still level off lower.** With the gating defaults of notebook
+#   05c, SMoE and PE-MAMoE plateau at 0.68 in phase 0, 0.44 in phase 1 and 0.33 in phase 2 (before
+#   those defaults, with learned routing noise: 0.66-0.67, 0.39 and 0.30-0.32), still clearly below
+#   MLP and MoE. Their small "steps to 85 %" (400k-600k, against 600k-1.1M for MLP and MoE) reflect
+#   that lower, earlier plateau, not fast learning. In a fixed phase PE-MAMoE is SMoE with nothing
+#   to react to (the two rows are identical, as they must be), so the sparse network itself learns
+#   less in 2M steps; whether the switch-time mechanisms make up for it under phase changes is what
+#   the medium sweep tests.
 # * **The slowest case sets the phase length.** MoE in phase 1 first reaches 85 % of its plateau
-#   at 1.0M steps; everything else takes 900k or fewer. The `medium` phase is therefore 2,000
-#   iterations of 512 steps (1,024,000), checked by the cell below.
-# * **The small update settings.** Per compute second the two settings are close: MLP reaches 85 %
-#   of the lower phase-0 plateau after about 176 s per member with the small settings and 186 s
-#   with the paper's. But the paper's settings cost about twice as much per environment step (334
-#   vs 174 compute seconds per million steps, both measured on the same shared machine), and they
-#   level off lower within 2M steps (0.76 vs 0.79). A phase is a number of environment steps, so
-#   for a phase of a given length the small settings cost about half the compute and level off no
-#   lower; the medium preset uses them.
+#   at 1.1M steps; everything else takes 900k or fewer. The `medium` phase is therefore 2,200
+#   iterations of 512 steps (1,126,400), checked by the cell below. (The earlier study, at
+#   `d02f78f`, found 1.0M and set 2,000 iterations; this one says that was about 7 % short.)
+# * **The small update settings.** The paper's update settings cost about 2.7 times as much compute
+#   per environment step (110.6 against 40.8 compute seconds per million steps, measured in the
+#   same study, 9 runs to a population) and level off no higher within 2M steps (0.77 against
+#   0.79 in phase 0). A phase is a number of environment steps, so the small settings give the same
+#   phase for about a third of the compute; the medium preset uses them.
 
 # %% [markdown]
 # ## From the study to the `medium` preset

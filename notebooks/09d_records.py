@@ -21,7 +21,7 @@
 #
 # * `<run>.parquet`: the per-iteration log (`metrics.parquet`) without the timing columns, which
 #   differ from one training to the next, in float32, averaged over blocks of iterations when a run
-#   is long (at most `RECORD_ROWS` rows: a medium run of 12,000 iterations keeps one row per 20).
+#   is long (at most `RECORD_ROWS` rows: a medium run of 13,200 iterations keeps one row per 22).
 #   A block never straddles a phase switch (its length divides the phase length). The episode
 #   columns (return, coverage, ...) are averaged with the number of episodes that ended in each
 #   iteration as the weight, `episodes` is summed, and the diagnostics, which are logged every

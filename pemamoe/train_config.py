@@ -297,11 +297,10 @@ class TrainConfig:
         return cls(method=method, seed=seed, controller=ctrl, net=net, **settings)
 
 
-# The medium phase: 2,000 iterations x 512 = 1,024,000 environment steps. In the learning-budget
-# study (notebook 09b; runs of the code at d02f78f, all four methods finished) the slowest case, MoE
-# in phase 1, first reached 85 % of its plateau after 1.0M steps; every other method and phase
-# needed 900k or fewer.
-MEDIUM_PHASE_ITERS = 2000
+# The medium phase: 2,200 iterations x 512 = 1,126,400 environment steps. In the learning-budget
+# study (notebook 09b; records committed at 6ead1c1) the slowest case, MoE in phase 1, first
+# reached 85 % of its plateau after 1.1M steps; every other method and phase needed 900k or fewer.
+MEDIUM_PHASE_ITERS = 2200
 
 
 def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:

@@ -32,7 +32,7 @@ def test_record_frame_averages_blocks_by_hand():
 
 def test_a_block_never_straddles_a_switch():
     medium = TrainConfig.for_scale("medium", "mlp")
-    assert record_block(medium) == 20 and medium.phase_length_iters % 20 == 0
+    assert record_block(medium) == 22 and medium.phase_length_iters % 22 == 0
     paper = TrainConfig.for_scale("paper", "mlp")
     block = record_block(paper)
     assert paper.phase_length_iters % block == 0 and -(-paper.iterations // block) <= records.RECORD_ROWS
