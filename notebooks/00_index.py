@@ -35,7 +35,7 @@
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
-# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
+# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/controller.py` | schedule figures |
 # | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |

@@ -33,12 +33,12 @@
 # exactly one of them and nothing else. With every switch off (or with `enabled=False`, the way the
 # MLP, MoE and SMoE baselines run) the controller only reports the baselines' plain schedules.
 #
-# This notebook gives the mechanisms, their equations and the reference controller for one
-# network, with pictures. The appendix `06b_population_plasticity.py` holds the machinery around
-# them: the same controller acting on each member of a population of runs (what the trainer of
-# notebook 07 calls), AdamW over a population's stacked parameters, the registry of plasticity
-# methods, and the **plasticity diagnostics** the paper plots (feature rank, dormant units, router
-# probabilities, mean action; `pemamoe/diagnostics.py`).
+# This notebook gives the mechanisms, their equations, pictures, and the controller itself,
+# `PhaseController`: the code the trainer of notebook 07 runs, read here for one run. The appendix
+# `06b_population_plasticity.py` holds the bookkeeping around it: the interface every plasticity
+# method implements, AdamW over a population's stacked parameters, the registry of methods, and the
+# **plasticity diagnostics** the paper plots (feature rank, dormant units, router probabilities,
+# mean action; `pemamoe/diagnostics.py`).
 
 # %%
 #| default_exp phase_controller
@@ -50,13 +50,10 @@ seed = 0
 
 # %%
 #| export
-import copy
 import math
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
-import torch
-from torch.distributions import kl_divergence
 
 from pemamoe.core import require_field
 
@@ -69,13 +66,13 @@ from pemamoe.core import require_field
 # | mechanism | paper | our value / reading |
 # |---|---|---|
 # | KL anchor | weight 0.1, × 0.985 per iteration, released "below a threshold" | release when the weight drops under $10^{-3}$, i.e. 305 iterations after the switch |
-# | Adam reset | moments set to zero | moments **and** step counts (bias correction restarts); the param groups are kept |
-# | noise | $\gamma_0 = 0.005$ for $N = 30$ epochs | at the switch on every expert, then after each update epoch on the experts selected in that epoch's data |
+# | Adam reset | moments set to zero | moments **and** step counts (bias correction restarts), of the actor's optimizer |
+# | noise | $\gamma_0 = 0.005$ for $N = 30$ epochs | at the switch on every expert, then after each update epoch on the experts that epoch's data used, weighted by use |
 # | log-std reset | "0.3" | $\log\sigma \leftarrow \log 0.3$ (the initial spread, $\sigma = 0.3$) |
 # | entropy | 0.01 → 0.003; reset and re-anneal within each phase | linear anneal over the first 30 % of the phase (the table's "anneal portion 0.3" applied to the phase instead of to training) |
-# | LR | × 0.3 at the switch, warm back over 200 iterations | linear ramp $0.3 \to 1$ over 200 iterations, on every param group |
+# | LR | × 0.3 at the switch, warm back over 200 iterations | linear ramp $0.3 \to 1$ over 200 iterations, on the actor's param groups |
 # | conservative PPO | "for $K_\text{warm} = 80$ iterations" | clip 0.15 → 0.10, target KL 0.10 → 0.05 |
-# | router freeze | 30 iterations | learning rate 0 **and** no gradient for the policy router (and its noise gate) |
+# | router freeze | 30 iterations | no gradient, no Adam step and no weight decay for the policy router (and its noise gate) |
 # | temperature | $\tau_{\min}, \tau_{\max}$ with a logistic formula | $\tau_{\min} = 1$, $\tau_{\max} = 2$, $\kappa = 20$, $\beta = 0.05$; high after the switch (see below) |
 #
 # A few readings need a word.
@@ -368,17 +365,23 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
 #
 # The noise touches the trunk of each chosen expert: in the stacked `ExpertBank` that is slice
 # `[j]` of `w1`, `b1`, `w2` and `b2`; for the MLP actor, whose trunk is its single "expert" 0,
-# the two hidden layers. Each scalar gets an independent $\mathcal N(0, \sigma^2)$ draw from a
-# dedicated `torch.Generator` (so a checkpoint can resume the exact noise sequence, and the noise
-# does not disturb the global RNG that drives rollouts). The expected squared size of one
-# injection is $\sigma^2$ times the number of perturbed scalars, which is the "noise energy" the
-# paper's regret bound accumulates.
-#
-# `selected` may be anything holding expert indices (a `RoutingSample.experts` tensor of any shape,
-# a list) or a boolean mask of length $E$; `None` means every expert.
+# the two hidden layers. The router, the noise gate, the head and the log-std are never touched.
+# The controller works on a run's parameters as one flat row (appendix 05b): `expert_indices()`
+# (appendix 06b) gives, per expert, the positions of its trunk in the row, and `perturb_experts`
+# adds to each of them an independent $\mathcal N(0, \sigma_e^2)$ draw from the run's own
+# `torch.Generator` (so a checkpoint resumes the exact noise sequence, and the noise does not
+# disturb the random streams of the rollouts). The expected squared size of one injection is
+# $\sum_e \sigma_e^2 n_e$ over the $n_e$ scalars of each expert's trunk: the "noise energy" the
+# paper's regret bound accumulates. On a single-run actor, `expert_parameters(actor, j)` gives the
+# same trunk as parameter views (the theory check of notebook 08 perturbs trained actors with it).
 
 # %%
 #| export
+def n_experts_of(actor) -> int:
+    """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
+    return len({0 if e is None else e for _, e in actor.trunk_parameters()})
+
+
 def expert_parameters(actor, expert: int) -> list:
     """Views of the trunk parameters of one expert, as the actor names them (`trunk_parameters`):
     a whole parameter for an unstacked trunk (the MLP's single expert 0), slice `expert` of a
@@ -391,114 +394,90 @@ def expert_parameters(actor, expert: int) -> list:
             for name, e in actor.trunk_parameters() if e is None or e == expert]
 
 
-def n_experts_of(actor) -> int:
-    """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
-    return len({0 if e is None else e for _, e in actor.trunk_parameters()})
-
-
-def selected_expert_ids(selected, n_experts: int) -> list:
-    """Sorted distinct expert indices from indices of any shape, a boolean mask of length E, or None (all)."""
-    if selected is None:
-        return list(range(n_experts))
-    sel = torch.as_tensor(selected)
-    if sel.dtype == torch.bool:
-        if sel.numel() != n_experts:
-            raise ValueError(f"a boolean expert mask must have {n_experts} entries, got {sel.numel()}")
-        return [int(i) for i in torch.nonzero(sel.reshape(-1)).reshape(-1)]
-    ids = sorted({int(i) for i in torch.unique(sel.reshape(-1).long())})
-    if ids and (ids[0] < 0 or ids[-1] >= n_experts):
-        raise ValueError(f"expert indices must be in [0, {n_experts}), got {ids}")
-    return ids
-
-
-@torch.no_grad()
-def inject_expert_noise(actor, experts, std: float, generator: torch.Generator) -> int:
-    """Add N(0, std^2) to every trunk parameter of each expert in `experts`; return the number of scalars noised."""
-    count = 0
-    for e in experts:
-        for p in expert_parameters(actor, e):
-            noise = torch.randn(p.shape, generator=generator, dtype=p.dtype, device=generator.device)
-            p.add_(noise.to(p.device), alpha=std)
-            count += p.numel()
-    return count
-
-
-def reset_adam_state(optimizer) -> None:
-    """Forget every moment estimate and step count; param groups (and their LRs) stay as they are."""
-    optimizer.state.clear()
-
-
 # %% [markdown]
 # ## Freezing the router so that it really does not move
 #
-# Setting the router's learning rate to zero is not enough on its own with every optimizer
-# configuration, and a zero gradient is not enough at all: Adam keeps applying its momentum for
-# several steps after the gradient vanishes, and AdamW's decoupled weight decay shrinks a parameter
-# every step whether or not it has a gradient. What PyTorch's Adam/AdamW do skip entirely is a
-# parameter whose `.grad` is `None`. So during the freeze the controller
-#
-# * switches `requires_grad` off on the policy router and its noise gate (backward then leaves
-#   their `.grad` at `None`, and any stale `.grad` is dropped), and
-# * sets the learning rate of the optimizer's `"router"` group to 0 as a second line of defence
-#   (for a trainer that zeroes gradients in place instead of setting them to `None`).
-#
-# The test suite checks bit-identity with a real AdamW (weight decay on) stepping a real actor.
-# A frozen router still *routes*: the forward pass is unchanged, only its parameters stay put.
+# A zero learning rate is not enough with every optimizer configuration, and a zero gradient is
+# not enough at all: Adam keeps applying its momentum for several steps after the gradient
+# vanishes, and AdamW's decoupled weight decay shrinks a parameter every step whether or not it has
+# a gradient. So while the controller reports `router_frozen`, the trainer passes the optimizer a
+# mask of frozen groups (`RunAdamW.step(lr, stepping, frozen)`, appendix 06b): the policy router's
+# group (with its noise gate) gets no moment update, no weight decay and no step count, and its
+# gradient is zeroed before the gradient-norm clip, so that it does not take a share of the
+# other parameters' clipping budget. A frozen router still *routes*: the forward pass is
+# unchanged, only its parameters stay put, bit for bit (appendix 06b shows it on a real
+# optimizer step; the tests check it).
 
 # %% [markdown]
 # ## The controller
 #
-# How one network is trained with it, per iteration $t$ (every call below exists; the comments
-# stand for the PPO code of notebook 07). The trainer of notebook 07 runs the population version of
-# appendix 06b with the same clock and hooks of the same names.
+# The trainer of notebook 07 trains R runs at once: each run's parameters are one row of an
+# (R, P) tensor (appendix 05b), and the switch-time work of every run is done by one *plasticity
+# method*, an object with a fixed set of hooks (appendix 06b: the interface, the baselines'
+# `NoPlasticity`, AdamW over the rows, the registry). PE-MAMoE's method is `PhaseController`
+# below, the code the experiments run. **Read it at R = 1**: each `for r in range(self.R)` is one
+# run, `self.actor.flat[r]` is that run's parameter vector, `self.actor_opt.reset(r)` its Adam
+# reset. R > 1 adds only the leading axis: every member has its own config, clock, reference row and
+# noise generator, and no action on member r reads or writes another member's row.
+#
+# ```text
+# actor.flat (R, P)   r = 0: [ router | expert 0 | expert 1 | expert 2 | head | log_std ]   one run (R = 1)
+#                     r = 1: [ router | expert 0 | expert 1 | expert 2 | head | log_std ]   R > 1: more rows
+# reference  (R, P)   the anchor's copy of each row, taken at that member's switch
+# ```
+#
+# How the trainer calls it, per iteration $t$ (every call exists; the comments stand for the PPO
+# code of notebook 07, which passes one batch with a leading member axis):
 #
 # ```python
-# groups = build_param_groups(actor, critic, base.lr)           # named groups
-# opt = torch.optim.AdamW(groups, lr=base.lr, betas=(0.9, 0.999), weight_decay=1e-4)
-# ctl = PhaseController(cfg, actor, opt, base, enabled=True)    # enabled=False: a baseline
-# clock = PhaseSchedule(period=base.phase_length, n_phases=3)   # pemamoe.phases (notebook 03)
-# for t in range(base.total_iterations):
-#     venv.set_phase(clock.phase_at(t))   # first, so the whole rollout runs in this phase
-#     if clock.is_switch(t):              # the phase differs from iteration t - 1's
-#         ctl.on_switch(t)
-#     s = ctl.begin_iteration(t)          # writes the LRs into opt, applies the router freeze
-#     # rollout: action, logp_old, routing = actor.act(obs, temperature=s.policy_temperature);
-#     #          values from critic(state, s.value_temperature, deterministic_gate=True); advantages adv
-#     for epoch in range(8):
-#         for obs, act, logp_old, adv, routing in minibatches:   # routing: the rollout's, replayed
-#             logp, ent, aux = actor.evaluate(obs, act, routing)
-#             ratio = (logp - logp_old).exp()
-#             pg = -torch.min(ratio * adv, ratio.clamp(1 - s.clip_coef, 1 + s.clip_coef) * adv).mean()
-#             loss = pg - s.ent_coef * ent.mean() + aux["aux_loss"] + ctl.kl_penalty(obs, routing)  # + value loss
-#             opt.zero_grad(set_to_none=True); loss.backward(); opt.step()
-#         # (stop the epochs early once the approximate KL exceeds s.target_kl)
-#         ctl.after_epoch(rollout_routing.experts)   # noise on the experts the epoch's data used
+# method = plasticity_method("phase_controller")(configs, actor, critic, actor_opt, critic_opt)
+# for t in range(total_iterations):
+#     venv.set_phase(clock.phase_at(t))    # first, so the whole rollout runs in this phase
+#     if clock.is_switch(t):               # the phase differs from iteration t - 1's
+#         method.on_switch(t)
+#     sched = method.begin_iteration(t)    # (R,) tensors: lr_actor, clip_coef, target_kl, ent_coef,
+#                                          # kl_coef, temperatures, router_frozen
+#     # rollout: action, logp_old, routing = actor.act(obs, sched.policy_temperature, generators)
+#     for epoch in range(update_epochs):
+#         for obs, act, routing, ... in minibatches:    # the rollout's routing, replayed
+#             logp, ent, lb, mean, log_std, chosen = actor.evaluate(obs, act, routing)
+#             loss = ppo_loss(...)                      # (R,), one loss per member
+#             kl = method.extra_loss({"obs": obs, "tau": routing.temperature, "noise": routing.noise,
+#                                     "experts": chosen, "mean": mean, "log_std": log_std})
+#             (loss + kl).sum().backward()              # kl is None while no member has an anchor
+#             actor_opt.step(sched.lr_actor, stepping, frozen)   # frozen: the router where sched.router_frozen
+#             method.after_minibatch(stepping)
+#             counts += experts chosen in the minibatch, per member
+#         method.after_epoch(counts, stepped)           # noise on the experts the epoch used
 # ```
 #
 # `on_switch` runs the switch-time actions in Algorithm 1's order: snapshot (before any
 # perturbation, so the anchor is the pre-switch policy), Adam reset, noise on every expert, windows
 # start, log-std reset; the entropy, LR, clip and temperature changes follow from the new
-# $\Delta = 0$. All state a resume needs is in `state_dict()`: the switch time, the remaining noise
-# epochs, the reference actor's weights and the noise generator's state. (The optimizer's state
-# and the actor are checkpointed by the trainer as usual.)
+# $\Delta = 0$ in `begin_iteration`, which calls the schedule functions above. Before a member's
+# first switch, and for a member whose config disables the controller (the baselines with
+# `force_controller`, in a shared population), the member trains bit for bit as under
+# `NoPlasticity`. All state a resume needs is in `state_dict(r)`: the switch time, the remaining
+# noise epochs, the reference row and the noise generator's state (the parameters and the
+# optimizer's state are checkpointed by the trainer).
 #
-# **KL to the reference, and routing.** `kl_penalty` evaluates both actors on the same
-# minibatch with the *same stored routing* (the gate noise, expert choice and temperature drawn in
-# the rollout, replayed through the `routing=` argument). The reference then answers the question
-# "what mean and spread would the pre-switch weights give for this observation through this
-# expert?", and the KL is the closed form between the two diagonal Gaussians, averaged over the
-# batch: $\mathrm{KL}(\pi_\theta \,\|\, \pi_\text{ref})$, with gradient only through $\pi_\theta$.
-# Passing `dist=` (the current distribution, if the trainer already has it) saves one forward.
+# **KL to the reference, and routing.** `extra_loss` evaluates the reference row on the minibatch
+# with the *same stored routing* (the gate noise, expert choice and temperature drawn in the
+# rollout, replayed). The reference then answers the question "what mean and spread would the
+# pre-switch weights give for this observation through this expert?", and the KL is the closed
+# form between the two diagonal Gaussians, averaged over the batch:
+# $\mathrm{KL}(\pi_\theta \,\|\, \pi_\text{ref})$, with gradient only through $\pi_\theta$ (the
+# current distribution is the one the PPO loss already computed).
 
 # %%
 #| export
 @dataclass(frozen=True)
 class IterationSettings:
-    """What the trainer uses in one iteration (returned by PhaseController.begin_iteration)."""
+    """What one member trains with in one iteration (one per member in Schedules.members)."""
 
     iteration: int
     since_switch: int | None  # iterations since the last switch (None before the first)
-    lr: dict  # {param group name: learning rate}
+    lr: dict  # {"head": the actor's rate} and, once the controller acts, "router" (0 while frozen)
     clip_coef: float
     target_kl: float | None
     ent_coef: float
@@ -510,197 +489,189 @@ class IterationSettings:
     noise_epochs_left: int
 
 
-def build_param_groups(actor, critic=None, lr: float = 3e-4) -> list:
-    """Optimizer param groups named router/experts/head/log_std (actor) and critic; empty groups are left out."""
-    named = dict(actor.param_groups())
-    if critic is not None:
-        named.update(critic.param_groups())
-    return [{"name": name, "params": list(params), "lr": lr} for name, params in named.items() if len(params)]
+# %%
+#| export controller
+from dataclasses import asdict
+
+import torch
+
+from pemamoe.nets import gaussian_kl
+from pemamoe.phase_controller import IterationSettings, entropy_coef, kl_anchor_coef, lr_multiplier, temperature_text
+from pemamoe.population_plasticity import NoPlasticity, Schedules, _schedules, register_plasticity
 
 
-class PhaseController:
-    """Non-gradient switch-time schedules of PE-MAMoE (paper Algorithm 1); enabled=False is the baselines' no-op."""
+@register_plasticity
+class PhaseController(NoPlasticity):
+    """PE-MAMoE's phase controller (Algorithm 1) for each member whose config enables it;
+    members with controller_enabled False behave exactly as NoPlasticity."""
 
-    def __init__(self, cfg: PhaseControllerConfig, actor, optimizer, base: BaseSchedule | None = None, enabled: bool = True, seed: int = 0):
-        self.cfg, self.actor, self.optimizer = cfg, actor, optimizer
-        self.base = base or BaseSchedule()
-        self.enabled = bool(enabled)
-        for group in optimizer.param_groups:
-            if "name" not in group:
-                raise ValueError("PhaseController needs optimizer param groups with a 'name' key (see build_param_groups)")
-        self._router_params = list(actor.param_groups().get("router", []))
-        device = next(actor.parameters()).device
-        self.generator = torch.Generator(device=device)
-        self.generator.manual_seed(int(seed))
-        self.last_switch: int | None = None
-        self.switches = 0
-        self.noise_left = 0
-        self.reference = None
-        self.settings: IterationSettings | None = None
-        self.last_noised: list = []
+    name = "phase_controller"
+    generator_seed_offset = 7  # member r's noise generator starts from its config's seed + 7
 
-    # --- switch-time actions -------------------------------------------------------------------
-    def on_switch(self, iteration: int) -> None:
-        """A phase switch happens at `iteration` (call before begin_iteration of the same iteration)."""
-        if self.last_switch is not None and iteration < self.last_switch:
-            raise ValueError(f"switch iteration must not go back in time: {iteration} < {self.last_switch}")
-        self.last_switch, self.switches = int(iteration), self.switches + 1
-        self.last_noised = []
-        if not self.enabled:
-            return
-        cfg = self.cfg
-        if cfg.kl_anchor and cfg.kl_coef > 0:
-            self.reference = self._snapshot()
-        if cfg.adam_reset:
-            reset_adam_state(self.optimizer)
-        if cfg.noise_injection:
-            self.last_noised = list(range(n_experts_of(self.actor)))
-            inject_expert_noise(self.actor, self.last_noised, self._noise_std(0), self.generator)
-            self.noise_left = cfg.noise_epochs
-        if cfg.log_std_reset:
-            with torch.no_grad():
-                self.actor.log_std.fill_(cfg.log_std_value)
+    def __init__(self, configs, actor, critic, actor_opt, critic_opt):
+        super().__init__(configs, actor, critic, actor_opt, critic_opt)
+        self.cfgs = [c.controller for c in self.configs]
+        self.enabled = [bool(c.controller_enabled) for c in self.configs]
+        self.last_switch = [None] * self.R
+        self.switches = [0] * self.R
+        self.noise_left = [0] * self.R
+        self.reference = None  # (R, P) anchor parameters, rows valid where has_reference
+        self.has_reference = [False] * self.R
+        self.settings = [None] * self.R
+        self.last_noise = [None] * self.R  # per member: the std each expert got at the last injection
+        self._ls = actor.layout.span("log_std")
 
-    def _snapshot(self):
-        ref = copy.deepcopy(self.actor)
-        for p in ref.parameters():
-            p.requires_grad_(False)
-        return ref.eval()
-
-    def _noise_std(self, since: int) -> float:
-        std = self.cfg.noise_gamma
-        if self.cfg.noise_lr_factor:
-            lr = self.base.lr * (float(lr_multiplier(since, self.cfg)) if self.cfg.lr_drop else 1.0)
-            std *= lr
+    def _noise_std(self, r: int, since: int) -> float:
+        cfg = self.cfgs[r]
+        std = cfg.noise_gamma
+        if cfg.noise_lr_factor:
+            std *= self.bases[r].lr * (float(lr_multiplier(since, cfg)) if cfg.lr_drop else 1.0)
         return std
 
-    # --- per-iteration schedule ----------------------------------------------------------------
-    def begin_iteration(self, iteration: int) -> IterationSettings:
-        """Settings for `iteration`; also writes the LRs into the optimizer and applies the router freeze."""
-        b, cfg = self.base, self.cfg
-        since = None if self.last_switch is None else int(iteration) - self.last_switch
-        if since is not None and since < 0:
-            raise ValueError(f"iteration {iteration} is before the last switch {self.last_switch}")
-        since_phase = int(iteration) if since is None else since
-        on = self.enabled
-        active = on and since is not None
+    @torch.no_grad()
+    def on_switch(self, iteration: int) -> None:
+        self.last_noise = [None] * self.R
+        for r in range(self.R):
+            if self.last_switch[r] is not None and iteration < self.last_switch[r]:
+                raise ValueError(f"switch iteration must not go back in time: {iteration} < {self.last_switch[r]}")
+            self.last_switch[r], self.switches[r] = int(iteration), self.switches[r] + 1
+            if not self.enabled[r]:
+                continue
+            cfg = self.cfgs[r]
+            a, b = self._ls
+            if cfg.kl_anchor and cfg.kl_coef > 0:  # 1. snapshot, before anything moves
+                if self.reference is None:
+                    self.reference = self.actor.flat.detach().clone()
+                self.reference[r] = self.actor.flat[r].detach()
+                if cfg.log_std_reset:  # the anchor's sigma is the reset value (see below)
+                    self.reference[r, a:b] = cfg.log_std_value
+                self.has_reference[r] = True
+            if cfg.adam_reset:  # 2. the actor's moments and step counts; the critic keeps its own
+                self.actor_opt.reset(r)
+            if cfg.noise_injection:  # 3. every expert, full gamma; the epoch window opens
+                self.last_noise[r] = [self._noise_std(r, 0)] * len(self.expert_indices())
+                self.perturb_experts(r, self.last_noise[r], self.member_generator(r))
+                self.noise_left[r] = cfg.noise_epochs
+            if cfg.log_std_reset:  # 4. the initial spread
+                self.actor.flat[r, a:b] = cfg.log_std_value
 
-        mult = float(lr_multiplier(since, cfg)) if active and cfg.lr_drop else 1.0
-        frozen = active and cfg.router_freeze and since < cfg.router_freeze_iters
-        conservative = active and cfg.conservative_window and since < cfg.conservative_iters
-        kl = float(kl_anchor_coef(since, cfg)) if active and cfg.kl_anchor else 0.0
+    def member_settings(self, r: int, iteration: int) -> IterationSettings:
+        # Before the first switch (and in a run that never switches) the controller is inert: the
+        # member trains bit for bit as NoPlasticity, i.e. as the same network without the controller.
+        if not self.enabled[r] or self.last_switch[r] is None:
+            return super().member_settings(r, iteration)
+        b, cfg = self.bases[r], self.cfgs[r]
+        since = int(iteration) - self.last_switch[r]
+        if since < 0:
+            raise ValueError(f"iteration {iteration} is before the last switch {self.last_switch[r]}")
+        mult = float(lr_multiplier(since, cfg)) if cfg.lr_drop else 1.0
+        frozen = cfg.router_freeze and since < cfg.router_freeze_iters
+        conservative = cfg.conservative_window and since < cfg.conservative_iters
+        kl = float(kl_anchor_coef(since, cfg)) if cfg.kl_anchor else 0.0
         if kl == 0.0:
-            self.reference = None  # released (or never taken)
-        # inert before the first switch: the base schedule, as without the controller
-        ent = float(entropy_coef(iteration, since_phase, b, cfg if active else None))
-        tau = float(temperature_text(since_phase, cfg)) if active and cfg.temperature_schedule else b.temperature
-        tau_pol = tau if cfg.temperature_routers in ("policy", "both") else b.temperature
-        tau_val = tau if cfg.temperature_routers in ("value", "both") else b.temperature
-
-        lrs = {}
-        for group in self.optimizer.param_groups:
-            lr = 0.0 if (frozen and group["name"] == "router") else b.lr * mult
-            group["lr"] = lr
-            lrs[group["name"]] = lr
-        self._freeze_router(frozen)
-
-        self.settings = IterationSettings(
-            iteration=int(iteration),
-            since_switch=since,
-            lr=lrs,
+            self.has_reference[r] = False  # released (or never taken)
+        tau = float(temperature_text(since, cfg)) if cfg.temperature_schedule else b.temperature
+        return IterationSettings(
+            iteration=int(iteration), since_switch=since,
+            lr={"router": 0.0 if frozen else b.lr * mult, "head": b.lr * mult},
             clip_coef=cfg.conservative_clip if conservative else b.clip_coef,
             target_kl=cfg.conservative_target_kl if conservative else b.target_kl,
-            ent_coef=ent,
-            kl_coef=kl,
-            policy_temperature=tau_pol,
-            value_temperature=tau_val,
-            router_frozen=frozen,
-            conservative=conservative,
-            noise_epochs_left=self.noise_left,
-        )
-        return self.settings
+            ent_coef=float(entropy_coef(iteration, since, b, cfg)), kl_coef=kl,
+            policy_temperature=tau if cfg.temperature_routers in ("policy", "both") else b.temperature,
+            value_temperature=tau if cfg.temperature_routers in ("value", "both") else b.temperature,
+            router_frozen=frozen, conservative=conservative, noise_epochs_left=self.noise_left[r])
 
-    def _freeze_router(self, frozen: bool) -> None:
-        for p in self._router_params:
-            p.requires_grad_(not frozen)
-            if frozen:
-                p.grad = None
+    def begin_iteration(self, iteration: int) -> Schedules:
+        for r in range(self.R):  # a window counted in iterations ends here (the default counts epochs)
+            if self.enabled[r] and self.cfgs[r].noise_window_unit == "iterations" and self.noise_left[r] > 0 \
+                    and self.last_switch[r] is not None and iteration > self.last_switch[r]:
+                self.noise_left[r] -= 1
+        settings = [self.member_settings(r, iteration) for r in range(self.R)]
+        self.settings = settings
+        return _schedules(settings, [b.lr for b in self.bases], self.device)
 
-    # --- inside the update ---------------------------------------------------------------------
-    def kl_penalty(self, obs, routing=None, dist=None) -> torch.Tensor:
-        """kl_coef * mean KL(pi_theta || pi_ref) on `obs` with the stored `routing` replayed; 0 when off or released."""
-        coef = 0.0 if self.settings is None else self.settings.kl_coef
-        if coef == 0.0 or self.reference is None:
-            return self.actor.log_std.new_zeros(())
-        if routing is None and getattr(getattr(self.actor, "gate", None), "noisy", False):
-            raise ValueError("kl_penalty needs the stored routing for a noisy-gated actor (both actors must route alike)")
-        if dist is None:
-            dist, _ = self.actor(obs, None, routing)
+    def extra_loss(self, batch: dict):
+        """(R,) kl_coef * mean KL(pi_theta || pi_ref) on the minibatch, routing replayed; None when no member has an anchor."""
+        coefs = [0.0 if (s is None or not self.has_reference[r]) else s.kl_coef for r, s in enumerate(self.settings)]
+        if not any(c > 0 for c in coefs):
+            return None
         with torch.no_grad():
-            ref_dist, _ = self.reference(obs, None, routing)
-        return coef * kl_divergence(dist, ref_dist).mean()
+            ref_mean, ref_log_std, _ = self.actor.mean_and_gate(
+                batch["obs"], batch["tau"], batch["noise"], batch["experts"], flat=self.reference)
+        kl = gaussian_kl(batch["mean"], batch["log_std"], ref_mean, ref_log_std).mean(1)
+        coef = torch.tensor(coefs, dtype=kl.dtype, device=kl.device)
+        return coef * kl
 
-    def after_epoch(self, selected_experts=None) -> list:
-        """End of one update epoch: noise on the selected experts while the N-epoch window lasts. Returns the experts noised."""
-        self.last_noised = []
-        if not (self.enabled and self.cfg.noise_injection) or self.noise_left <= 0:
-            return []
-        ids = selected_expert_ids(selected_experts, n_experts_of(self.actor))
-        since = 0 if self.settings is None or self.settings.since_switch is None else self.settings.since_switch
-        inject_expert_noise(self.actor, ids, self._noise_std(since), self.generator)
-        self.noise_left -= 1
-        self.last_noised = ids
-        return ids
+    @torch.no_grad()
+    def after_epoch(self, expert_counts, stepped) -> list:
+        """Noise on each member that stepped in this epoch, inside its window: expert e gets std
+        gamma x its share of the epoch's routing slots (expert_counts (R, E), None for an ungated
+        actor). Returns the number of experts perturbed per member."""
+        out = [0] * self.R
+        self.last_noise = [None] * self.R
+        want = [r for r in range(self.R) if self.enabled[r] and self.cfgs[r].noise_injection and self.noise_left[r] > 0]
+        if not want:
+            return out
+        n_exp = len(self.expert_indices())
+        counts = None if expert_counts is None else expert_counts.double().cpu()
+        stepped = stepped.cpu().tolist()
+        for r in want:
+            if not stepped[r]:
+                continue
+            if counts is None:  # an ungated actor: its trunk is the one expert, always used
+                shares = [1.0] * n_exp
+            else:
+                total = float(counts[r].sum())
+                shares = [float(c) / total if total > 0 else 0.0 for c in counts[r]]
+            since = 0 if self.last_switch[r] is None else (self.settings[r].since_switch or 0)
+            std = self._noise_std(r, since)
+            self.last_noise[r] = [std * s for s in shares]
+            out[r] = self.perturb_experts(r, self.last_noise[r], self.member_generator(r))
+            if self.cfgs[r].noise_window_unit == "epochs":
+                self.noise_left[r] -= 1
+        return out
 
-    # --- checkpointing -------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {
-            "cfg": asdict(self.cfg),
-            "base": asdict(self.base),
-            "enabled": self.enabled,
-            "last_switch": self.last_switch,
-            "switches": self.switches,
-            "noise_left": self.noise_left,
-            "reference": None if self.reference is None else copy.deepcopy(self.reference.state_dict()),
-            "generator": self.generator.get_state(),
-        }
+    def state_dict(self, r: int) -> dict:
+        if not self.enabled[r]:  # a disabled member is a NoPlasticity member that draws nothing
+            return {}
+        return {"cfg": asdict(self.cfgs[r]), "base": asdict(self.bases[r]), "enabled": self.enabled[r],
+                "last_switch": self.last_switch[r], "switches": self.switches[r], "noise_left": self.noise_left[r],
+                "reference": self.reference[r].detach().cpu().clone() if self.has_reference[r] else None,
+                "generator": self.member_generator(r).get_state()}
 
-    def load_state_dict(self, state: dict) -> None:
-        if state["cfg"] != asdict(self.cfg) or state["base"] != asdict(self.base) or state["enabled"] != self.enabled:
+    @torch.no_grad()
+    def load_state_dict(self, r: int, state: dict) -> None:
+        if not self.enabled[r]:
+            if state:
+                raise ValueError("PhaseController.load_state_dict: the checkpoint was made with the controller on")
+            return
+        if not state or state["enabled"] != self.enabled[r] or (self.enabled[r] and state["cfg"] != asdict(self.cfgs[r])) \
+                or state["base"] != asdict(self.bases[r]):
             raise ValueError("PhaseController.load_state_dict: the checkpoint was made with a different config")
-        self.last_switch, self.switches, self.noise_left = state["last_switch"], state["switches"], state["noise_left"]
-        self.generator.set_state(state["generator"])
-        if state["reference"] is None:
-            self.reference = None
-        else:
-            self.reference = self._snapshot()
-            self.reference.load_state_dict(state["reference"])
-        self.settings = None
+        self.last_switch[r], self.switches[r], self.noise_left[r] = state["last_switch"], state["switches"], state["noise_left"]
+        self.member_generator(r).set_state(state["generator"])
+        self.has_reference[r] = state["reference"] is not None
+        if self.has_reference[r]:
+            if self.reference is None:
+                self.reference = self.actor.flat.detach().clone()
+            self.reference[r] = state["reference"].to(self.reference.device)
 
 
 # %% [markdown]
-# ## What the trainer runs
+# ## Three departures from a literal reading of Algorithm 1
 #
-# The trainer (notebook 07) trains R runs at once, their parameters stacked on a leading run axis
-# (appendix 05b), so it calls the population twin of this controller, `PhaseControllerMethod`
-# (appendix 06b): the same config, the same schedule functions and one `IterationSettings` per
-# member, acting on each member's row of the parameters and of the optimizer state. The baselines
-# run `NoPlasticity` there, the shared PPO schedule and nothing else.
-#
-# Three of its choices differ from a literal reading of Algorithm 1, which this notebook's
-# reference controller follows; each is a documented choice:
+# Each is a documented choice, and each is checked in the tests:
 #
 # * **The critic keeps learning.** The learning-rate drop and the Adam reset act on the actor's
-#   parameter groups only. The text above says the critic must keep tracking the new phase's
-#   returns; the paper's per-group scheduling allows it, and slowing the critic would slow the
-#   very advantage estimates the actor needs after a switch.
+#   parameter groups only. The critic must keep tracking the new phase's returns; the paper's
+#   per-group scheduling allows it, and slowing the critic would slow the very advantage estimates
+#   the actor needs after a switch.
 # * **The KL anchor does not undo the log-std reset.** The anchor's reference is the pre-switch
 #   actor, but with its log-std set to the reset value. Anchored on the narrowed pre-switch sigma,
 #   the KL term's pull on log sigma (for sigma_ref = 0.2 about 0.125 per dimension at weight 0.1)
 #   is about 12 times the entropy bonus's push, and it undid the reset within tens of iterations
-#   (observed with the code before `4233dde`, the commit that fixed it),
-#   well inside the anchor window. A test checks that the logged log-std stays at the reset value
-#   through the anchor window (up to what the policy gradient itself does).
+#   (observed with the code before `4233dde`, the commit that fixed it), well inside the anchor
+#   window.
 # * **"Noise only on the selected experts" is weighted by use.** After each update epoch, expert
 #   e of a member receives noise with standard deviation gamma x (its share of the epoch's routing
 #   slots). With top-1 routing over thousands of rows, the union of the experts selected in an
@@ -711,48 +682,47 @@ class PhaseController:
 # %% [markdown]
 # ## The schedules over three phases
 #
-# A short run with the paper's values (1,200-iteration phases would flatten the plots, so the
-# demonstration uses 400-iteration phases; every window keeps its paper length). The bottom-right
-# panel shows both readings of the temperature formula.
+# One run (R = 1) driven through three phases with the paper's values (1,200-iteration phases
+# would flatten the plots, so the demonstration uses 400-iteration phases; every window keeps its
+# paper length), against a baseline run with the controller off. The bottom-right panel shows both
+# readings of the temperature formula.
 
 # %%
 import matplotlib.pyplot as plt
+import torch
 
 from pemamoe.core import by_scale, save_figure
+from pemamoe.nets import make_actor, make_critic
+from pemamoe.population_plasticity import MemberConfig, population_method
 
 torch.manual_seed(seed)
 demo_phase = 400
 demo_base = BaseSchedule(total_iterations=3 * demo_phase, phase_length=demo_phase)
 cfg = PhaseControllerConfig()
-
-# %%
-from pemamoe.nets import make_actor, make_critic
-
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
 
 
-def fresh_controller(enabled=True, config=cfg):
-    """A new actor, critic, AdamW over named groups, and a controller on them."""
-    a, c = make_actor("smoe", obs_dim), make_critic("smoe", state_dim)
-    o = torch.optim.AdamW(build_param_groups(a, c, demo_base.lr), lr=demo_base.lr, weight_decay=1e-4)
-    return PhaseController(config, a, o, demo_base, enabled=enabled, seed=seed)
+def one_run(enabled=True, config=cfg):
+    """A new SMoE actor and critic as a population of one, with the controller on them."""
+    member = MemberConfig(config, demo_base, controller_enabled=enabled, seed=seed)
+    return population_method("phase_controller", [member], [make_actor("smoe", obs_dim)], [make_critic("smoe", state_dim)])
 
 
 def trace(controller, iterations, phase_length, epochs=8):
-    """Drive the controller's clock (no training): settings per iteration."""
-    rows = []
+    """Drive the controller's clock (no training): the run's IterationSettings per iteration."""
+    rows, stepped = [], torch.ones(1, dtype=torch.bool)
     for t in iterations:
         if t > 0 and t % phase_length == 0:
             controller.on_switch(t)
-        rows.append(controller.begin_iteration(t))
+        rows.append(controller.begin_iteration(t).members[0])
         for _ in range(epochs):
-            controller.after_epoch(None)
+            controller.after_epoch(None, stepped)
     return rows
 
 
 its = np.arange(demo_base.total_iterations)
-pe = trace(fresh_controller(), its, demo_phase)
-bl = trace(fresh_controller(enabled=False), its, demo_phase)
+pe = trace(one_run(), its, demo_phase)
+bl = trace(one_run(enabled=False), its, demo_phase)
 
 fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
 switches = [t for t in its if t > 0 and t % demo_phase == 0]
@@ -764,9 +734,9 @@ def mark(ax):
 
 
 ax = axes[0, 0]
-ax.plot(its, [s.lr["experts"] / demo_base.lr for s in pe], label="experts / head / critic")
-ax.plot(its, [s.lr["router"] / demo_base.lr for s in pe], label="policy router", ls="--")
-ax.plot(its, [s.lr["experts"] / demo_base.lr for s in bl], label="baselines", color="k", lw=0.8)
+ax.plot(its, [s.lr["head"] / demo_base.lr for s in pe], label="actor")
+ax.plot(its, [s.lr.get("router", s.lr["head"]) / demo_base.lr for s in pe], label="policy router", ls="--")
+ax.plot(its, [s.lr["head"] / demo_base.lr for s in bl], label="baselines, and every critic", color="k", lw=0.8)
 ax.set_title("LR multiplier")
 ax.legend(fontsize=7)
 ax = axes[0, 1]
@@ -786,13 +756,14 @@ ax.set_title("conservative PPO window and router freeze")
 ax.legend(fontsize=7)
 ax = axes[1, 1]
 # the noise window is counted in update epochs (8 per iteration): zoom on one switch
-zoom = fresh_controller()
+zoom = one_run()
 zoom.on_switch(0)
-epoch_std = [cfg.noise_gamma]  # epoch "0": the injection at the switch itself (every expert)
+epoch_std = [max(zoom.last_noise[0])]  # epoch "0": the injection at the switch itself (every expert)
 for t in range(6):
     zoom.begin_iteration(t)
     for _ in range(8):
-        epoch_std.append(cfg.noise_gamma if zoom.after_epoch(None) else 0.0)
+        zoom.after_epoch(None, torch.ones(1, dtype=torch.bool))
+        epoch_std.append(0.0 if zoom.last_noise[0] is None else max(zoom.last_noise[0]))
 ax.stem(np.arange(len(epoch_std)), epoch_std, basefmt=" ")
 ax.set_title(f"noise std per update epoch after a switch (N = {cfg.noise_epochs})", fontsize=10)
 ax.set_xlabel("update epochs since the switch (0 = at the switch)")
@@ -811,15 +782,17 @@ save_figure(fig, "plasticity_schedules", figures_dir)
 # %% [markdown]
 # Hand checks against the formulas above: the LR multiplier is 0.3 at a switch, 0.65 a hundred
 # iterations later and 1 after two hundred; the KL weight is released 305 iterations after the
-# switch; the temperature starts at $1 + 20/21 \approx 1.952$.
+# switch; the temperature starts at $1 + 20/21 \approx 1.952$; the noise window holds $N = 30$
+# epochs after the switch's own injection.
 
 # %%
 s0 = pe[demo_phase]
-assert s0.since_switch == 0 and math.isclose(s0.lr["experts"], 0.3 * demo_base.lr) and s0.lr["router"] == 0.0
-assert math.isclose(pe[demo_phase + 100].lr["experts"], 0.65 * demo_base.lr)
+assert s0.since_switch == 0 and math.isclose(s0.lr["head"], 0.3 * demo_base.lr) and s0.lr["router"] == 0.0
+assert math.isclose(pe[demo_phase + 100].lr["head"], 0.65 * demo_base.lr)
 assert pe[demo_phase + 304].kl_coef > 0 and pe[demo_phase + 305].kl_coef == 0
 assert math.isclose(s0.policy_temperature, 1 + 20 / 21)
 assert all(s.kl_coef == 0 and s.policy_temperature == 1.0 for s in bl)
+assert epoch_std[:cfg.noise_epochs + 1] == [cfg.noise_gamma] * (cfg.noise_epochs + 1) and not any(epoch_std[cfg.noise_epochs + 1:])
 print("release after", int(np.ceil(np.log(cfg.kl_release / cfg.kl_coef) / np.log(cfg.kl_decay))), "iterations")
 
 # %% [markdown]

@@ -13,22 +13,23 @@
 # %% [markdown]
 # # 06b · Appendix: plasticity methods for a population of runs, and the plasticity diagnostics
 #
-# Notebook 06 gives the phase controller's mechanisms and a reference controller for one network.
-# This appendix holds what the trainer of notebook 07 needs around them, and a reader of the
-# method can skip:
+# Notebook 06 gives the phase controller's mechanisms and the controller itself, `PhaseController`,
+# read for one run. This appendix holds the bookkeeping around it that the trainer of notebook 07
+# needs, and a reader of the method can skip:
 #
-# * **plasticity methods** acting on each member of a population of runs whose parameters are
-#   stacked on a leading run axis (notebook 05b): the interface and the baselines' `NoPlasticity`,
-#   PE-MAMoE's `PhaseControllerMethod`, and the registry (`register_plasticity`,
-#   `plasticity_method`) through which the trainer and plug-ins find them;
+# * the **interface** every plasticity method implements, the baselines' `NoPlasticity`, and the
+#   registry (`register_plasticity`, `plasticity_method`) through which the trainer and plug-ins
+#   find a method by name;
 # * `RunAdamW`, AdamW over a population's stacked parameters with per-member learning rates,
 #   moments and step counts (so one member's Adam reset or router freeze leaves the others alone),
 #   and `group_index`, which maps each parameter to its optimizer group;
+# * `MemberConfig` and `population_method`, which build a method on a population outside the
+#   trainer (notebook 06's demonstrations, the theory check of notebook 08, the tests);
 # * the **plasticity diagnostics** the paper plots (feature rank, dormant units, router
 #   probabilities, mean action), exported to `pemamoe/diagnostics.py`.
 #
-# The demonstrations check that the population method follows the reference controller's
-# schedules, that `RunAdamW` makes AdamW's step, and show a switch on a real actor with the
+# The demonstrations check that `RunAdamW` makes AdamW's step, that a member's switch and schedules
+# do not depend on the population it trains in, and show a switch on a real actor with the
 # diagnostics before and after.
 
 # %%
@@ -42,20 +43,19 @@ seed = 0
 # %%
 #| export
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
 from pemamoe.methods import load_plugins
-from pemamoe.nets import gaussian_kl
+from pemamoe.nets import PopulationActor, PopulationCritic
 from pemamoe.phase_controller import (
     GROUP_NAMES,
+    BaseSchedule,
     IterationSettings,
+    PhaseControllerConfig,
     entropy_coef,
-    kl_anchor_coef,
-    lr_multiplier,
-    temperature_text,
 )
 
 # %% [markdown]
@@ -77,22 +77,10 @@ from pemamoe.phase_controller import (
 # | `state_dict(r)` / `load_state_dict(r, state)` | checkpoints | member r's state |
 #
 # `NoPlasticity` is what the baselines use: the shared PPO schedule and nothing else.
-# `PhaseControllerMethod` is PE-MAMoE's Phase Controller (the nine mechanisms of notebook 06, each
-# still switchable for the ablations). A new method subclasses `NoPlasticity`, overrides the hooks it
-# needs and registers itself with `register_plasticity`; CONTRIBUTING.md shows shrink-and-perturb
-# in a dozen lines.
-#
-# `PhaseControllerMethod` departs from the literal Algorithm 1 of the reference controller in three
-# documented ways, argued in notebook 06 ("What the trainer runs"): its Adam reset and LR drop
-# touch the actor's optimizer only (the critic's `RunAdamW` is never reset and `lr_critic` stays at
-# the base rate); the anchor's reference row gets the reset log-std in `on_switch`; and `after_epoch`
-# scales each expert's noise by its share of the epoch's routing slots (`expert_counts`).
-#
-# The window N = 30 has a third reading, besides the two listed in notebook 06's contradictions:
-# the paper's cost paragraph calls its ~10,800 iterations "epochs" ("N = 30 epochs out of
-# ~10,800"), which would make the window 30 iterations, i.e. 8 times longer than Algorithm 1's 30
-# update epochs. `PhaseControllerConfig.noise_window_unit` selects it ("epochs", the default and
-# Algorithm 1's reading, or "iterations").
+# `PhaseController` (notebook 06, module `pemamoe.controller`) is PE-MAMoE's phase controller,
+# the nine mechanisms each still switchable for the ablations. A new method subclasses
+# `NoPlasticity`, overrides the hooks it needs and registers itself with `register_plasticity`;
+# CONTRIBUTING.md shows shrink-and-perturb in a dozen lines.
 
 # %% [markdown]
 # ## AdamW for a population
@@ -262,6 +250,8 @@ def _schedules(settings: list, critic_lrs: list, device) -> Schedules:
 # shared PPO schedule of notebook 06's `BaseSchedule`, entropy annealed over the run. Its helpers
 # serve subclasses: `member_generator(r)` (member r's own checkpointed random stream),
 # `expert_indices()` (where each expert's trunk lives in a flat row) and `perturb_experts`.
+# `PhaseController` lives in notebook 06's second module, `pemamoe.controller`, which imports this
+# one; `plasticity_method` imports it on first use, so that it is always registered.
 
 # %%
 #| export
@@ -277,6 +267,8 @@ def register_plasticity(cls):
 
 
 def plasticity_method(name: str):
+    """The registered plasticity method class called `name` (plug-ins are loaded if needed)."""
+    import pemamoe.controller  # noqa: F401  PE-MAMoE's controller (notebook 06) registers itself on import
     if name not in PLASTICITY_METHODS:
         load_plugins()
     if name not in PLASTICITY_METHODS:
@@ -369,173 +361,51 @@ class NoPlasticity:
         return done
 
 
+
 # %% [markdown]
-# ## PE-MAMoE's Phase Controller for a population
+# ## A method outside the trainer
 #
-# The reference `PhaseController` of notebook 06, member by member: the same schedule functions
-# give each member's `IterationSettings`; the switch-time actions act on the member's row of the
-# stacked parameters (the anchor's reference is an (R, P) copy, valid on the rows that hold one).
-# A member whose config disables the controller behaves exactly as `NoPlasticity`, so the
-# baselines and PE-MAMoE can share a population.
+# The trainer builds its population from its `TrainConfig`s (notebook 07). Notebook 06's
+# demonstrations, the theory check of notebook 08 and the tests drive a method without the
+# trainer: `MemberConfig` holds the four things a plasticity method reads of a member's config, and
+# `population_method` stacks single-run actors (and critics) into a population with a `RunAdamW`
+# for each, as the trainer does, and builds the named method on them. One actor gives R = 1: one
+# run.
 
 # %%
 #| export
-@register_plasticity
-class PhaseControllerMethod(NoPlasticity):
-    """PE-MAMoE's Phase Controller (Algorithm 1) for each member whose config enables it;
-    members with controller_enabled False behave exactly as NoPlasticity."""
+@dataclass(frozen=True)
+class MemberConfig:
+    """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
 
-    name = "phase_controller"
-    generator_seed_offset = 7  # the noise generator of the single-network PhaseController (seed + 7)
+    controller: PhaseControllerConfig = PhaseControllerConfig()
+    base: BaseSchedule = BaseSchedule()
+    controller_enabled: bool = True
+    seed: int = 0
 
-    def __init__(self, configs, actor, critic, actor_opt, critic_opt):
-        super().__init__(configs, actor, critic, actor_opt, critic_opt)
-        self.cfgs = [c.controller for c in self.configs]
-        self.enabled = [bool(c.controller_enabled) for c in self.configs]
-        self.last_switch = [None] * self.R
-        self.switches = [0] * self.R
-        self.noise_left = [0] * self.R
-        self.reference = None  # (R, P) anchor parameters, rows valid where has_reference
-        self.has_reference = [False] * self.R
-        self.settings = [None] * self.R
-        self._ls = actor.layout.span("log_std")
+    def base_schedule(self) -> BaseSchedule:
+        return self.base
 
-    def _noise_std(self, r: int, since: int) -> float:
-        cfg = self.cfgs[r]
-        std = cfg.noise_gamma
-        if cfg.noise_lr_factor:
-            std *= self.bases[r].lr * (float(lr_multiplier(since, cfg)) if cfg.lr_drop else 1.0)
-        return std
 
-    @torch.no_grad()
-    def on_switch(self, iteration: int) -> None:
-        for r in range(self.R):
-            if self.last_switch[r] is not None and iteration < self.last_switch[r]:
-                raise ValueError(f"switch iteration must not go back in time: {iteration} < {self.last_switch[r]}")
-            self.last_switch[r], self.switches[r] = int(iteration), self.switches[r] + 1
-            if not self.enabled[r]:
-                continue
-            cfg = self.cfgs[r]
-            a, b = self._ls
-            if cfg.kl_anchor and cfg.kl_coef > 0:
-                if self.reference is None:
-                    self.reference = self.actor.flat.detach().clone()
-                self.reference[r] = self.actor.flat[r].detach()
-                if cfg.log_std_reset:  # anchor sigma at the reset value (see notebook 06)
-                    self.reference[r, a:b] = cfg.log_std_value
-                self.has_reference[r] = True
-            if cfg.adam_reset:
-                self.actor_opt.reset(r)  # the actor only: the critic keeps its moments
-            if cfg.noise_injection:
-                n_exp = len(self.expert_indices())
-                self.perturb_experts(r, [self._noise_std(r, 0)] * n_exp, self.member_generator(r))
-                self.noise_left[r] = cfg.noise_epochs
-            if cfg.log_std_reset:
-                self.actor.flat[r, a:b] = cfg.log_std_value
-
-    def member_settings(self, r: int, iteration: int) -> IterationSettings:
-        # Before the first switch (and in a run that never switches) the controller is inert: the
-        # member trains bit for bit as NoPlasticity, i.e. as the same network without the controller.
-        if not self.enabled[r] or self.last_switch[r] is None:
-            return super().member_settings(r, iteration)
-        b, cfg = self.bases[r], self.cfgs[r]
-        since = int(iteration) - self.last_switch[r]
-        if since < 0:
-            raise ValueError(f"iteration {iteration} is before the last switch {self.last_switch[r]}")
-        since_phase, active = since, True
-        mult = float(lr_multiplier(since, cfg)) if active and cfg.lr_drop else 1.0
-        frozen = active and cfg.router_freeze and since < cfg.router_freeze_iters
-        conservative = active and cfg.conservative_window and since < cfg.conservative_iters
-        kl = float(kl_anchor_coef(since, cfg)) if active and cfg.kl_anchor else 0.0
-        if kl == 0.0:
-            self.has_reference[r] = False  # released (or never taken)
-        tau = float(temperature_text(since_phase, cfg)) if cfg.temperature_schedule else b.temperature
-        return IterationSettings(
-            iteration=int(iteration), since_switch=since,
-            lr={"router": 0.0 if frozen else b.lr * mult, "head": b.lr * mult},
-            clip_coef=cfg.conservative_clip if conservative else b.clip_coef,
-            target_kl=cfg.conservative_target_kl if conservative else b.target_kl,
-            ent_coef=float(entropy_coef(iteration, since_phase, b, cfg)), kl_coef=kl,
-            policy_temperature=tau if cfg.temperature_routers in ("policy", "both") else b.temperature,
-            value_temperature=tau if cfg.temperature_routers in ("value", "both") else b.temperature,
-            router_frozen=frozen, conservative=conservative, noise_epochs_left=self.noise_left[r])
-
-    def begin_iteration(self, iteration: int) -> Schedules:
-        for r in range(self.R):  # a window counted in iterations ends here (the default counts epochs)
-            if self.enabled[r] and self.cfgs[r].noise_window_unit == "iterations" and self.noise_left[r] > 0 \
-                    and self.last_switch[r] is not None and iteration > self.last_switch[r]:
-                self.noise_left[r] -= 1
-        settings = [self.member_settings(r, iteration) for r in range(self.R)]
-        self.settings = settings
-        return _schedules(settings, [b.lr for b in self.bases], self.device)
-
-    def extra_loss(self, batch: dict):
-        coefs = [0.0 if (s is None or not self.has_reference[r]) else s.kl_coef for r, s in enumerate(self.settings)]
-        if not any(c > 0 for c in coefs):
-            return None
-        with torch.no_grad():
-            ref_mean, ref_log_std, _ = self.actor.mean_and_gate(
-                batch["obs"], batch["tau"], batch["noise"], batch["experts"], flat=self.reference)
-        kl = gaussian_kl(batch["mean"], batch["log_std"], ref_mean, ref_log_std).mean(1)
-        coef = torch.tensor(coefs, dtype=kl.dtype, device=kl.device)
-        return coef * kl
-
-    @torch.no_grad()
-    def after_epoch(self, expert_counts, stepped) -> list:
-        out = [0] * self.R
-        want = [r for r in range(self.R) if self.enabled[r] and self.cfgs[r].noise_injection and self.noise_left[r] > 0]
-        if not want:
-            return out
-        n_exp = len(self.expert_indices())
-        counts = None if expert_counts is None else expert_counts.double().cpu()
-        stepped = stepped.cpu().tolist()
-        for r in want:
-            if not stepped[r]:
-                continue
-            if counts is None:  # an ungated actor: its trunk is the one expert, always used
-                shares = [1.0] * n_exp
-            else:
-                total = float(counts[r].sum())
-                shares = [float(c) / total if total > 0 else 0.0 for c in counts[r]]
-            since = 0 if self.last_switch[r] is None else (self.settings[r].since_switch or 0)
-            std = self._noise_std(r, since)
-            out[r] = self.perturb_experts(r, [std * s for s in shares], self.member_generator(r))
-            if self.cfgs[r].noise_window_unit == "epochs":
-                self.noise_left[r] -= 1
-        return out
-
-    def state_dict(self, r: int) -> dict:
-        if not self.enabled[r]:  # a disabled member is a NoPlasticity member that draws nothing
-            return {}
-        return {"cfg": asdict(self.cfgs[r]), "base": asdict(self.bases[r]), "enabled": self.enabled[r],
-                "last_switch": self.last_switch[r], "switches": self.switches[r], "noise_left": self.noise_left[r],
-                "reference": self.reference[r].detach().cpu().clone() if self.has_reference[r] else None,
-                "generator": self.member_generator(r).get_state()}
-
-    @torch.no_grad()
-    def load_state_dict(self, r: int, state: dict) -> None:
-        if not self.enabled[r]:
-            if state:
-                raise ValueError("PhaseControllerMethod.load_state_dict: the checkpoint was made with the controller on")
-            return
-        if not state or state["enabled"] != self.enabled[r] or (self.enabled[r] and state["cfg"] != asdict(self.cfgs[r])) \
-                or state["base"] != asdict(self.bases[r]):
-            raise ValueError("PhaseControllerMethod.load_state_dict: the checkpoint was made with a different config")
-        self.last_switch[r], self.switches[r], self.noise_left[r] = state["last_switch"], state["switches"], state["noise_left"]
-        self.member_generator(r).set_state(state["generator"])
-        self.has_reference[r] = state["reference"] is not None
-        if self.has_reference[r]:
-            if self.reference is None:
-                self.reference = self.actor.flat.detach().clone()
-            self.reference[r] = state["reference"].to(self.reference.device)
+def population_method(name: str, configs, actors, critics=None, betas=(0.9, 0.999), eps: float = 1e-5,
+                      weight_decay: float = 0.0):
+    """Plasticity method `name` on the population stacked from single-run `actors` (and `critics`,
+    or none), with a RunAdamW for each as the trainer builds them; one config per member."""
+    actors = list(actors)
+    actor = PopulationActor(actors)
+    critic = None if critics is None else PopulationCritic(list(critics))
+    group_of, names = group_index(actors[0], actor.layout)
+    actor_opt = RunAdamW(actor.flat, group_of, len(names), betas, eps, weight_decay)
+    critic_opt = None if critic is None else RunAdamW(
+        critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, betas, eps, weight_decay)
+    return plasticity_method(name)(list(configs), actor, critic, actor_opt, critic_opt)
 
 
 # %% [markdown]
 # ## Checks on a small population
 #
 # Three members of the SMoE network kind: PE-MAMoE, PE-MAMoE without noise injection, and a
-# baseline. A plasticity method reads four things of each member's config; the trainer passes its
-# `TrainConfig`, here a stand-in says which.
+# baseline (the controller off).
 
 # %%
 import copy
@@ -543,27 +413,17 @@ import copy
 import numpy as np
 import pandas as pd
 
+from pemamoe.controller import PhaseController
 from pemamoe.core import by_scale
-from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.phase_controller import BaseSchedule, PhaseController, PhaseControllerConfig, build_param_groups
+from pemamoe.nets import make_actor, make_critic
+
+register_plasticity(PhaseController)  # run as a notebook, the cells above made a registry of their own
 
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
 demo_base = BaseSchedule(total_iterations=300, phase_length=100)
-
-
-@dataclass(frozen=True)
-class Member:
-    """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
-
-    controller_enabled: bool
-    seed: int
-    controller: PhaseControllerConfig = PhaseControllerConfig()
-
-    def base_schedule(self) -> BaseSchedule:
-        return demo_base
-
-
-members = [Member(True, 0), Member(True, 1, PhaseControllerConfig().without("noise_injection")), Member(False, 2)]
+members = [MemberConfig(base=demo_base, seed=0),
+           MemberConfig(PhaseControllerConfig().without("noise_injection"), demo_base, seed=1),
+           MemberConfig(base=demo_base, controller_enabled=False, seed=2)]
 R = len(members)
 
 
@@ -579,7 +439,6 @@ def population():
     actor_opt = RunAdamW(actor.flat, group_of, len(names), eps=1e-5, weight_decay=1e-4)
     critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, eps=1e-5, weight_decay=1e-4)
     return singles, actor, critic, actor_opt, critic_opt, names
-
 
 # %% [markdown]
 # **`RunAdamW` makes AdamW's step.** Member 0 against `torch.optim.AdamW` on a copy of its actor,
@@ -633,38 +492,27 @@ assert table["log-std reset"].tolist() == table["actor moments reset"].tolist() 
 assert table["critic moments kept"].all()
 
 # %% [markdown]
-# **The same schedules as the reference controller.** Three phases of 100 iterations, the
-# population method and one reference `PhaseController` per member on the same clock: every
-# per-member number agrees, except the critic's learning rate, which the population method keeps
-# at the base rate (the reference drops it with the actor's).
+# **A member's schedules do not depend on its population.** Three phases of 100 iterations: the
+# population of three against each member alone (R = 1) on the same clock. Every number the trainer
+# reads of `Schedules` agrees bit for bit, and so do the parameters after the switches' noise.
 
 # %%
 singles, actor, critic, actor_opt, critic_opt, names = population()
-method = PhaseControllerMethod(members, actor, critic, actor_opt, critic_opt)
-refs = []
-for m, (a, c) in zip(members, singles):
-    opt = torch.optim.AdamW(build_param_groups(a, c, demo_base.lr), lr=demo_base.lr)
-    refs.append(PhaseController(m.controller, a, opt, demo_base, enabled=m.controller_enabled, seed=m.seed))
-compared = ("lr_actor", "clip_coef", "target_kl", "ent_coef", "kl_coef", "policy_temperature", "value_temperature")
-worst, critic_lr = 0.0, []
+method = PhaseController(members, actor, critic, actor_opt, critic_opt)
+alone = [population_method("phase_controller", [m], [copy.deepcopy(a)], [copy.deepcopy(c)]) for m, (a, c) in zip(members, singles)]
+read = ("lr_actor", "lr_critic", "router_frozen", "clip_coef", "target_kl", "ent_coef", "kl_coef",
+        "policy_temperature", "value_temperature")
 for t in range(demo_base.total_iterations):
     if t > 0 and t % demo_base.phase_length == 0:
-        method.on_switch(t)
-        for ref in refs:
-            ref.on_switch(t)
+        for m in (method, *alone):
+            m.on_switch(t)
     sched = method.begin_iteration(t)
-    for r, ref in enumerate(refs):
-        s = ref.begin_iteration(t)
-        want = (s.lr["head"], s.clip_coef, s.target_kl, s.ent_coef, s.kl_coef, s.policy_temperature, s.value_temperature)
-        got = [float(getattr(sched, f)[r]) for f in compared]
-        worst = max(worst, max(abs(x - y) / max(abs(x), 1e-12) for x, y in zip(want, got)))
-        assert bool(sched.router_frozen[r]) == s.router_frozen
-        if t == demo_base.phase_length:
-            critic_lr.append((s.lr["critic"], float(sched.lr_critic[r])))
-print(f"largest relative difference over {demo_base.total_iterations} iterations: {worst:.1e}")
-print("critic LR at the switch, (reference, population):", critic_lr)
-assert worst < 1e-6
-assert critic_lr[0][0] < demo_base.lr and all(pop == demo_base.lr for _, pop in critic_lr)
+    for r, one in enumerate(alone):
+        s = one.begin_iteration(t)
+        assert all(torch.equal(getattr(sched, f)[r:r + 1], getattr(s, f)) for f in read), (t, r)
+        assert sched.members[r] == s.members[0]
+assert all(torch.equal(method.actor.flat[r], one.actor.flat[0]) for r, one in enumerate(alone))
+print(f"{R} members: schedules and switch-time noise equal each member's alone over {demo_base.total_iterations} iterations")
 
 # %% [markdown]
 # **The registry.** The trainer finds a method by the name a `MethodSpec` gives (appendix 05b);
@@ -672,7 +520,7 @@ assert critic_lr[0][0] < demo_base.lr and all(pop == demo_base.lr for _, pop in 
 
 # %%
 print({name: cls.__name__ for name, cls in PLASTICITY_METHODS.items()})
-assert plasticity_method("none") is NoPlasticity and plasticity_method("phase_controller") is PhaseControllerMethod
+assert plasticity_method("none") is NoPlasticity and plasticity_method("phase_controller") is PhaseController
 try:
     plasticity_method("no_such_method")
 except ValueError as err:
@@ -867,10 +715,10 @@ assert dg.dormant_fraction_paper(pre) == 0.0 and dg.dormant_fraction_tau(pre.rel
 # %% [markdown]
 # ## A switch on a real actor, and the diagnostics around it
 #
-# A fresh actor and critic from notebook 05, random probe observations, a few PPO-like gradient
-# steps on a dummy objective so the optimizer has state, then a switch. We check which parameters
-# moved (only the expert trunks, by exactly the noise; the log-std jumped back to $\log 0.3$) and
-# compare the diagnostics before and after.
+# A fresh actor and critic from notebook 05 as a population of one, random probe observations, a
+# few gradient steps on a dummy objective so the optimizer has state, then a switch. We check which
+# parameters moved (only the expert trunks, by exactly the noise; the log-std jumped back to
+# $\log 0.3$) and compare the diagnostics before and after.
 
 # %%
 cfg = PhaseControllerConfig()
@@ -880,32 +728,45 @@ probe_obs = torch.randn(n_probe, obs_dim, generator=g)
 probe_state = torch.randn(n_probe, state_dim, generator=g)
 
 torch.manual_seed(seed)
-actor = make_actor("smoe", obs_dim)
-critic = make_critic("smoe", state_dim)
-opt = torch.optim.AdamW(build_param_groups(actor, critic, demo_base.lr), lr=demo_base.lr, weight_decay=1e-4)
-ctl = PhaseController(cfg, actor, opt, demo_base, seed=seed)
+ctl = population_method("phase_controller", [MemberConfig(cfg, demo_base, seed=seed)], [make_actor("smoe", obs_dim)],
+                        [make_critic("smoe", state_dim)], weight_decay=1e-4)
+pop, opt = ctl.actor, ctl.actor_opt
+group_names = group_index(pop.template, pop.layout)[1]
+router_mask = torch.tensor([group_names[i] == "router" for i in opt.group_of.tolist()])
+log_std_span = slice(*pop.layout.span("log_std"))
+
+
+def update(sched, obs, target):
+    """One gradient step of the member on a dummy regression objective, the router frozen as the
+    trainer freezes it (no gradient, no Adam step, no weight decay). Returns the experts chosen."""
+    _, _, routing = pop.act(obs[None], sched.policy_temperature, [g])
+    logp, ent, lb, mean, log_std, chosen = pop.evaluate(obs[None], target[None], routing)
+    loss = -logp.mean(1) - sched.ent_coef * ent + pop.lb_coef * lb
+    kl = ctl.extra_loss({"obs": obs[None], "tau": routing.temperature, "noise": routing.noise, "experts": chosen,
+                         "mean": mean, "log_std": log_std})
+    (loss if kl is None else loss + kl).sum().backward()
+    frozen = None
+    if bool(sched.router_frozen[0]):
+        frozen = torch.tensor([[name == "router" for name in group_names]])
+        pop.flat.grad.masked_fill_(router_mask, 0.0)
+    opt.step(sched.lr_actor, torch.ones(1, dtype=torch.bool), frozen)
+    return chosen
+
 
 target = torch.randn(n_probe, 2, generator=g).clamp(-1, 1)
 n_steps = by_scale(scale, ci=20, small=200, paper=200)
-for t in range(n_steps):  # a dummy regression objective, only to give Adam some state
-    s = ctl.begin_iteration(t)
-    action, _, routing = actor.act(probe_obs, temperature=s.policy_temperature)
-    logp, ent, aux = actor.evaluate(probe_obs, target, routing)
-    loss = -logp.mean() - s.ent_coef * ent.mean() + aux["aux_loss"]
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
-    actor.log_std.data.add_(-0.002)  # pretend the policy narrowed, so the reset has something to undo
+for t in range(n_steps):
+    update(ctl.begin_iteration(t), probe_obs, target)
+    with torch.no_grad():
+        pop.flat[0, log_std_span] -= 0.002  # pretend the policy narrowed, so the reset has something to undo
 
-before_params = {n: p.detach().clone() for n, p in actor.named_parameters()}
-before_diag = dg.plasticity_diagnostics(actor, critic, probe_obs, probe_state)
+before, before_diag = pop.member(0), dg.plasticity_diagnostics(pop.member(0), ctl.critic.member(0), probe_obs, probe_state)
 ctl.on_switch(n_steps)
-after_params = {n: p.detach().clone() for n, p in actor.named_parameters()}
-after_diag = dg.plasticity_diagnostics(actor, critic, probe_obs, probe_state)
+after, after_diag = pop.member(0), dg.plasticity_diagnostics(pop.member(0), ctl.critic.member(0), probe_obs, probe_state)
 
 rows = []
-for n, p0 in before_params.items():
-    d = after_params[n] - p0
+for (n, p0), p1 in zip(before.named_parameters(), after.parameters()):
+    d = (p1 - p0).detach()
     if n.startswith("gate.experts."):
         for j in range(d.shape[0]):
             rows.append({"parameter": f"{n}[{j}]", "changed": bool(d[j].abs().sum() > 0), "rms change": float(d[j].pow(2).mean().sqrt())})
@@ -913,31 +774,26 @@ for n, p0 in before_params.items():
         rows.append({"parameter": n, "changed": bool(d.abs().sum() > 0), "rms change": float(d.pow(2).mean().sqrt())})
 changes = pd.DataFrame(rows)
 print(changes.to_string(index=False))
-print("Adam state after reset:", len(opt.state), "entries; log-std now", actor.log_std.data.tolist())
+print("Adam moments after the reset:", float(opt.exp_avg.abs().sum()), "; step counts", opt.steps.tolist(),
+      "; log-std now", after.log_std.data.tolist())
 assert not changes[~changes.parameter.str.startswith(("gate.experts", "log_std"))].changed.any()
 
 # %% [markdown]
 # Every expert trunk moved by an RMS close to $\gamma_0 = 0.005$ (all three experts are noised at
 # the switch); the router, noise gate and head are bit-identical; the log-std was set back.
 # Next, one iteration after the switch with a real update: the router is frozen, and the
-# after-epoch noise touches only the experts the rollout selected.
+# after-epoch noise goes to the experts the batch used, in proportion to their share of it.
 
 # %%
 s = ctl.begin_iteration(n_steps)
-router_before = [p.detach().clone() for p in actor.param_groups()["router"]]
-bank_before = actor.gate.experts.w1.detach().clone()
-action, _, routing = actor.act(probe_obs[:8], temperature=s.policy_temperature)  # a tiny batch: maybe not every expert is used
-logp, ent, aux = actor.evaluate(probe_obs[:8], action, routing)
-loss = -logp.mean() + ctl.kl_penalty(probe_obs[:8], routing) + aux["aux_loss"]
-opt.zero_grad(set_to_none=True)
-loss.backward()
-opt.step()
-noised = ctl.after_epoch(routing.experts)
-delta_w1 = (actor.gate.experts.w1 - bank_before).abs().flatten(1).sum(1)
-print("settings:", {k: v for k, v in vars(s).items() if k != "lr"}, "\nLRs:", s.lr)
-print("experts selected in the batch:", routing.experts.unique().tolist(), "-> noised:", noised)
-print("router unchanged during freeze:", all(torch.equal(a, b) for a, b in zip(router_before, actor.param_groups()["router"])))
-assert all(torch.equal(a, b) for a, b in zip(router_before, actor.param_groups()["router"]))
+row_before = pop.flat[0].detach().clone()
+chosen = update(s, probe_obs[:8], target[:8])  # a tiny batch: maybe not every expert is used
+counts = F.one_hot(chosen.reshape(1, -1), pop.n_experts).sum(1).float()
+ctl.after_epoch(counts, torch.ones(1, dtype=torch.bool))
+print("settings:", {k: v for k, v in vars(s.members[0]).items() if k != "lr"}, "\nLRs:", s.members[0].lr)
+print("expert shares of the batch:", (counts[0] / counts.sum()).tolist(), "-> noise std per expert:", ctl.last_noise[0])
+assert torch.equal(pop.flat[0, router_mask], row_before[router_mask])
+print("router unchanged during the freeze: True")
 
 table = pd.DataFrame({"before switch": before_diag, "after switch": after_diag})
 table = table[~table.index.str.contains("/expert.*/layer")]

@@ -203,13 +203,17 @@ def dynamic_regret(optimal_values, values) -> np.ndarray:
 # difference is an unbiased advantage that needs no critic (the critic-error term of the theorem
 # is then zero by construction). The stored routing is replayed in the update, as in notebook 07.
 #
-# The noise comes from the real `PhaseController` of notebook 06, configured with **only** noise
-# injection switched on: every other switch-time mechanism (KL anchor, LR drop, router freeze,
-# temperature, resets) is off, so that a noisy run and its noise-free twin differ in the noise
-# and in nothing else. The controller perturbs every expert at the switch itself and then the
-# experts selected by the batch after each of the next $N$ update epochs: $N + 1$ pulses per
-# switch, not $N$. We record every pulse and use the **realised** energy
-# $\gamma^2 K (N+1)$ in the fits.
+# The noise comes from the phase controller the experiments run, `PhaseController` of notebook 06,
+# on the actor as a population of one run and configured with **only** noise injection switched
+# on: every other switch-time mechanism (KL anchor, LR drop, router freeze, temperature, resets)
+# is off, so that a noisy run and its noise-free twin differ in the noise and in nothing else. The
+# controller perturbs every expert with $\gamma$ at the switch itself and then, after each of the
+# next $N$ update epochs, each expert with $\gamma$ times its share of the epoch's routing slots:
+# $N + 1$ pulses per switch, not $N$. We record every pulse with its amplitude, the RMS of the noise
+# std over the trunk's scalars: $\gamma$ at the switch and after every epoch for the MLP (one
+# expert, always used); after an epoch of a three-expert actor between $\gamma/3$ (even use) and
+# $\gamma/\sqrt 3$ (one expert takes every slot). The fits use the **realised** energy, the sum of
+# the squared amplitudes: $\gamma^2 K (N+1)$ for the MLP, less for the gated actors.
 #
 # Randomness is arranged for pairing: the context and action draws use the global torch
 # generator seeded by `seed`, while the noise has the controller's own generator. A noisy run
@@ -289,13 +293,16 @@ for (kind, (g, n, k)), sweeps in settings_by_kind.items():
         clean, noisy = runs[(kind, "clean", k, s)], runs[(kind, (g, n, k), k, s)]
         d = paired_distance(clean, noisy)
         rows.append({"kind": kind, "gamma": g, "window": n, "K": k, "seed": s, "sweeps": "+".join(sorted(sweeps)),
-                     "schedule_matches": bool(np.array_equal(noisy.noise_slots(), noise_schedule(
-                         NOISE_T * 2 + 1, [2 * t for t in noisy.switches], g, n + 1))),
+                     "schedule_matches": bool(np.array_equal(noisy.noise_slots() > 0, window_coverage(
+                         NOISE_T * 2 + 1, [2 * t for t in noisy.switches], n + 1))),
                      "clean_regret": clean.total_regret, **d})
 noise_df = pd.DataFrame(rows)
-assert np.allclose(noise_df["energy"], noise_df["gamma"] ** 2 * noise_df["K"] * (noise_df["window"] + 1))
+full = noise_df["gamma"] ** 2 * noise_df["K"] * (noise_df["window"] + 1)
+mlp_rows = noise_df["kind"] == "mlp"
+assert np.allclose(noise_df.loc[mlp_rows, "energy"], full[mlp_rows]) and (noise_df["energy"] <= full * (1 + 1e-12)).all()
 assert noise_df["schedule_matches"].all()
-print("realised pulses = noise_schedule(window N+1) slot for slot, energy = gamma^2 K (N+1), in every run")
+print("pulses in exactly the slots of noise_schedule(window N+1) in every run; energy = gamma^2 K (N+1) for the MLP,",
+      f"{(noise_df.energy / full)[~mlp_rows].mean():.2f} of it (mean) for PE-MAMoE")
 noise_df.groupby(["kind", "gamma", "window", "K"])[["energy", "policy_mean", "return_gap", "return_abs", "excess_regret"]].mean()
 
 # %%
@@ -313,8 +320,9 @@ print("noisy-vs-twin distance at the largest gamma (mean):",
 # %% [markdown]
 # The check above also confirms the bookkeeping: counting the controller's pulses on a grid of
 # *pulse slots* (the start of each iteration, where the switch pulse lands, and the end of each
-# update epoch), the realised noise is exactly `noise_schedule` with a window of $N + 1$ slots,
-# opened at slot $2t$ for a switch at iteration $t$ (two update epochs per iteration here).
+# update epoch), the realised noise fills exactly the window of $N + 1$ slots of `noise_schedule`,
+# opened at slot $2t$ for a switch at iteration $t$ (two update epochs per iteration here), and
+# for the MLP it is `noise_schedule` itself, amplitude included.
 
 # %%
 rng_fit = np.random.default_rng(seed)
@@ -706,8 +714,11 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 #
 # **Noise energy.** The identity $\sum_t\gamma_t^2 = \gamma^2KN$ is exact for disjoint windows
 # (bit for bit, tested), and an upper bound otherwise. The shipped controller adds one pulse at the
-# switch itself, so its realised energy is $\gamma^2K(N+1)$; the recorded pulses match
-# `noise_schedule` with a window of $N+1$ slot for slot in every run. The drift of a noisy run from
+# switch itself, so the MLP's realised energy is $\gamma^2K(N+1)$, and the recorded pulses fill the
+# window of $N+1$ slots in every run; the gated actors' epoch pulses are weighted by use and
+# weaker. (The slopes quoted in this paragraph were measured when the tracker still used a
+# single-run copy of the controller that gave every selected expert the full $\gamma$ after each
+# epoch; the PE-MAMoE rows move when the notebook is rerun.) The drift of a noisy run from
 # its same-seed twin grows with the energy but **much more slowly than** $\sqrt{\text{energy}}$:
 # the probe-distance slope against $\sqrt{\sum\gamma^2}$ is 0.48 [0.46, 0.50] in the $\gamma$ sweep
 # (0.51 [0.44, 0.57] for the MLP, so routing is not the cause), and $\sum_t|\Delta J_t|$ has slope

@@ -19,9 +19,9 @@
 #
 # * **the tracking task** of notebook 08 as code: `TrackingProblemConfig` and `TrackingProblem`;
 # * **the learner**: `TrackerConfig`, `run_tracker` and `run_many`, a compact PPO loop that trains
-#   the real actor of notebook 05 on the tracking task with the real phase controller of notebook
-#   06 (noise injection only), and `paired_distance`, which compares a noisy run with its
-#   noise-free twin;
+#   the real actor of notebook 05 on the tracking task with the phase controller the trainer runs
+#   (notebook 06, noise injection only), and `paired_distance`, which compares a noisy run with
+#   its noise-free twin;
 # * **the exponent fit**: `fit_power_law`, a log-log least-squares fit with bootstrap intervals;
 # * **distances between action distributions**: `gaussian_l1` (closed form) and `mc_l1_distance`
 #   (Monte Carlo, for Gaussian mixtures);
@@ -56,14 +56,8 @@ import torch.nn.functional as F
 
 from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
-from pemamoe.phase_controller import (
-    BaseSchedule,
-    PhaseController,
-    PhaseControllerConfig,
-    build_param_groups,
-    expert_parameters,
-    n_experts_of,
-)
+from pemamoe.phase_controller import BaseSchedule, PhaseControllerConfig, expert_parameters, n_experts_of
+from pemamoe.population_plasticity import MemberConfig, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 # %%
@@ -240,7 +234,7 @@ class TrackerRun:
     values: np.ndarray  # V(pi_t) of the mean-action policy on the probe set
     optimal: np.ndarray  # V*_phi(t)
     regret: np.ndarray  # cumulative dynamic regret R_t
-    pulses: np.ndarray  # (n_pulses, 2): pulse slot (see noise_slots), noise std
+    pulses: np.ndarray  # (n_pulses, 2): pulse slot (see noise_slots), amplitude (RMS noise std over the trunk)
     means: np.ndarray | None  # (T, probe_size, m) probe mean actions, or None
     log_std: np.ndarray  # (T, m)
     actor: object = field(default=None, repr=False)
@@ -254,7 +248,7 @@ class TrackerRun:
         return float(self.regret[-1])
 
     def noise_slots(self) -> np.ndarray:
-        """Realised noise std per pulse slot (iterations * epochs + 1,): slot 0 of iteration t is its
+        """Realised noise amplitude per pulse slot (iterations * epochs + 1,): slot 0 of iteration t is its
         start (where the switch pulse goes), slot e + 1 follows update epoch e."""
         out = np.zeros(self.cfg.iterations * self.cfg.epochs + 1)
         for slot, std in self.pulses:
@@ -275,70 +269,90 @@ def _controller_config(cfg: TrackerConfig) -> PhaseControllerConfig:
     )
 
 
+def _pulse_amplitude(stds, sizes) -> float:
+    """RMS noise std over the trunk's scalars of one injection: expert e got stds[e] on sizes[e] scalars."""
+    if len(set(stds)) == 1:
+        return float(stds[0])  # every expert alike (the switch's pulse, or an ungated trunk): exactly gamma
+    return math.sqrt(math.fsum(s * s * n for s, n in zip(stds, sizes)) / sum(sizes))
+
+
 def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, keep_actor: bool = False) -> TrackerRun:
-    """Train cfg.kind on `problem` (n_phases must be >= n_switches + 1) and record values and noise."""
+    """Train cfg.kind on `problem` (n_phases must be >= n_switches + 1) and record values and noise.
+
+    The actor is a population of one run, trained as the trainer of notebook 07 trains it (routing
+    replayed, Adam over the flat row) and perturbed by its phase controller (notebook 06)."""
     if problem.cfg.n_phases < cfg.n_switches + 1:
         raise ValueError(f"run_tracker needs n_phases >= n_switches + 1, got {problem.cfg.n_phases} < {cfg.n_switches + 1}")
     torch.manual_seed(seed)
     d, m, T = problem.cfg.obs_dim, problem.cfg.act_dim, cfg.iterations
-    actor = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
-    opt = torch.optim.Adam(build_param_groups(actor, lr=cfg.lr), lr=cfg.lr)
     base = BaseSchedule(
         lr=cfg.lr, clip_coef=cfg.clip, target_kl=None, ent_start=0.0, ent_end=0.0,
         total_iterations=T, phase_length=max(1, T // (cfg.n_switches + 1)),
     )
-    ctrl = PhaseController(_controller_config(cfg), actor, opt, base, enabled=True, seed=seed + 7919)
-    gamma = float(cfg.noise_gamma)
+    member = MemberConfig(_controller_config(cfg), base, seed=seed + 7912)  # its noise generator: seed + 7919
+    single = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
+    ctrl = population_method("phase_controller", [member], [single], eps=1e-8)  # Adam's eps, no weight decay
+    actor, opt = ctrl.actor, ctrl.actor_opt
+    sparse = actor.gated and actor.k < actor.n_experts
+    sizes = [idx.numel() for idx in ctrl.expert_indices()]
+    rollout = torch.Generator().manual_seed(seed)  # contexts, gate noise and actions: shared with the twin
+    one = torch.ones(1, dtype=torch.bool)
+    ls = slice(*actor.layout.span("log_std"))
     switches = switch_times(T, cfg.n_switches)
     switch_set = set(switches)
-    probe = torch.tensor(problem.probe, dtype=torch.float32)
+    probe = torch.tensor(problem.probe, dtype=torch.float32).unsqueeze(0)
     phase_of = np.zeros(T, dtype=np.int64)
     values, optimal = np.zeros(T), np.zeros(T)
     means = np.zeros((T, problem.cfg.probe_size, m), np.float32) if cfg.keep_means else None
     log_std = np.zeros((T, m))
     pulses, epoch, phase = [], 0, 0
+
+    def record(slot):
+        stds = ctrl.last_noise[0]
+        if stds is not None and max(stds) > 0:
+            pulses.append((slot, _pulse_amplitude(stds, sizes)))
+
     for t in range(T):
         if t in switch_set:
             phase += 1
             ctrl.on_switch(t)
-            if ctrl.last_noised:
-                pulses.append((epoch, gamma))
+            record(epoch)
         s = ctrl.begin_iteration(t)
-        x = torch.randn(cfg.batch, d)
         with torch.no_grad():
-            dist, routing = actor(x, s.policy_temperature)
-            eps = torch.randn(cfg.batch, m)
-            mu, std = dist.mean, dist.stddev
-            a_plus, a_minus = mu + std * eps, mu - std * eps
-            adv = 0.5 * (problem.reward(x, a_plus, phase) - problem.reward(x, a_minus, phase))
-            obs2, act2 = torch.cat([x, x]), torch.cat([a_plus, a_minus])
-            adv2 = torch.cat([adv, -adv])
+            x = torch.randn(1, cfg.batch, d, generator=rollout)
+            a_plus, _, routing = actor.act(x, s.policy_temperature, [rollout])
+            _, _, _, mu, log_sd, _ = actor.evaluate(x, a_plus, routing)
+            a_minus = 2 * mu - a_plus  # the antithetic twin: mu - sigma eps under the same routing
+            adv = 0.5 * (problem.reward(x[0], a_plus[0], phase) - problem.reward(x[0], a_minus[0], phase))
+            obs2, act2 = torch.cat([x, x], 1), torch.cat([a_plus, a_minus], 1)
+            adv2 = torch.cat([adv, -adv]).unsqueeze(0)
             adv2 = adv2 / (adv2.std() + 1e-8)
-            rout2 = None if routing is None else type(routing).cat([routing, routing])
-            logp_old = torch.cat([dist.log_prob(a_plus), dist.log_prob(a_minus)])
+            rout2 = None if routing is None else type(routing).cat([routing, routing], 1)
+            logp_old = actor.evaluate(obs2, act2, rout2)[0]
         for _ in range(cfg.epochs):
-            logp, _, aux = actor.evaluate(obs2, act2, rout2)
+            logp, _, lb, _, _, chosen = actor.evaluate(obs2, act2, rout2)
             ratio = (logp - logp_old).exp()
-            clipped = ratio.clamp(1.0 - s.clip_coef, 1.0 + s.clip_coef)
-            loss = -torch.min(ratio * adv2, clipped * adv2).mean() + aux["aux_loss"]
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if ctrl.after_epoch(None if rout2 is None else rout2.experts):
-                pulses.append((epoch + 1, gamma))
+            clip = s.clip_coef.unsqueeze(1)
+            clipped = ratio.clamp(1.0 - clip, 1.0 + clip)
+            loss = -torch.min(ratio * adv2, clipped * adv2).mean(1) + actor.lb_coef * lb
+            loss.sum().backward()
+            opt.step(s.lr_actor, one)
+            counts = F.one_hot(chosen.reshape(1, -1), actor.n_experts).sum(1).float() if sparse else None
+            ctrl.after_epoch(counts, one)  # the trainer's rule: each expert's noise weighted by its share
+            record(epoch + 1)
             epoch += 1
         with torch.no_grad():
-            mp = actor(probe, s.policy_temperature, deterministic_gate=True)[0].mean.numpy()
+            mp = actor.mean_and_gate(probe, s.policy_temperature.reshape(1, 1).expand(1, probe.shape[1]))[0][0].numpy()
         phase_of[t] = phase
         values[t] = problem.value(mp, phase)
         optimal[t] = problem.optimal_value(phase)
-        log_std[t] = actor.log_std.detach().numpy()
+        log_std[t] = actor.flat[0, ls].detach().numpy()
         if means is not None:
             means[t] = mp
     return TrackerRun(
         cfg=cfg, seed=seed, switches=switches, phase=phase_of, values=values, optimal=optimal,
         regret=dynamic_regret(optimal, values), pulses=np.asarray(pulses, dtype=float).reshape(-1, 2),
-        means=means, log_std=log_std, actor=actor if keep_actor else None,
+        means=means, log_std=log_std, actor=actor.member(0) if keep_actor else None,
     )
 
 
@@ -383,24 +397,33 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
 
 # %% [markdown]
 # A check of the bookkeeping on a short run: with $\gamma = 0$ the "noisy" run reproduces its twin
-# exactly; with $\gamma > 0$ the two agree until the first switch, and the realised pulses are
-# `noise_schedule` with a window of $N + 1$ slots, so the energy is $\gamma^2 K (N + 1)$.
+# exactly; with $\gamma > 0$ the two agree until the first switch, and the pulses fill exactly the
+# slots of `noise_schedule` with a window of $N + 1$. A pulse's amplitude is $\gamma$ at the switch;
+# after an epoch it is the RMS over the trunk of the share-weighted stds, $\gamma$ for the MLP and
+# between $\gamma/E$ and $\gamma/\sqrt E$ for $E$ equal experts, so the energy is at most
+# $\gamma^2 K (N + 1)$, with equality for the MLP.
 
 # %%
 check_problem = TrackingProblem(TrackingProblemConfig(n_phases=3, probe_size=64), seed=seed)
 check_base = dict(iterations=by_scale(scale, ci=24, small=40, paper=40), n_switches=2, batch=16, epochs=2, noise_epochs=3)
-clean_run, zero_run, noisy_run = run_many([
+clean_run, zero_run, noisy_run, mlp_run = run_many([
     (check_problem.cfg, TrackerConfig(controller="off", **check_base), seed, seed + 5, False),
     (check_problem.cfg, TrackerConfig(controller="noise", noise_gamma=0.0, **check_base), seed, seed + 5, False),
     (check_problem.cfg, TrackerConfig(controller="noise", noise_gamma=0.05, **check_base), seed, seed + 5, False),
+    (check_problem.cfg, TrackerConfig(kind="mlp", controller="noise", noise_gamma=0.05, **check_base), seed, seed + 5, False),
 ])
 assert np.array_equal(clean_run.values, zero_run.values)
 first = noisy_run.switches[0]
 assert np.array_equal(noisy_run.values[:first], clean_run.values[:first])
 slots = noise_schedule(check_base["iterations"] * 2 + 1, [2 * t for t in noisy_run.switches], 0.05, 3 + 1)
-assert np.array_equal(noisy_run.noise_slots(), slots)
-assert noisy_run.noise_energy == 0.05**2 * 2 * (3 + 1)
-print(f"switches at {noisy_run.switches}; {len(noisy_run.pulses)} pulses, energy {noisy_run.noise_energy:.4f}")
+realised = noisy_run.noise_slots()
+assert np.array_equal(realised > 0, slots > 0) and np.all(realised[[2 * t for t in noisy_run.switches]] == 0.05)
+epoch_pulses = np.delete(realised, [2 * t for t in noisy_run.switches])
+assert np.all(epoch_pulses[epoch_pulses > 0] <= 0.05 / math.sqrt(3) * (1 + 1e-12))
+assert np.all(epoch_pulses[epoch_pulses > 0] >= 0.05 / 3 * (1 - 1e-12))
+assert np.array_equal(mlp_run.noise_slots(), slots) and mlp_run.noise_energy == 0.05**2 * 2 * (3 + 1)
+print(f"switches at {noisy_run.switches}; {len(noisy_run.pulses)} pulses, energy {noisy_run.noise_energy:.4f} "
+      f"(MLP {mlp_run.noise_energy:.4f} = gamma^2 K (N + 1))")
 print("noisy vs twin:", {k: round(v, 4) for k, v in paired_distance(clean_run, noisy_run).items()})
 
 # %% [markdown]

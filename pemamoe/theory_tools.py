@@ -15,18 +15,12 @@ import torch.nn.functional as F
 
 from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
-from pemamoe.phase_controller import (
-    BaseSchedule,
-    PhaseController,
-    PhaseControllerConfig,
-    build_param_groups,
-    expert_parameters,
-    n_experts_of,
-)
+from pemamoe.phase_controller import BaseSchedule, PhaseControllerConfig, expert_parameters, n_experts_of
+from pemamoe.population_plasticity import MemberConfig, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 
-# %% notebooks/08b_theory_tools.py, cell 7 (line 88)
+# %% notebooks/08b_theory_tools.py, cell 7 (line 82)
 @dataclass(frozen=True)
 class TrackingProblemConfig:
     """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
@@ -101,7 +95,7 @@ class TrackingProblem:
         return np.linalg.norm(np.diff(self.W, axis=0).reshape(self.cfg.n_phases - 1, -1), axis=1)
 
 
-# %% notebooks/08b_theory_tools.py, cell 10 (line 186)
+# %% notebooks/08b_theory_tools.py, cell 10 (line 180)
 CONTROLLERS = ("off", "noise")
 
 
@@ -157,7 +151,7 @@ class TrackerRun:
     values: np.ndarray  # V(pi_t) of the mean-action policy on the probe set
     optimal: np.ndarray  # V*_phi(t)
     regret: np.ndarray  # cumulative dynamic regret R_t
-    pulses: np.ndarray  # (n_pulses, 2): pulse slot (see noise_slots), noise std
+    pulses: np.ndarray  # (n_pulses, 2): pulse slot (see noise_slots), amplitude (RMS noise std over the trunk)
     means: np.ndarray | None  # (T, probe_size, m) probe mean actions, or None
     log_std: np.ndarray  # (T, m)
     actor: object = field(default=None, repr=False)
@@ -171,7 +165,7 @@ class TrackerRun:
         return float(self.regret[-1])
 
     def noise_slots(self) -> np.ndarray:
-        """Realised noise std per pulse slot (iterations * epochs + 1,): slot 0 of iteration t is its
+        """Realised noise amplitude per pulse slot (iterations * epochs + 1,): slot 0 of iteration t is its
         start (where the switch pulse goes), slot e + 1 follows update epoch e."""
         out = np.zeros(self.cfg.iterations * self.cfg.epochs + 1)
         for slot, std in self.pulses:
@@ -192,70 +186,90 @@ def _controller_config(cfg: TrackerConfig) -> PhaseControllerConfig:
     )
 
 
+def _pulse_amplitude(stds, sizes) -> float:
+    """RMS noise std over the trunk's scalars of one injection: expert e got stds[e] on sizes[e] scalars."""
+    if len(set(stds)) == 1:
+        return float(stds[0])  # every expert alike (the switch's pulse, or an ungated trunk): exactly gamma
+    return math.sqrt(math.fsum(s * s * n for s, n in zip(stds, sizes)) / sum(sizes))
+
+
 def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, keep_actor: bool = False) -> TrackerRun:
-    """Train cfg.kind on `problem` (n_phases must be >= n_switches + 1) and record values and noise."""
+    """Train cfg.kind on `problem` (n_phases must be >= n_switches + 1) and record values and noise.
+
+    The actor is a population of one run, trained as the trainer of notebook 07 trains it (routing
+    replayed, Adam over the flat row) and perturbed by its phase controller (notebook 06)."""
     if problem.cfg.n_phases < cfg.n_switches + 1:
         raise ValueError(f"run_tracker needs n_phases >= n_switches + 1, got {problem.cfg.n_phases} < {cfg.n_switches + 1}")
     torch.manual_seed(seed)
     d, m, T = problem.cfg.obs_dim, problem.cfg.act_dim, cfg.iterations
-    actor = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
-    opt = torch.optim.Adam(build_param_groups(actor, lr=cfg.lr), lr=cfg.lr)
     base = BaseSchedule(
         lr=cfg.lr, clip_coef=cfg.clip, target_kl=None, ent_start=0.0, ent_end=0.0,
         total_iterations=T, phase_length=max(1, T // (cfg.n_switches + 1)),
     )
-    ctrl = PhaseController(_controller_config(cfg), actor, opt, base, enabled=True, seed=seed + 7919)
-    gamma = float(cfg.noise_gamma)
+    member = MemberConfig(_controller_config(cfg), base, seed=seed + 7912)  # its noise generator: seed + 7919
+    single = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
+    ctrl = population_method("phase_controller", [member], [single], eps=1e-8)  # Adam's eps, no weight decay
+    actor, opt = ctrl.actor, ctrl.actor_opt
+    sparse = actor.gated and actor.k < actor.n_experts
+    sizes = [idx.numel() for idx in ctrl.expert_indices()]
+    rollout = torch.Generator().manual_seed(seed)  # contexts, gate noise and actions: shared with the twin
+    one = torch.ones(1, dtype=torch.bool)
+    ls = slice(*actor.layout.span("log_std"))
     switches = switch_times(T, cfg.n_switches)
     switch_set = set(switches)
-    probe = torch.tensor(problem.probe, dtype=torch.float32)
+    probe = torch.tensor(problem.probe, dtype=torch.float32).unsqueeze(0)
     phase_of = np.zeros(T, dtype=np.int64)
     values, optimal = np.zeros(T), np.zeros(T)
     means = np.zeros((T, problem.cfg.probe_size, m), np.float32) if cfg.keep_means else None
     log_std = np.zeros((T, m))
     pulses, epoch, phase = [], 0, 0
+
+    def record(slot):
+        stds = ctrl.last_noise[0]
+        if stds is not None and max(stds) > 0:
+            pulses.append((slot, _pulse_amplitude(stds, sizes)))
+
     for t in range(T):
         if t in switch_set:
             phase += 1
             ctrl.on_switch(t)
-            if ctrl.last_noised:
-                pulses.append((epoch, gamma))
+            record(epoch)
         s = ctrl.begin_iteration(t)
-        x = torch.randn(cfg.batch, d)
         with torch.no_grad():
-            dist, routing = actor(x, s.policy_temperature)
-            eps = torch.randn(cfg.batch, m)
-            mu, std = dist.mean, dist.stddev
-            a_plus, a_minus = mu + std * eps, mu - std * eps
-            adv = 0.5 * (problem.reward(x, a_plus, phase) - problem.reward(x, a_minus, phase))
-            obs2, act2 = torch.cat([x, x]), torch.cat([a_plus, a_minus])
-            adv2 = torch.cat([adv, -adv])
+            x = torch.randn(1, cfg.batch, d, generator=rollout)
+            a_plus, _, routing = actor.act(x, s.policy_temperature, [rollout])
+            _, _, _, mu, log_sd, _ = actor.evaluate(x, a_plus, routing)
+            a_minus = 2 * mu - a_plus  # the antithetic twin: mu - sigma eps under the same routing
+            adv = 0.5 * (problem.reward(x[0], a_plus[0], phase) - problem.reward(x[0], a_minus[0], phase))
+            obs2, act2 = torch.cat([x, x], 1), torch.cat([a_plus, a_minus], 1)
+            adv2 = torch.cat([adv, -adv]).unsqueeze(0)
             adv2 = adv2 / (adv2.std() + 1e-8)
-            rout2 = None if routing is None else type(routing).cat([routing, routing])
-            logp_old = torch.cat([dist.log_prob(a_plus), dist.log_prob(a_minus)])
+            rout2 = None if routing is None else type(routing).cat([routing, routing], 1)
+            logp_old = actor.evaluate(obs2, act2, rout2)[0]
         for _ in range(cfg.epochs):
-            logp, _, aux = actor.evaluate(obs2, act2, rout2)
+            logp, _, lb, _, _, chosen = actor.evaluate(obs2, act2, rout2)
             ratio = (logp - logp_old).exp()
-            clipped = ratio.clamp(1.0 - s.clip_coef, 1.0 + s.clip_coef)
-            loss = -torch.min(ratio * adv2, clipped * adv2).mean() + aux["aux_loss"]
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if ctrl.after_epoch(None if rout2 is None else rout2.experts):
-                pulses.append((epoch + 1, gamma))
+            clip = s.clip_coef.unsqueeze(1)
+            clipped = ratio.clamp(1.0 - clip, 1.0 + clip)
+            loss = -torch.min(ratio * adv2, clipped * adv2).mean(1) + actor.lb_coef * lb
+            loss.sum().backward()
+            opt.step(s.lr_actor, one)
+            counts = F.one_hot(chosen.reshape(1, -1), actor.n_experts).sum(1).float() if sparse else None
+            ctrl.after_epoch(counts, one)  # the trainer's rule: each expert's noise weighted by its share
+            record(epoch + 1)
             epoch += 1
         with torch.no_grad():
-            mp = actor(probe, s.policy_temperature, deterministic_gate=True)[0].mean.numpy()
+            mp = actor.mean_and_gate(probe, s.policy_temperature.reshape(1, 1).expand(1, probe.shape[1]))[0][0].numpy()
         phase_of[t] = phase
         values[t] = problem.value(mp, phase)
         optimal[t] = problem.optimal_value(phase)
-        log_std[t] = actor.log_std.detach().numpy()
+        log_std[t] = actor.flat[0, ls].detach().numpy()
         if means is not None:
             means[t] = mp
     return TrackerRun(
         cfg=cfg, seed=seed, switches=switches, phase=phase_of, values=values, optimal=optimal,
         regret=dynamic_regret(optimal, values), pulses=np.asarray(pulses, dtype=float).reshape(-1, 2),
-        means=means, log_std=log_std, actor=actor if keep_actor else None,
+        means=means, log_std=log_std, actor=actor.member(0) if keep_actor else None,
     )
 
 
@@ -299,7 +313,7 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
     }
 
 
-# %% notebooks/08b_theory_tools.py, cell 14 (line 414)
+# %% notebooks/08b_theory_tools.py, cell 14 (line 437)
 def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
     """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
 
@@ -347,7 +361,7 @@ def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: flo
     return out
 
 
-# %% notebooks/08b_theory_tools.py, cell 17 (line 481)
+# %% notebooks/08b_theory_tools.py, cell 17 (line 504)
 def gaussian_l1(mu1, mu2, std) -> np.ndarray:
     """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
     Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
@@ -396,7 +410,7 @@ def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
     return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
 
 
-# %% notebooks/08b_theory_tools.py, cell 21 (line 562)
+# %% notebooks/08b_theory_tools.py, cell 21 (line 585)
 def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
     """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
     dy (n,) or (n, p); dx (n,) or (n, r)."""
@@ -428,7 +442,7 @@ def lipschitz_envelope(y, U) -> np.ndarray:
     return res.x / scale
 
 
-# %% notebooks/08b_theory_tools.py, cell 24 (line 616)
+# %% notebooks/08b_theory_tools.py, cell 24 (line 639)
 DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
 
 

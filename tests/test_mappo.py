@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import pemamoe.mappo as mappo
+from pemamoe.controller import PhaseController
 from pemamoe.mappo import (
     METHODS,
     TIMING_COLUMNS,
@@ -20,7 +21,6 @@ from pemamoe.mappo import (
     train,
 )
 from pemamoe.phase_controller import PhaseControllerConfig
-from pemamoe.population_plasticity import PhaseControllerMethod
 
 
 @pytest.fixture(autouse=True)
@@ -176,13 +176,13 @@ def test_first_ratio_is_one_directly():
 @pytest.mark.parametrize("L,iters", [(2, 6), (3, 7)])
 def test_switch_calls_on_switch_exactly_at_multiples_of_L(L, iters, monkeypatch):
     calls = []
-    real = PhaseControllerMethod.on_switch
+    real = PhaseController.on_switch
 
     def spy(self, t):
         calls.append(t)
         return real(self, t)
 
-    monkeypatch.setattr(PhaseControllerMethod, "on_switch", spy)
+    monkeypatch.setattr(PhaseController, "on_switch", spy)
     res = train(ci(phase_length_iters=L, iterations=iters, diag_every=10))
     assert calls == [t for t in range(1, iters) if t % L == 0]
     m = res.metrics

@@ -1,4 +1,8 @@
-"""Phase controller (notebook 06): every mechanism of Algorithm 1, each behind its own switch."""
+"""Phase controller (notebook 06): every mechanism of Algorithm 1, each behind its own switch.
+
+The controller under test is the one the trainer runs (`pemamoe.controller.PhaseController`),
+driven here for one run (a population of R = 1), its update steps made as the trainer makes them.
+"""
 
 import copy
 import math
@@ -6,52 +10,88 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
-from pemamoe.nets import NetConfig, make_actor, make_critic
+from pemamoe.controller import PhaseController
+from pemamoe.nets import NetConfig, PopulationActor, make_actor, make_critic
 from pemamoe.phase_controller import (
     MECHANISMS,
     BaseSchedule,
-    PhaseController,
     PhaseControllerConfig,
-    build_param_groups,
     entropy_coef,
     expert_parameters,
-    inject_expert_noise,
     kl_anchor_coef,
     lr_multiplier,
     temperature_formula,
     temperature_text,
 )
+from pemamoe.population_plasticity import MemberConfig, group_index, plasticity_method, population_method
 
 OBS, STATE = 10, 14
 BASE = BaseSchedule(total_iterations=3000, phase_length=1000)
+ONE = torch.ones(1, dtype=torch.bool)
 
 
 def setup(kind="pemamoe", cfg=None, enabled=True, base=BASE, seed=0, weight_decay=1e-4, net=None):
     torch.manual_seed(seed)
     actor, critic = make_actor(kind, OBS, 2, net), make_critic(kind, STATE, net)
-    opt = torch.optim.AdamW(build_param_groups(actor, critic, base.lr), lr=base.lr, weight_decay=weight_decay)
-    ctl = PhaseController(cfg or PhaseControllerConfig(), actor, opt, base, enabled=enabled, seed=seed)
-    return actor, critic, opt, ctl
+    member = MemberConfig(cfg or PhaseControllerConfig(), base, controller_enabled=enabled, seed=seed)
+    return population_method("phase_controller", [member], [actor], [critic], weight_decay=weight_decay)
 
 
-def train_step(actor, critic, opt, ctl, settings, n=32, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    obs, state = torch.randn(n, OBS, generator=g), torch.randn(n, STATE, generator=g)
-    action, _, routing = actor.act(obs, temperature=settings.policy_temperature)
-    target = torch.randn(n, 2, generator=g)
-    logp, ent, aux = actor.evaluate(obs, target, routing)
-    value, vaux = critic(state, settings.value_temperature)
-    loss = -logp.mean() - settings.ent_coef * ent.mean() + aux["aux_loss"] + value.pow(2).mean() + vaux["aux_loss"]
-    loss = loss + ctl.kl_penalty(obs, routing)
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
+def group_names(ctl):
+    return group_index(ctl.actor.template, ctl.actor.layout)[1]
+
+
+def router_mask(ctl):
+    names = group_names(ctl)
+    return torch.tensor([names[g] == "router" for g in ctl.actor_opt.group_of.tolist()])
+
+
+def batch(ctl, sched, obs):
+    _, _, routing = ctl.actor.act(obs, sched.policy_temperature, [torch.Generator().manual_seed(1)])
     return routing
 
 
-def params(module):
-    return {n: p.detach().clone() for n, p in module.named_parameters()}
+def extra(ctl, obs, routing):
+    _, _, _, mean, log_std, chosen = ctl.actor.evaluate(obs, torch.zeros(*obs.shape[:2], 2), routing)
+    return ctl.extra_loss({"obs": obs, "tau": routing.temperature, "noise": routing.noise, "experts": chosen,
+                           "mean": mean, "log_std": log_std})
+
+
+def train_step(ctl, sched, n=32, seed=0, zero_grad_in_place=False):
+    """One trainer-like step of member 0 (PPO stand-in loss, KL anchor, router freeze); returns counts."""
+    g = torch.Generator().manual_seed(seed)
+    obs, state, target = torch.randn(1, n, OBS, generator=g), torch.randn(1, n, STATE, generator=g), torch.randn(1, n, 2, generator=g)
+    actor, critic = ctl.actor, ctl.critic
+    _, _, routing = actor.act(obs, sched.policy_temperature, [g])
+    logp, ent, lb, mean, log_std, chosen = actor.evaluate(obs, target, routing)
+    value, c_lb, _ = critic(state, sched.value_temperature)
+    loss = -logp.mean(1) - sched.ent_coef * ent + actor.lb_coef * lb + value.pow(2).mean(1) + critic.lb_coef * c_lb
+    kl = ctl.extra_loss({"obs": obs, "tau": None if routing is None else routing.temperature,
+                         "noise": None if routing is None else routing.noise, "experts": chosen,
+                         "mean": mean, "log_std": log_std})
+    if kl is not None:
+        loss = loss + kl
+    loss.sum().backward()
+    frozen = None
+    if bool(sched.router_frozen[0]):  # as the trainer: the router group masked in the step, its gradient zeroed
+        frozen = torch.tensor([[name == "router" for name in group_names(ctl)]])
+        actor.flat.grad.masked_fill_(router_mask(ctl), 0.0)
+    ctl.actor_opt.step(sched.lr_actor, ONE, frozen)
+    ctl.critic_opt.step(sched.lr_critic, ONE)
+    ctl.after_minibatch(ONE)
+    if chosen is None or not (actor.gated and actor.k < actor.n_experts):
+        return None
+    return F.one_hot(chosen.reshape(1, -1), actor.n_experts).sum(1).float()
+
+
+def row(ctl):
+    return ctl.actor.flat[0].detach().clone()
+
+
+def span(ctl, name):
+    return slice(*ctl.actor.layout.span(name))
 
 
 # --- config ----------------------------------------------------------------------------------------
@@ -93,12 +133,11 @@ def test_without_switches_one_mechanism_off():
         cfg.without("coffee")
 
 
-def test_param_groups_need_names():
-    actor = make_actor("pemamoe", OBS)
-    with pytest.raises(ValueError, match="name"):
-        PhaseController(PhaseControllerConfig(), actor, torch.optim.Adam(actor.parameters()))
-    names = [g["name"] for g in build_param_groups(make_actor("mlp", OBS), make_critic("mlp", STATE))]
-    assert names == ["experts", "head", "log_std", "critic"]  # the MLP has no router group
+def test_param_group_names_and_the_registry():
+    names = group_index(make_actor("mlp", OBS), PopulationActor([make_actor("mlp", OBS)]).layout)[1]
+    assert names == ["experts", "head", "log_std"]  # the MLP has no router group
+    assert group_names(setup()) == ["router", "experts", "head", "log_std"]
+    assert plasticity_method("phase_controller") is PhaseController
 
 
 # --- schedules -------------------------------------------------------------------------------------
@@ -110,13 +149,13 @@ def test_lr_drop_and_warmup_values():
     assert lr_multiplier(100, cfg) == pytest.approx(0.65)
     assert lr_multiplier(200, cfg) == pytest.approx(1.0)
     assert lr_multiplier(1000, cfg) == pytest.approx(1.0)
-    actor, critic, opt, ctl = setup()
+    ctl = setup()
     ctl.on_switch(1000)
     for since, mult in [(0, 0.3), (100, 0.65), (150, 0.825), (200, 1.0), (500, 1.0)]:
         s = ctl.begin_iteration(1000 + since)
-        for g in opt.param_groups:
-            expected = 0.0 if (g["name"] == "router" and since < 30) else BASE.lr * mult
-            assert g["lr"] == pytest.approx(expected) and s.lr[g["name"]] == g["lr"]
+        assert float(s.lr_actor[0]) == pytest.approx(BASE.lr * mult)
+        assert s.members[0].lr["router"] == (0.0 if since < 30 else pytest.approx(BASE.lr * mult))
+        assert float(s.lr_critic[0]) == BASE.lr  # the critic keeps learning at the base rate
 
 
 def test_kl_anchor_decays_and_releases():
@@ -124,40 +163,41 @@ def test_kl_anchor_decays_and_releases():
     for n in (0, 1, 10, 100, 304):
         assert kl_anchor_coef(n, cfg) == pytest.approx(0.1 * 0.985**n)
     assert kl_anchor_coef(305, cfg) == 0.0  # 0.1 * 0.985^305 < 1e-3
-    actor, critic, opt, ctl = setup()
-    assert ctl.begin_iteration(0).kl_coef == 0.0 and ctl.reference is None  # nothing before a switch
+    ctl = setup()
+    obs = torch.randn(1, 4, OBS)
+    assert float(ctl.begin_iteration(0).kl_coef[0]) == 0.0 and not ctl.has_reference[0]  # nothing before a switch
+    assert extra(ctl, obs, batch(ctl, ctl.begin_iteration(1), obs)) is None
     ctl.on_switch(1000)
     prev = None
     for t in range(1000, 1010):
-        k = ctl.begin_iteration(t).kl_coef
+        k = float(ctl.begin_iteration(t).kl_coef[0])
         if prev is not None:
-            assert k == pytest.approx(prev * 0.985)
+            assert k == pytest.approx(prev * 0.985, rel=1e-6)
         prev = k
-    assert ctl.reference is not None
-    assert ctl.begin_iteration(1304).kl_coef > 0 and ctl.reference is not None
-    assert ctl.begin_iteration(1305).kl_coef == 0.0 and ctl.reference is None
-    assert float(ctl.kl_penalty(torch.randn(4, OBS))) == 0.0
+    assert ctl.has_reference[0]
+    assert float(ctl.begin_iteration(1304).kl_coef[0]) > 0 and ctl.has_reference[0]
+    s = ctl.begin_iteration(1305)
+    assert float(s.kl_coef[0]) == 0.0 and not ctl.has_reference[0]
+    assert extra(ctl, obs, batch(ctl, s, obs)) is None  # released: nothing added
 
 
 def test_kl_penalty_is_zero_right_after_snapshot_and_grows_with_change():
     cfg = PhaseControllerConfig(noise_injection=False, log_std_reset=False)
-    actor, critic, opt, ctl = setup(cfg=cfg, net=NetConfig(routing_noise="learned"))  # noisy gating
+    ctl = setup(cfg=cfg, net=NetConfig(routing_noise="learned"))  # noisy gating: the routing is replayed
     ctl.on_switch(1000)
-    ctl.begin_iteration(1000)
-    obs = torch.randn(16, OBS)
-    _, _, routing = actor.act(obs)
-    assert float(ctl.kl_penalty(obs, routing).detach()) == pytest.approx(0.0, abs=1e-12)
+    s = ctl.begin_iteration(1000)
+    obs = torch.randn(1, 16, OBS)
+    routing = batch(ctl, s, obs)
+    assert float(extra(ctl, obs, routing).detach()[0]) == pytest.approx(0.0, abs=1e-10)
     with torch.no_grad():
-        actor.log_std.add_(0.5)
-    pen = ctl.kl_penalty(obs, routing)
+        ctl.actor.flat[0, span(ctl, "log_std")] += 0.5
+    pen = extra(ctl, obs, routing)
     # KL(N(m, s1) || N(m, s0)) per dim = log(s0/s1) + s1^2/(2 s0^2) - 1/2 with s1 = e^0.5 s0
     per_dim = -0.5 + math.exp(1.0) / 2 - 0.5
-    assert float(pen.detach()) == pytest.approx(0.1 * 2 * per_dim, rel=1e-5)
-    pen.backward()
-    assert actor.log_std.grad is not None
-    with pytest.raises(ValueError, match="routing"):
-        ctl.kl_penalty(obs)  # noisy gating: the reference must replay the same routing
-    assert all(p.grad is None for p in ctl.reference.parameters())
+    assert float(pen.detach()[0]) == pytest.approx(0.1 * 2 * per_dim, rel=1e-5)
+    (g,) = torch.autograd.grad(pen.sum(), ctl.actor.flat)
+    assert (g[0, span(ctl, "log_std")] != 0).all()
+    assert not ctl.reference.requires_grad  # the reference gets no gradient
 
 
 def test_entropy_reset_and_reanneal():
@@ -169,18 +209,22 @@ def test_entropy_reset_and_reanneal():
     assert entropy_coef(1000, 0, BASE, cfg) == pytest.approx(0.01)
     assert entropy_coef(1150, 150, BASE, cfg) == pytest.approx(0.0065)
     assert entropy_coef(1400, 400, BASE, cfg) == pytest.approx(0.003)
-    actor, critic, opt, ctl = setup()
+    ctl = setup()
+
+    def ent(c, t):
+        return c.begin_iteration(t).members[0].ent_coef
+
     # before the first switch the controller is inert: the baselines' run-long schedule
-    assert ctl.begin_iteration(150).ent_coef == pytest.approx(entropy_coef(150, 150, BASE, None))
-    assert ctl.begin_iteration(450).ent_coef == pytest.approx(0.0065)
-    assert ctl.begin_iteration(999).ent_coef == pytest.approx(0.003)
+    assert ent(ctl, 150) == pytest.approx(entropy_coef(150, 150, BASE, None))
+    assert ent(ctl, 450) == pytest.approx(0.0065)
+    assert ent(ctl, 999) == pytest.approx(0.003)
     ctl.on_switch(1000)
-    assert ctl.begin_iteration(1000).ent_coef == pytest.approx(0.01)
-    assert ctl.begin_iteration(1150).ent_coef == pytest.approx(0.0065)
+    assert ent(ctl, 1000) == pytest.approx(0.01)
+    assert ent(ctl, 1150) == pytest.approx(0.0065)
     # switched off: the run-long baseline schedule
-    _, _, _, off = setup(cfg=cfg.without("entropy_reset"))
+    off = setup(cfg=cfg.without("entropy_reset"))
     off.on_switch(1000)
-    assert off.begin_iteration(1000).ent_coef == pytest.approx(0.003)
+    assert ent(off, 1000) == pytest.approx(0.003)
 
 
 def test_temperature_curves_run_in_opposite_directions():
@@ -192,141 +236,130 @@ def test_temperature_curves_run_in_opposite_directions():
     assert hot[-1] == pytest.approx(1.0, abs=1e-6) and cold[-1] == pytest.approx(2.0, abs=1e-6)
     np.testing.assert_allclose(hot + cold, 3.0)  # mirror images
     assert temperature_text(math.log(20) / 0.05, cfg) == pytest.approx(1.5)
+    ctl = setup()
+    ctl.on_switch(1000)
+    s = ctl.begin_iteration(1000)
+    assert float(s.policy_temperature[0]) == float(s.value_temperature[0]) == pytest.approx(1 + 20 / 21)
 
 
 def test_conservative_window_and_freeze_window_lengths():
-    actor, critic, opt, ctl = setup()
+    ctl = setup()
     ctl.on_switch(1000)
-    s = ctl.begin_iteration(1079)
+    s = ctl.begin_iteration(1079).members[0]
     assert (s.clip_coef, s.target_kl, s.conservative) == (0.1, 0.05, True)
-    s = ctl.begin_iteration(1080)
+    s = ctl.begin_iteration(1080).members[0]
     assert (s.clip_coef, s.target_kl, s.conservative) == (0.15, 0.1, False)
-    assert ctl.begin_iteration(1029).router_frozen and not ctl.begin_iteration(1030).router_frozen
+    assert bool(ctl.begin_iteration(1080).router_frozen[0]) is False
+    ctl2 = setup()
+    ctl2.on_switch(1000)
+    assert bool(ctl2.begin_iteration(1029).router_frozen[0]) and not bool(ctl2.begin_iteration(1030).router_frozen[0])
 
 
 def test_disabled_controller_reports_base_schedule_and_does_nothing():
-    actor, critic, opt, ctl = setup(enabled=False)
+    ctl = setup(enabled=False)
     for t in range(3):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t))
-    before, n_state = params(actor), len(opt.state)
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
+    before, moments, steps = row(ctl), ctl.actor_opt.exp_avg.clone(), ctl.actor_opt.steps.clone()
     ctl.on_switch(1000)
-    s = ctl.begin_iteration(1000)
-    assert ctl.after_epoch(None) == []
-    after = params(actor)
-    assert all(torch.equal(before[n], after[n]) for n in before)
-    assert len(opt.state) == n_state
+    sched = ctl.begin_iteration(1000)
+    assert ctl.after_epoch(None, ONE) == [0]
+    assert torch.equal(before, row(ctl))
+    assert torch.equal(moments, ctl.actor_opt.exp_avg) and torch.equal(steps, ctl.actor_opt.steps)
+    s = sched.members[0]
     assert s.kl_coef == 0 and s.clip_coef == 0.15 and s.target_kl == 0.1 and not s.router_frozen
     assert s.policy_temperature == s.value_temperature == 1.0
-    assert set(s.lr.values()) == {BASE.lr}
+    assert float(sched.lr_actor[0]) == float(sched.lr_critic[0]) == BASE.lr
     assert s.ent_coef == pytest.approx(entropy_coef(1000, 0, BASE, None))
+    assert ctl.state_dict(0) == {}
+
+
+SCHEDULE_FIELDS = ("lr_actor", "lr_critic", "router_frozen", "clip_coef", "target_kl", "ent_coef", "kl_coef",
+                   "policy_temperature", "value_temperature")
 
 
 def test_all_mechanisms_off_equals_disabled():
     off = PhaseControllerConfig(**{m: False for m in MECHANISMS})
-    _, _, _, a = setup(cfg=off)
-    _, _, _, b = setup(enabled=False)
+    a, b = setup(cfg=off), setup(enabled=False)
     for ctl in (a, b):
         ctl.on_switch(1000)
+    assert torch.equal(a.actor.flat, b.actor.flat)
     for t in (1000, 1010, 1100, 1500):
-        assert a.begin_iteration(t) == b.begin_iteration(t)
+        sa, sb = a.begin_iteration(t), b.begin_iteration(t)
+        assert all(torch.equal(getattr(sa, f), getattr(sb, f)) for f in SCHEDULE_FIELDS), t
 
 
 # --- optimizer state and router freeze -------------------------------------------------------------
 
 def test_adam_reset_clears_moments_and_step_counts():
-    actor, critic, opt, ctl = setup()
-    groups_before = [(g["name"], len(g["params"])) for g in opt.param_groups]
+    ctl = setup()
     for t in range(3):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
-    assert len(opt.state) > 0 and all(float(st["step"]) == 3 for st in opt.state.values())
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
+    opt, c_opt = ctl.actor_opt, ctl.critic_opt
+    assert (opt.exp_avg != 0).any() and (opt.steps == 3).all()
     ctl.on_switch(1000)
-    assert len(opt.state) == 0
-    assert [(g["name"], len(g["params"])) for g in opt.param_groups] == groups_before
-    train_step(actor, critic, opt, ctl, ctl.begin_iteration(1000))
-    steps = {float(st["step"]) for st in opt.state.values()}
-    assert steps == {1.0}
+    assert (opt.exp_avg == 0).all() and (opt.exp_avg_sq == 0).all() and (opt.steps == 0).all()
+    assert (c_opt.steps == 3).all() and (c_opt.exp_avg != 0).any()  # the critic keeps its moments
+    train_step(ctl, ctl.begin_iteration(1000))
+    assert opt.steps[0, [group_names(ctl).index(n) for n in ("experts", "head", "log_std")]].tolist() == [1, 1, 1]
     # switched off: moments survive the switch
-    actor, critic, opt, ctl = setup(cfg=PhaseControllerConfig(adam_reset=False))
-    train_step(actor, critic, opt, ctl, ctl.begin_iteration(0))
+    ctl = setup(cfg=PhaseControllerConfig(adam_reset=False))
+    train_step(ctl, ctl.begin_iteration(0))
     ctl.on_switch(1000)
-    assert len(opt.state) > 0
+    assert (ctl.actor_opt.exp_avg != 0).any() and (ctl.actor_opt.steps == 1).all()
 
 
-@pytest.mark.parametrize("optim", ["adam", "adamw"])
-def test_router_is_bit_identical_during_freeze_and_moves_after(optim):
-    torch.manual_seed(0)
-    actor, critic = make_actor("pemamoe", OBS), make_critic("pemamoe", STATE)
-    groups = build_param_groups(actor, critic, BASE.lr)
-    opt = (torch.optim.Adam(groups, lr=BASE.lr, weight_decay=1e-4) if optim == "adam"
-           else torch.optim.AdamW(groups, lr=BASE.lr, weight_decay=1e-2))
-    cfg = PhaseControllerConfig(router_freeze_iters=4)
-    ctl = PhaseController(cfg, actor, opt, BASE)
+@pytest.mark.parametrize("adam_reset, weight_decay", [(True, 1e-4), (False, 0.1)])
+def test_router_is_bit_identical_during_freeze_and_moves_after(adam_reset, weight_decay):
+    # without the Adam reset and with strong weight decay, stale momentum and the decay would move a
+    # router whose gradient were merely zero
+    ctl = setup(cfg=PhaseControllerConfig(router_freeze_iters=4, adam_reset=adam_reset), weight_decay=weight_decay)
     for t in range(3):  # build up Adam momentum on the router first
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
     ctl.on_switch(1000)
-    router = [p.detach().clone() for p in actor.param_groups()["router"]]
-    experts = actor.gate.experts.w1.detach().clone()
+    mask, trunk = router_mask(ctl), torch.cat(ctl.expert_indices())
+    router, experts = row(ctl)[mask], row(ctl)[trunk]
     for t in range(1000, 1004):
         s = ctl.begin_iteration(t)
-        assert s.router_frozen
-        train_step(actor, critic, opt, ctl, s, seed=t)
-        assert all(torch.equal(a, b) for a, b in zip(router, actor.param_groups()["router"]))
-    assert not torch.equal(experts, actor.gate.experts.w1)  # the rest did train
+        assert bool(s.router_frozen[0]) and s.members[0].lr["router"] == 0.0
+        train_step(ctl, s, seed=t)
+        assert torch.equal(row(ctl)[mask], router)
+    assert not torch.equal(row(ctl)[trunk], experts)  # the rest did train
+    assert ctl.actor_opt.steps[0, group_names(ctl).index("router")] == (0 if adam_reset else 3)
     s = ctl.begin_iteration(1004)
-    assert not s.router_frozen and all(p.requires_grad for p in actor.param_groups()["router"])
+    assert not bool(s.router_frozen[0])
     for t in range(1004, 1007):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
-    assert not torch.equal(router[0], actor.param_groups()["router"][0])
-
-
-def test_router_freeze_survives_stale_momentum_and_in_place_zero_grad():
-    # no Adam reset, gradients zeroed in place (not set to None): momentum and weight decay would move
-    # the router if only its gradient were zero
-    torch.manual_seed(1)
-    actor, critic = make_actor("pemamoe", OBS), make_critic("pemamoe", STATE)
-    opt = torch.optim.AdamW(build_param_groups(actor, critic, BASE.lr), lr=BASE.lr, weight_decay=0.1)
-    ctl = PhaseController(PhaseControllerConfig(adam_reset=False), actor, opt, BASE)
-    for t in range(3):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
-    ctl.on_switch(1000)
-    router = [p.detach().clone() for p in actor.param_groups()["router"]]
-    for t in range(1000, 1005):
-        s = ctl.begin_iteration(t)
-        obs = torch.randn(16, OBS)
-        action, _, routing = actor.act(obs, temperature=s.policy_temperature)
-        logp, ent, aux = actor.evaluate(obs, torch.randn(16, 2), routing)
-        opt.zero_grad(set_to_none=False)
-        (-logp.mean() + aux["aux_loss"]).backward()
-        opt.step()
-    assert all(torch.equal(a, b) for a, b in zip(router, actor.param_groups()["router"]))
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
+    assert not torch.equal(row(ctl)[mask], router)
 
 
 # --- noise injection -------------------------------------------------------------------------------
 
 def test_noise_touches_only_selected_expert_trunks():
-    actor = make_actor("pemamoe", OBS)
-    before = params(actor)
-    g = torch.Generator().manual_seed(0)
-    inject_expert_noise(actor, [1], 0.01, g)
-    after = params(actor)
-    for name in before:
-        d = after[name] - before[name]
-        if name.startswith("gate.experts."):
-            assert torch.equal(d[0], torch.zeros_like(d[0])) and torch.equal(d[2], torch.zeros_like(d[2]))
-            assert (d[1] != 0).all()
-        else:  # router, noise gate, head, log_std
-            assert torch.equal(d, torch.zeros_like(d)), name
+    ctl = setup()
+    idx = ctl.expert_indices()
+    before = row(ctl)
+    assert ctl.perturb_experts(0, [0.0, 0.01, 0.0], torch.Generator().manual_seed(0)) == 1
+    d = row(ctl) - before
+    assert (d[idx[1]] != 0).all()
+    untouched = torch.ones_like(d, dtype=torch.bool)
+    untouched[idx[1]] = False
+    assert (d[untouched] == 0).all()  # other experts, router, noise gate, head, log_std
+    # the flat indices are the actor's own trunk slices
+    single = ctl.actor.member(0)
+    assert sum(p.numel() for p in expert_parameters(single, 1)) == idx[1].numel()
 
 
 def test_noise_energy_matches_gamma_squared_times_count():
-    actor = make_actor("pemamoe", 40)
+    torch.manual_seed(0)
+    ctl = population_method("phase_controller", [MemberConfig()], [make_actor("pemamoe", 40)])
     gamma = 0.005
-    before = params(actor)
-    n = inject_expert_noise(actor, [0, 2], gamma, torch.Generator().manual_seed(3))
+    idx = ctl.expert_indices()
     per_expert = 40 * 32 + 32 + 32 * 32 + 32
-    assert n == 2 * per_expert
-    after = params(actor)
-    energy = sum(float((after[k] - before[k]).double().pow(2).sum()) for k in before)
+    assert [i.numel() for i in idx] == [per_expert] * 3
+    before = row(ctl)
+    ctl.perturb_experts(0, [gamma, 0.0, gamma], torch.Generator().manual_seed(3))
+    n = 2 * per_expert
+    energy = float((row(ctl) - before).double().pow(2).sum())
     # chi-square with n dof: relative std sqrt(2 / n) ~ 2.9 %; allow 5 sigma
     assert energy == pytest.approx(gamma**2 * n, rel=5 * math.sqrt(2 / n))
 
@@ -336,57 +369,64 @@ def test_noise_on_mlp_trunk():
     assert len(expert_parameters(actor, 0)) == 4
     with pytest.raises(ValueError):
         expert_parameters(actor, 1)
-    head = actor.head.weight.detach().clone()
-    fc1 = actor.fc1.weight.detach().clone()
-    inject_expert_noise(actor, [0], 0.01, torch.Generator().manual_seed(0))
-    assert torch.equal(head, actor.head.weight) and not torch.equal(fc1, actor.fc1.weight)
+    ctl = setup("mlp")
+    assert len(ctl.expert_indices()) == 1
+    before = row(ctl)
+    ctl.perturb_experts(0, [0.01], torch.Generator().manual_seed(0))
+    d = row(ctl) - before
+    assert (d[span(ctl, "head.weight")] == 0).all() and (d[span(ctl, "fc1.weight")] != 0).all()
 
 
-def test_noise_window_at_switch_then_selected_experts_for_n_epochs():
+def test_noise_window_at_switch_then_used_experts_for_n_epochs():
     cfg = PhaseControllerConfig(noise_epochs=3)
-    actor, critic, opt, ctl = setup(cfg=cfg)
-    w = actor.gate.experts.w1.detach().clone()
+    ctl = setup(cfg=cfg)
+    idx = ctl.expert_indices()
+    before = row(ctl)
     ctl.on_switch(1000)
-    assert ctl.last_noised == [0, 1, 2]  # every expert at the switch
-    assert all(not torch.equal(w[j], actor.gate.experts.w1[j]) for j in range(3))
+    assert ctl.last_noise[0] == [0.005] * 3  # every expert, full gamma, at the switch
+    assert all((row(ctl)[i] != before[i]).any() for i in idx)
     ctl.begin_iteration(1000)
-    w = actor.gate.experts.w1.detach().clone()
-    assert ctl.after_epoch(torch.tensor([[2], [2], [0]])) == [0, 2]
-    assert torch.equal(w[1], actor.gate.experts.w1[1]) and not torch.equal(w[2], actor.gate.experts.w1[2])
-    assert ctl.after_epoch(torch.tensor([False, True, False])) == [1]
-    assert ctl.after_epoch(None) == [0, 1, 2]
-    w = actor.gate.experts.w1.detach().clone()
-    assert ctl.after_epoch(None) == []  # window of 3 epochs is over
-    assert torch.equal(w, actor.gate.experts.w1)
+    before = row(ctl)
+    assert ctl.after_epoch(torch.tensor([[1.0, 0.0, 2.0]]), ONE) == [2]
+    assert ctl.last_noise[0] == pytest.approx([0.005 / 3, 0.0, 0.01 / 3])  # weighted by each expert's share
+    assert torch.equal(row(ctl)[idx[1]], before[idx[1]]) and not torch.equal(row(ctl)[idx[2]], before[idx[2]])
+    before = row(ctl)
+    assert ctl.after_epoch(torch.tensor([[0.0, 4.0, 0.0]]), torch.zeros(1, dtype=torch.bool)) == [0]  # no step: no noise
+    assert torch.equal(row(ctl), before) and ctl.noise_left[0] == 2  # ... and the window is not used up
+    assert ctl.after_epoch(torch.tensor([[0.0, 4.0, 0.0]]), ONE) == [1]
+    assert ctl.after_epoch(None, ONE) == [3]  # an ungated reading: every expert, full gamma
+    before = row(ctl)
+    assert ctl.after_epoch(None, ONE) == [0]  # window of 3 epochs is over
+    assert torch.equal(row(ctl), before) and ctl.last_noise[0] is None
 
 
 def test_noise_lr_factor_scales_std():
     cfg = PhaseControllerConfig(noise_lr_factor=True)
-    _, _, _, ctl = setup(cfg=cfg)
-    assert ctl._noise_std(0) == pytest.approx(0.005 * 0.3 * BASE.lr)
-    assert setup()[3]._noise_std(0) == 0.005
+    assert setup(cfg=cfg)._noise_std(0, 0) == pytest.approx(0.005 * 0.3 * BASE.lr)
+    assert setup()._noise_std(0, 0) == 0.005
 
 
 # --- each switch removes exactly its mechanism -----------------------------------------------------
 
 def switch_effects(cfg):
-    actor, critic, opt, ctl = setup(cfg=cfg)
+    ctl = setup(cfg=cfg)
     for t in range(2):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
     with torch.no_grad():
-        actor.log_std.fill_(-2.0)
-    before, n_state = params(actor), len(opt.state)
+        ctl.actor.flat[0, span(ctl, "log_std")] = -2.0
+    before, had_moments = row(ctl), bool((ctl.actor_opt.exp_avg != 0).any())
     ctl.on_switch(1000)
-    s = ctl.begin_iteration(1000)
-    after = params(actor)
-    moved = {n for n in before if not torch.equal(before[n], after[n])}
+    sched = ctl.begin_iteration(1000)
+    s = sched.members[0]
+    d = row(ctl) - before
+    trunk = torch.cat(ctl.expert_indices())
     return {
-        "kl_anchor": s.kl_coef > 0 and ctl.reference is not None,
-        "adam_reset": len(opt.state) == 0 and n_state > 0,
-        "noise_injection": any(n.startswith("gate.experts") for n in moved),
-        "log_std_reset": "log_std" in moved,
+        "kl_anchor": s.kl_coef > 0 and ctl.has_reference[0],
+        "adam_reset": bool((ctl.actor_opt.exp_avg == 0).all()) and had_moments,
+        "noise_injection": bool((d[trunk] != 0).any()),
+        "log_std_reset": bool((d[span(ctl, "log_std")] != 0).all()),
         "entropy_reset": s.ent_coef == pytest.approx(0.01),
-        "lr_drop": s.lr["experts"] == pytest.approx(0.3 * BASE.lr),
+        "lr_drop": float(sched.lr_actor[0]) == pytest.approx(0.3 * BASE.lr),
         "conservative_window": s.conservative and s.clip_coef == 0.1,
         "router_freeze": s.router_frozen and s.lr["router"] == 0.0,
         "temperature_schedule": s.policy_temperature > 1.9,
@@ -405,28 +445,33 @@ def test_each_switch_disables_exactly_its_mechanism():
 # --- checkpointing ---------------------------------------------------------------------------------
 
 def test_state_dict_round_trip_reproduces_settings_and_noise():
-    actor, critic, opt, ctl = setup()
+    ctl = setup()
     for t in range(2):
-        train_step(actor, critic, opt, ctl, ctl.begin_iteration(t), seed=t)
+        train_step(ctl, ctl.begin_iteration(t), seed=t)
     ctl.on_switch(1000)
     s = ctl.begin_iteration(1000)
-    train_step(actor, critic, opt, ctl, s)
-    ctl.after_epoch(None)
-    ctl.after_epoch(torch.tensor([1]))
-    state = copy.deepcopy(ctl.state_dict())
-    actor_state, opt_state = copy.deepcopy(actor.state_dict()), copy.deepcopy(opt.state_dict())
+    counts = train_step(ctl, s)
+    ctl.after_epoch(counts, ONE)
+    ctl.after_epoch(torch.tensor([[0.0, 3.0, 1.0]]), ONE)
+    state = copy.deepcopy(ctl.state_dict(0))
+    flat, opt_state = row(ctl), ctl.actor_opt.member_state(0)
 
     # a fresh process: new networks (different init), new optimizer, then load everything
-    actor2, critic2, opt2, ctl2 = setup(seed=7)
-    actor2.load_state_dict(actor_state)
-    opt2.load_state_dict(opt_state)
-    ctl2.load_state_dict(state)
-    assert ctl2.begin_iteration(1001) == ctl.begin_iteration(1001)
-    assert ctl2.noise_left == ctl.noise_left == 28
-    assert ctl.after_epoch(torch.tensor([0, 2])) == ctl2.after_epoch(torch.tensor([0, 2]))
-    assert all(torch.equal(a, b) for a, b in zip(actor.parameters(), actor2.parameters()))
-    obs = torch.randn(8, OBS)
-    _, _, routing = actor.act(obs)
-    assert torch.equal(ctl.kl_penalty(obs, routing), ctl2.kl_penalty(obs, routing))
+    ctl2 = setup(seed=7)
+    ctl2.load_state_dict(0, state)
+    with torch.no_grad():
+        ctl2.actor.flat[0] = flat
+    ctl2.actor_opt.load_member_state(0, opt_state)
+    a, b = ctl.begin_iteration(1001), ctl2.begin_iteration(1001)
+    assert a.members == b.members and all(torch.equal(getattr(a, f), getattr(b, f)) for f in SCHEDULE_FIELDS)
+    assert ctl2.noise_left[0] == ctl.noise_left[0] == 28
+    c = torch.tensor([[2.0, 0.0, 2.0]])
+    assert ctl.after_epoch(c, ONE) == ctl2.after_epoch(c, ONE)
+    assert torch.equal(row(ctl), row(ctl2))
+    obs = torch.randn(1, 8, OBS)
+    routing = batch(ctl, a, obs)
+    assert torch.equal(extra(ctl, obs, routing), extra(ctl2, obs, routing))
     with pytest.raises(ValueError, match="different config"):
-        setup(cfg=PhaseControllerConfig(noise_gamma=0.01))[3].load_state_dict(state)
+        setup(cfg=PhaseControllerConfig(noise_gamma=0.01)).load_state_dict(0, state)
+    with pytest.raises(ValueError, match="controller on"):
+        setup(enabled=False).load_state_dict(0, state)

@@ -15,7 +15,8 @@ import pemamoe.mappo as mappo
 from pemamoe.bookkeeping import _unpack_rows
 from pemamoe.mappo import TIMING_COLUMNS, TrainConfig, train, train_population
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.population_plasticity import PhaseControllerMethod, RunAdamW, group_index
+from pemamoe.controller import PhaseController
+from pemamoe.population_plasticity import RunAdamW, group_index
 
 
 @pytest.fixture(autouse=True)
@@ -146,7 +147,7 @@ def _population(cfgs):
 def test_switch_actions_touch_only_their_member():
     cfgs = [ci("pemamoe", 0), ci("pemamoe", 1, without=("noise_injection", "adam_reset")), ci("smoe", 2)]
     actor, critic, a_opt, c_opt, _ = _population(cfgs)
-    ctrl = PhaseControllerMethod(cfgs, actor, critic, a_opt, c_opt)
+    ctrl = PhaseController(cfgs, actor, critic, a_opt, c_opt)
     for opt in (a_opt, c_opt):
         opt.exp_avg.fill_(1.0), opt.exp_avg_sq.fill_(1.0), opt.steps.fill_(5.0)
     before = actor.flat.detach().clone()
@@ -194,7 +195,7 @@ def test_router_freeze_keeps_that_member_bit_identical_while_others_move():
 def test_epoch_noise_is_weighted_by_each_experts_share():
     cfgs = [ci("pemamoe", 0), ci("pemamoe", 1)]
     actor, critic, a_opt, c_opt, _ = _population(cfgs)
-    ctrl = PhaseControllerMethod(cfgs, actor, critic, a_opt, c_opt)
+    ctrl = PhaseController(cfgs, actor, critic, a_opt, c_opt)
     ctrl.on_switch(2)
     ctrl.begin_iteration(2)
     idx = ctrl.expert_indices()
@@ -263,7 +264,7 @@ def test_log_std_reset_survives_the_anchor_window():
     ls = slice(*actor.layout.span("log_std"))
     with torch.no_grad():
         actor.flat[0, ls] = math.log(0.2)
-    ctrl = PhaseControllerMethod([cfg], actor, critic, a_opt, c_opt)
+    ctrl = PhaseController([cfg], actor, critic, a_opt, c_opt)
     ctrl.on_switch(2)
     assert ctrl.begin_iteration(2).kl_coef[0] > 0
 

@@ -158,15 +158,44 @@ def test_run_tracker_pairing_and_pulses():
     noisy = run_tracker(prob, TrackerConfig(controller="noise", noise_gamma=0.05, **base), seed=5)
     assert np.array_equal(clean.values, clean2.values)  # gamma = 0: the twin is reproduced exactly
     assert clean.noise_energy == 0.0
-    # pulses: N + 1 per switch, exactly noise_schedule with a window of N + 1 pulse slots
+    # pulses: N + 1 per switch, in exactly the slots of noise_schedule with a window of N + 1; gamma
+    # at each switch, then each expert gamma x its share of the epoch (the trainer's controller), so
+    # a pulse's RMS amplitude over three equal experts lies in [gamma / 3, gamma / sqrt(3)]
     expected = noise_schedule(24 * 2 + 1, [2 * t for t in noisy.switches], 0.05, 3 + 1)
-    assert np.array_equal(noisy.noise_slots(), expected)
-    assert noisy.noise_energy == 0.05**2 * 2 * 4
+    slots = noisy.noise_slots()
+    at_switch = [2 * t for t in noisy.switches]
+    assert np.array_equal(slots > 0, expected > 0) and np.all(slots[at_switch] == 0.05)
+    epochs = np.delete(slots, at_switch)
+    epochs = epochs[epochs > 0]
+    assert len(epochs) == 2 * 3 and np.all(epochs >= 0.05 / 3 - 1e-12) and np.all(epochs <= 0.05 / math.sqrt(3) + 1e-12)
+    assert noisy.noise_energy == pytest.approx(float(np.sum(slots**2))) and noisy.noise_energy < 0.05**2 * 2 * 4
+    # the MLP (one expert, always used) gets gamma after every epoch: noise_schedule itself, bit for bit
+    mlp = run_tracker(prob, TrackerConfig(kind="mlp", controller="noise", noise_gamma=0.05, **base), seed=5)
+    assert np.array_equal(mlp.noise_slots(), expected) and mlp.noise_energy == 0.05**2 * 2 * 4
     d = paired_distance(clean, noisy)
     assert d["policy_mean"] > 0 and d["energy"] == noisy.noise_energy
     first = noisy.switches[0]
     assert np.array_equal(noisy.values[:first], clean.values[:first])  # identical before any noise
     assert np.all(np.diff(noisy.regret) >= -1e-12)  # instantaneous regret is >= 0
+
+
+def test_run_tracker_uses_the_trainers_controller(monkeypatch):
+    """The theory check's noise comes from the controller class the trainer runs, through its hooks."""
+    from pemamoe.controller import PhaseController
+
+    calls = []
+    for hook in ("on_switch", "after_epoch"):
+        real = getattr(PhaseController, hook)
+
+        def spy(self, *args, _real=real, _hook=hook):
+            calls.append(_hook)
+            return _real(self, *args)
+
+        monkeypatch.setattr(PhaseController, hook, spy)
+    prob = TrackingProblem(TrackingProblemConfig(n_phases=2, probe_size=16), seed=0)
+    run = run_tracker(prob, TrackerConfig(iterations=6, n_switches=1, batch=8, epochs=2, noise_epochs=2), seed=1)
+    assert calls.count("on_switch") == 1 and calls.count("after_epoch") == 6 * 2
+    assert len(run.pulses) == 1 + 2
 
 
 # --- fits --------------------------------------------------------------------------------------------
