@@ -118,7 +118,7 @@ from pemamoe.phase_controller import (
 # **A partial reset.** `reset(member, mask)` forgets the moments of the masked entries only (ReDo,
 # appendix 06c, resets the weights of a few recycled units). Their bias correction must then start
 # again as well: with the moments at zero and the group's count $t$ kept, the first step would be
-# $\mathrm{lr}\,(1-eta_1)g / \sqrt{(1-eta_2)g^2} pprox 3.2\,\mathrm{lr}$, growing to about
+# $\mathrm{lr}\,(1-\beta_1)g / \sqrt{(1-\beta_2)g^2} \approx 3.2\,\mathrm{lr}$, growing to about
 # $6.5\,\mathrm{lr}$ ten steps later, instead of a fresh Adam's $\mathrm{lr}$. So a masked entry
 # gets a clock of its own: `RunAdamW` remembers its group's count at the reset (`clock_offset`)
 # and corrects with the count since then, exactly what a fresh `torch.optim.AdamW` on those

@@ -3,7 +3,8 @@
 The test takes the example's code from CONTRIBUTING.md itself, installs it as a plugin module,
 runs it in a ci-scale sweep next to a built-in method (worker processes load it through
 $PEMAMOE_PLUGINS), draws it in a training-curve figure with its own label, and checks that no
-file of the package or the notebooks names it.
+file of the package or the notebooks names it. A second one-file plugin, which reads the probe
+batch at a switch and logs a metric of its own, trains through `python -m pemamoe train`.
 """
 
 import re
