@@ -37,6 +37,7 @@
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/controller.py` | schedule figures |
 # | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
+# | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
 # | (appendix to IV-B) the run's configuration, the presets, the return normaliser, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |

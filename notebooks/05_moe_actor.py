@@ -1072,7 +1072,8 @@ print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 
 # %%
 cfg = PAPER_NET  # the paper's reading: learned routing noise, whose noise gate its counts include
-paper_actors = {name: make_actor(spec.network, PAPER_OBS_DIM, 2, cfg) for name, spec in METHOD_REGISTRY.items()}
+paper_actors = {name: make_actor(spec.network, PAPER_OBS_DIM, 2, cfg) for name, spec in METHOD_REGISTRY.items()
+                if spec.compared}
 
 
 def _box(ax, x, y, w, h, text, color, fontsize=7.5, style="round,pad=0.02"):

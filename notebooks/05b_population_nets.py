@@ -74,6 +74,9 @@ class MethodSpec:
     # the plasticity method's preset: (field, value) pairs applied to the run's PhaseControllerConfig
     # before the scale's rescaling and any override (empty: the defaults of notebook 06)
     plasticity_preset: tuple = ()
+    # in the experiments' default comparison (`compared_methods()`: the paper's four and, unless
+    # they say otherwise, a plug-in's); False: registered and run by name, in a sweep only when named
+    compared: bool = True
 
 
 METHOD_REGISTRY: dict = {}
@@ -117,6 +120,12 @@ def method_names(proposed_last: bool = True) -> tuple:
     return tuple(METHOD_REGISTRY)
 
 
+def compared_methods() -> tuple:
+    """The methods the experiments compare unless told otherwise, in registration order (every
+    registered method except those registered with compared=False)."""
+    return tuple(name for name, spec in METHOD_REGISTRY.items() if spec.compared)
+
+
 def method_label(name: str) -> str:
     return METHOD_REGISTRY[name].label if name in METHOD_REGISTRY else name
 
@@ -138,6 +147,16 @@ register_method(MethodSpec("smoe", network="smoe", label="SMoE", colour="#ff7f0e
                            paper_actor_params=21392, paper_active_params=7820))
 register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controller", label="PE-MAMoE",
                            colour="#d62728", proposed=True, paper_actor_params=21392, paper_active_params=7820))
+# Two plasticity baselines from the literature (appendix 06c), each on the MLP and on the SMoE
+# network: run by name (`--methods smoe_redo`), outside the default comparison.
+register_method(MethodSpec("mlp_redo", network="mlp", plasticity="redo", label="MLP + ReDo", colour="#9467bd",
+                           compared=False))
+register_method(MethodSpec("smoe_redo", network="smoe", plasticity="redo", label="SMoE + ReDo", colour="#8c564b",
+                           compared=False))
+register_method(MethodSpec("mlp_snp", network="mlp", plasticity="shrink_and_perturb",
+                           label="MLP + shrink-and-perturb", colour="#e377c2", compared=False))
+register_method(MethodSpec("smoe_snp", network="smoe", plasticity="shrink_and_perturb",
+                           label="SMoE + shrink-and-perturb", colour="#17becf", compared=False))
 
 
 # %% [markdown]
@@ -300,6 +319,12 @@ class ParamLayout:
             m[a:b] = True
         return m
 
+    def indices(self, name: str) -> torch.Tensor:
+        """The flat positions of parameter `name`, shaped like it: `indices("fc1.weight")[u]` are
+        where row u of that weight lives in a member's row, for partial edits and optimizer masks."""
+        a, b = self.span(name)
+        return torch.arange(a, b).reshape(self.shapes[self.index[name]])
+
     def expert_index(self, name: str, expert: int) -> torch.Tensor:
         """Flat indices of slice `expert` along the leading axis of parameter `name` (E, ...)."""
         a, b = self.span(name)
@@ -426,6 +451,12 @@ class _Population:
 
     def params(self, flat=None) -> dict:
         return self.layout.views(self.flat if flat is None else flat)
+
+    def member_param(self, r: int, name: str) -> torch.Tensor:
+        """Member r's parameter `name` as a view of the flat row, shaped like the parameter: edit it
+        in place under `torch.no_grad()` (`actor.member_param(0, "fc1.weight")[3] = 0.0`)."""
+        a, b = self.layout.span(name)
+        return self.flat[r, a:b].view(self.layout.shapes[self.layout.index[name]])
 
     def member(self, r: int, module=None):
         """Member r as a single-run module (a copy; `module` is filled in place if given)."""
@@ -651,7 +682,8 @@ def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
     rows = []
     for label, obs_dim in obs_dims.items():
         torch.manual_seed(seed)
-        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()}
+        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()
+                  if spec.compared}
         mlp_params = count_parameters(actors["mlp"])
         mlp_macs = macs_per_step(actors["mlp"])
         for kind, actor in actors.items():

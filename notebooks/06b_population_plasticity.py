@@ -74,7 +74,16 @@ from pemamoe.phase_controller import (
 # | `extra_loss(batch)` | every minibatch | an (R,) loss added to PPO's, or `None` for none |
 # | `after_minibatch(stepped)` | after each optimizer step | nothing |
 # | `after_epoch(expert_counts, stepped)` | after each update epoch | number of experts perturbed per member |
+# | `metrics(r)` | every iteration, after the update | named numbers for member r's log row (`{}`: none) |
 # | `state_dict(r)` / `load_state_dict(r, state)` | checkpoints | member r's state |
+#
+# A method that needs data at a switch sets `probe_rows`: the trainer then hands it each
+# rollout's observations (`observe_rollout`), of which it keeps that many agent rows per member,
+# evenly spaced (no random draw, so no other number of the run moves), and `probe_batch(r)` gives
+# member r's rows from the latest rollout, which at a switch is the last one of the phase that
+# ends. They are checkpointed with the method, so a run resumed at a switch sees the same rows.
+# The names `metrics(r)` returns become columns of `metrics.parquet` (prefixed with the method's
+# name, so they cannot clash with the trainer's); a method that logs nothing adds no column.
 #
 # `NoPlasticity` is what the baselines use: the shared PPO schedule and nothing else.
 # `PhaseController` (notebook 06, module `pemamoe.controller`) is PE-MAMoE's phase controller,
@@ -93,6 +102,18 @@ from pemamoe.phase_controller import (
 # freeze), and `reset(member)` (the Adam reset). Where a member does not step, its parameters,
 # moments and step counts stay bit-identical. `group_index` assigns each parameter of the flat row
 # to the actor's `param_groups()` group.
+#
+# **A partial reset.** `reset(member, mask)` forgets the moments of the masked entries only (ReDo,
+# appendix 06c, resets the weights of a few recycled units). Their bias correction must then start
+# again as well: with the moments at zero and the group's count $t$ kept, the first step would be
+# $\mathrm{lr}\,(1-\beta_1)g / \sqrt{(1-\beta_2)g^2} \approx 3.2\,\mathrm{lr}$, growing to about
+# $6.5\,\mathrm{lr}$ ten steps later, instead of a fresh Adam's $\mathrm{lr}$. So a masked entry
+# gets a clock of its own: `RunAdamW` remembers its group's count at the reset (`clock_offset`)
+# and corrects with the count since then, exactly what a fresh `torch.optim.AdamW` on those
+# entries would do. The group's count is untouched, so the other entries of the group go on as
+# before; only where the mask covers a whole group is that group's count set back to zero (a
+# reset of everything is the plain Adam reset). Until the first partial reset there is no clock
+# offset, and the update is the one above, bit for bit.
 
 # %%
 #| export
@@ -103,7 +124,8 @@ class RunAdamW:
     `group_of` (P,) assigns each parameter to one of G groups (step counts are per member and
     group, as torch keeps them per parameter). `step(lr, stepping, frozen)` updates member r only
     where stepping[r] and the group is not frozen[r, g]; elsewhere parameters, moments and step
-    counts stay bit-identical.
+    counts stay bit-identical. `reset(r, mask)` forgets member r's moments where `mask` is True and
+    restarts their bias correction there (see `reset`).
     """
 
     def __init__(self, flat: torch.Tensor, group_of: torch.Tensor, n_groups: int, betas=(0.9, 0.999),
@@ -117,6 +139,8 @@ class RunAdamW:
         self.exp_avg = torch.zeros_like(flat, requires_grad=False)
         self.exp_avg_sq = torch.zeros_like(flat, requires_grad=False)
         self.steps = torch.zeros(R, self.n_groups, dtype=flat.dtype, device=flat.device)
+        # (R, P): the group's step count at each entry's last partial reset (None until one happens)
+        self.clock_offset = None
 
     @torch.no_grad()
     def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
@@ -128,7 +152,13 @@ class RunAdamW:
             active_g = active_g & ~frozen
         steps = self.steps + active_g.to(self.steps.dtype)
         cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
-        if self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
+        if self.clock_offset is not None:  # entries reset on their own count from their reset (see reset)
+            onehot = self._onehot()
+            active = (active_g.to(p.dtype) @ onehot) > 0.5
+            safe = (steps.to(p.dtype) @ onehot - self.clock_offset).clamp(min=1)
+            step_size = lr / (1 - self.beta1 ** safe)
+            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
+        elif self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
             # every group of a member has the same step count: (R, 1) factors broadcast
             active = stepping.unsqueeze(1)
             safe = steps[:, :1].clamp(min=1)
@@ -162,26 +192,51 @@ class RunAdamW:
 
     @torch.no_grad()
     def reset(self, member: int, mask: torch.Tensor | None = None) -> None:
-        """Forget member's moments (only where `mask` (P,) is True, if given) and, for a full
-        reset, its step counts: the Adam reset of a plasticity method."""
+        """The Adam reset of a plasticity method, for one member; the other members stay bit-identical.
+
+        mask None: forget all of member's moments and step counts. mask (P,) bool, or a tensor of
+        flat indices: forget the moments of those entries only, and restart their bias correction
+        (they count their steps from now, as a fresh AdamW would); a group's step count is set
+        back to zero only where the mask covers the whole group, so the group's other entries go
+        on exactly as before."""
         if mask is None:
             self.exp_avg[member].zero_()
             self.exp_avg_sq[member].zero_()
             self.steps[member].zero_()
+            if self.clock_offset is not None:
+                self.clock_offset[member].zero_()
             return
-        mask = mask.to(self.flat.device)
+        mask = torch.as_tensor(mask, device=self.flat.device)
+        if mask.dtype != torch.bool:  # flat indices
+            mask = torch.zeros(self.flat.shape[1], dtype=torch.bool, device=self.flat.device).index_fill_(0, mask.reshape(-1), True)
+        if mask.shape != self.flat.shape[1:]:
+            raise ValueError(f"RunAdamW.reset: mask must have shape ({self.flat.shape[1]},), got {tuple(mask.shape)}")
         self.exp_avg[member].masked_fill_(mask, 0.0)
         self.exp_avg_sq[member].masked_fill_(mask, 0.0)
-        groups = torch.unique(self.group_of[mask])
-        self.steps[member, groups] = 0.0
+        hit = torch.bincount(self.group_of[mask], minlength=self.n_groups)
+        whole = hit == torch.bincount(self.group_of, minlength=self.n_groups)
+        self.steps[member, whole] = 0.0
+        partial = mask & ~whole[self.group_of]
+        if self.clock_offset is None and bool(partial.any()):
+            self.clock_offset = torch.zeros_like(self.exp_avg)
+        if self.clock_offset is not None:
+            self.clock_offset[member, whole[self.group_of]] = 0.0
+            self.clock_offset[member, partial] = self.steps[member][self.group_of[partial]]
 
     def member_state(self, r: int) -> dict:
-        return {"exp_avg": self.exp_avg[r].detach().cpu().clone(), "exp_avg_sq": self.exp_avg_sq[r].detach().cpu().clone(),
-                "steps": self.steps[r].detach().cpu().clone()}
+        state = {"exp_avg": self.exp_avg[r].detach().cpu().clone(), "exp_avg_sq": self.exp_avg_sq[r].detach().cpu().clone(),
+                 "steps": self.steps[r].detach().cpu().clone()}
+        if self.clock_offset is not None:  # only after a partial reset: other checkpoints keep their keys
+            state["clock_offset"] = self.clock_offset[r].detach().cpu().clone()
+        return state
 
     @torch.no_grad()
     def load_member_state(self, r: int, state: dict) -> None:
-        for name in ("exp_avg", "exp_avg_sq", "steps"):
+        if "clock_offset" in state and self.clock_offset is None:
+            self.clock_offset = torch.zeros_like(self.exp_avg)
+        if self.clock_offset is not None and "clock_offset" not in state:
+            self.clock_offset[r].zero_()
+        for name in ("exp_avg", "exp_avg_sq", "steps") + (("clock_offset",) if "clock_offset" in state else ()):
             target = getattr(self, name)[r]
             if tuple(state[name].shape) != tuple(target.shape):
                 raise ValueError(f"optimizer state {name!r} has shape {tuple(state[name].shape)}, expected {tuple(target.shape)}")
@@ -249,7 +304,11 @@ def _schedules(settings: list, critic_lrs: list, device) -> Schedules:
 # `NoPlasticity` is both the interface (every hook, doing nothing) and the baselines' method: the
 # shared PPO schedule of notebook 06's `BaseSchedule`, entropy annealed over the run. Its helpers
 # serve subclasses: `member_generator(r)` (member r's own checkpointed random stream),
-# `expert_indices()` (where each expert's trunk lives in a flat row) and `perturb_experts`.
+# `expert_indices()` (where each expert's trunk lives in a flat row), `perturb_experts`,
+# `fresh_parameters(r)` (a newly initialised actor's row, drawn from member r's stream) and
+# `probe_batch(r)`. For partial edits of one member, `self.actor.member_param(r, name)` is member
+# r's parameter as a view shaped like it, `self.actor.layout.indices(name)` its flat positions
+# (shaped likewise), which `self.actor_opt.reset(r, mask)` takes to reset the matching moments.
 # `PhaseController` lives in notebook 06's second module, `pemamoe.controller`, which imports this
 # one; `plasticity_method` imports it on first use, so that it is always registered.
 
@@ -270,6 +329,8 @@ def plasticity_method(name: str):
     """The registered plasticity method class called `name` (plug-ins are loaded if needed)."""
     import pemamoe.controller  # noqa: F401  PE-MAMoE's controller (notebook 06) registers itself on import
     if name not in PLASTICITY_METHODS:
+        import pemamoe.plasticity_baselines  # noqa: F401  appendix 06c's methods (it imports this module)
+
         load_plugins()
     if name not in PLASTICITY_METHODS:
         raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r}")
@@ -320,13 +381,50 @@ class NoPlasticity:
     def after_epoch(self, expert_counts: torch.Tensor | None, stepped: torch.Tensor) -> list:
         return [0] * self.R
 
+    def metrics(self, r: int) -> dict:
+        """{name: number} added to member r's log row of this iteration (names prefixed with the
+        method's name); {} adds no column."""
+        return {}
+
     def state_dict(self, r: int) -> dict:
-        gens = getattr(self, "_generators", None)
-        return {} if gens is None else {"generator": gens[r].get_state()}
+        gens, recent = getattr(self, "_generators", None), getattr(self, "_recent_obs", None)
+        state = {} if gens is None else {"generator": gens[r].get_state()}
+        if recent is not None:
+            state["recent_obs"] = recent[r].detach().cpu().clone()
+        return state
 
     def load_state_dict(self, r: int, state: dict) -> None:
         if "generator" in state:
             self.member_generator(r).set_state(state["generator"])
+        if "recent_obs" in state:
+            rows = state["recent_obs"]
+            if getattr(self, "_recent_obs", None) is None:
+                self._recent_obs = torch.zeros(self.R, *rows.shape, dtype=rows.dtype, device=self.device)
+            self._recent_obs[r] = rows.to(self.device)
+
+    # data for switch-time actions ---------------------------------------------------------------
+    probe_rows = 0  # agent observations kept per member for probe_batch (0: none kept, none asked)
+
+    @torch.no_grad()
+    def observe_rollout(self, obs: torch.Tensor) -> None:
+        """The trainer's call after every rollout, obs (R, N, U, obs_dim): keep `probe_rows` agent
+        rows per member, evenly spaced over the rollout (deterministic: no random stream is drawn)."""
+        if not self.probe_rows:
+            return
+        rows = obs.reshape(self.R, -1, obs.shape[-1])
+        n = rows.shape[1]
+        k = min(int(self.probe_rows), n)
+        pick = torch.arange(k, device=rows.device) * n // k
+        self._recent_obs = rows[:, pick].to(self.device, copy=True)
+
+    def probe_batch(self, r: int) -> torch.Tensor:
+        """(n, obs_dim): member r's observations from the latest rollout (at a switch, the last of
+        the phase that ends), n = min(probe_rows, rows in a rollout)."""
+        recent = getattr(self, "_recent_obs", None)
+        if recent is None:
+            raise RuntimeError(f"{type(self).__name__}.probe_batch: no rollout observed yet (a method that reads "
+                               "probe batches sets probe_rows > 0; the trainer fills them after every rollout)")
+        return recent[r]
 
     # helpers for subclasses ---------------------------------------------------------------------
     generator_seed_offset = 11  # member r's generator starts from its config's seed + this
@@ -347,6 +445,18 @@ class NoPlasticity:
                 by_expert.setdefault(0 if e is None else e, []).append(idx)
             self._expert_idx = [torch.cat(by_expert[e]).to(self.device) for e in sorted(by_expert)]
         return self._expert_idx
+
+    @torch.no_grad()
+    def fresh_parameters(self, r: int) -> torch.Tensor:
+        """(P,) the parameters of a newly initialised actor of the population's kind (built as
+        cls(obs_dim, act_dim, cfg), as every built-in kind is), seeded from member r's generator;
+        the global torch generator is left as it was, so no other number of the run moves."""
+        seed = int(torch.randint(0, 2**62, (1,), generator=self.member_generator(r)))
+        template = self.actor.template
+        with torch.random.fork_rng(devices=[]):
+            torch.random.default_generator.manual_seed(seed)
+            fresh = type(template)(template.obs_dim, template.act_dim, template.cfg)
+        return self.actor.layout.flatten([fresh])[0].to(self.device, self.actor.flat.dtype)
 
     @torch.no_grad()
     def perturb_experts(self, r: int, stds, generator: torch.Generator) -> int:

@@ -412,7 +412,9 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 # group's weights; the trainer never touches a learning rate itself (except for the optional
 # `anneal_lr` factor). **Where the controller enters an iteration:** `on_switch(t)` before the
 # rollout at a switch, `begin_iteration(t)` for the iteration's settings, `kl_penalty` inside every
-# minibatch loss, and `after_epoch(selected experts)` after each update epoch; nothing else.
+# minibatch loss, and `after_epoch(selected experts)` after each update epoch. A plasticity method
+# may also keep rows of each rollout for its next switch (`observe_rollout`, appendix 06b) and add
+# columns of its own to the log row (`metrics`); nothing else.
 
 # %%
 #| export
@@ -730,6 +732,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
             "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(device),
         }
+        plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if the method keeps any
 
         # --- 4. PPO update of every member ------------------------------------------------------
         upd = ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data, norms, c0, rngs, frozen)
@@ -743,6 +746,10 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         for r in range(R):
             row = _iteration_row(configs[r], r, it, phase[r], switch, global_step, sched, group_names, actor, norms,
                                  step_stats, new_episodes[r], upd, ro, ret, U)
+            own = plasticity.metrics(r)  # the method's own columns (none for most methods)
+            if own.keys() & row.keys():
+                raise ValueError(f"{type(plasticity).__name__}.metrics names trainer columns: {sorted(own.keys() & row.keys())}")
+            row.update(own)
             t1 = time.perf_counter()
             if diag:
                 a_r, c_r = actor.member(r, singles[r][0]), critic.member(r, singles[r][1])

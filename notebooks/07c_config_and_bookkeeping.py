@@ -67,7 +67,7 @@ import torch
 
 from pemamoe.core import by_scale, check_scale, config_error, require_field
 from pemamoe.env import EnvConfig
-from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods
 from pemamoe.nets import NetConfig
 from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerConfig
 
@@ -130,7 +130,7 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 
 # %%
 #| export
-METHODS = tuple(METHOD_REGISTRY)  # every registered method (pemamoe.methods)
+METHODS = compared_methods()  # the methods the experiments compare by default (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)

@@ -473,7 +473,14 @@ import pandas as pd
 from scipy import stats
 
 from pemamoe.core import atomic_write_text, by_scale
-from pemamoe.methods import METHOD_REGISTRY, load_plugins, method_colour, method_label, proposed_method
+from pemamoe.methods import (
+    METHOD_REGISTRY,
+    compared_methods,
+    load_plugins,
+    method_colour,
+    method_label,
+    proposed_method,
+)
 from pemamoe.records import read_record
 
 # The columns that label each row of load_runs' frames (one value per run).
@@ -482,10 +489,10 @@ RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_ga
 
 def method_order(names=None) -> list:
     """Method names in the figures' order: registered methods in registration order, then any
-    unregistered name, sorted. names None: every registered method (plugins loaded)."""
+    unregistered name, sorted. names None: every method compared by default (plugins loaded)."""
     if names is None:
         load_plugins()
-        return list(METHOD_REGISTRY)
+        return list(compared_methods())
     names = set(names)
     return [m for m in METHOD_REGISTRY if m in names] + sorted(names - set(METHOD_REGISTRY))
 

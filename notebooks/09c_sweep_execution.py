@@ -51,7 +51,7 @@ from pathlib import Path
 import multiprocessing as mp
 
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
-from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.records import PORTABLE_DIR, drop_portable_state, restore_portable_state, write_portable_state, write_record
 from pemamoe.runs import verify_done
 
@@ -502,7 +502,7 @@ def sweep_cli(argv=None) -> int:
                         help="one or more seeds (default: the scale's)")
     parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
                         help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
-                             "default: all)")
+                             f"default: {', '.join(compared_methods())})")
     parser.add_argument("--backend", default="local", choices=BACKENDS)
     parser.add_argument("--workers", type=_count(1), default=2)
     parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
@@ -530,7 +530,7 @@ def sweep_cli(argv=None) -> int:
         parser.error("--results-dir must be a folder path")
     if str(args.records_dir).strip() == "":
         parser.error("--records-dir must be a folder path")
-    methods = tuple(args.methods) if args.methods else tuple(METHOD_REGISTRY)
+    methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:
         import pandas as pd

@@ -17,7 +17,14 @@ import pandas as pd
 from scipy import stats
 
 from pemamoe.core import atomic_write_text, by_scale
-from pemamoe.methods import METHOD_REGISTRY, load_plugins, method_colour, method_label, proposed_method
+from pemamoe.methods import (
+    METHOD_REGISTRY,
+    compared_methods,
+    load_plugins,
+    method_colour,
+    method_label,
+    proposed_method,
+)
 from pemamoe.records import read_record
 
 # The columns that label each row of load_runs' frames (one value per run).
@@ -26,10 +33,10 @@ RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_ga
 
 def method_order(names=None) -> list:
     """Method names in the figures' order: registered methods in registration order, then any
-    unregistered name, sorted. names None: every registered method (plugins loaded)."""
+    unregistered name, sorted. names None: every method compared by default (plugins loaded)."""
     if names is None:
         load_plugins()
-        return list(METHOD_REGISTRY)
+        return list(compared_methods())
     names = set(names)
     return [m for m in METHOD_REGISTRY if m in names] + sorted(names - set(METHOD_REGISTRY))
 
@@ -81,7 +88,7 @@ def load_runs(records) -> tuple:
     return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
-# %% notebooks/09_experiments.py, cell 15 (line 553)
+# %% notebooks/09_experiments.py, cell 15 (line 560)
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -196,7 +203,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09_experiments.py, cell 17 (line 684)
+# %% notebooks/09_experiments.py, cell 17 (line 691)
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -248,7 +255,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09_experiments.py, cell 19 (line 751)
+# %% notebooks/09_experiments.py, cell 19 (line 758)
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

@@ -172,7 +172,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 17 (line 417)
+# %% notebooks/07_mappo.py, cell 17 (line 419)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -309,7 +309,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 19 (line 571)
+# %% notebooks/07_mappo.py, cell 19 (line 573)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -335,7 +335,7 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 603)
+# %% notebooks/07_mappo.py, cell 21 (line 605)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:
@@ -464,6 +464,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
             "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
             "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(device),
         }
+        plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if the method keeps any
 
         # --- 4. PPO update of every member ------------------------------------------------------
         upd = ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data, norms, c0, rngs, frozen)
@@ -477,6 +478,10 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         for r in range(R):
             row = _iteration_row(configs[r], r, it, phase[r], switch, global_step, sched, group_names, actor, norms,
                                  step_stats, new_episodes[r], upd, ro, ret, U)
+            own = plasticity.metrics(r)  # the method's own columns (none for most methods)
+            if own.keys() & row.keys():
+                raise ValueError(f"{type(plasticity).__name__}.metrics names trainer columns: {sorted(own.keys() & row.keys())}")
+            row.update(own)
             t1 = time.perf_counter()
             if diag:
                 a_r, c_r = actor.member(r, singles[r][0]), critic.member(r, singles[r][1])

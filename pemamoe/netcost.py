@@ -3,7 +3,7 @@
 
 __all__ = ['time_forward', 'time_train_step', 'cost_table']
 
-# %% notebooks/05b_population_nets.py, cell 11 (line 580)
+# %% notebooks/05b_population_nets.py, cell 11 (line 611)
 import statistics
 import time
 
@@ -76,7 +76,8 @@ def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
     rows = []
     for label, obs_dim in obs_dims.items():
         torch.manual_seed(seed)
-        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()}
+        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()
+                  if spec.compared}
         mlp_params = count_parameters(actors["mlp"])
         mlp_macs = macs_per_step(actors["mlp"])
         for kind, actor in actors.items():

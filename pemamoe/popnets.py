@@ -3,7 +3,7 @@
 
 __all__ = ['loop_experts', 'masked_mixed', 'ParamLayout', 'run_linear', 'run_experts', 'run_load_balance', 'topk_weights', 'run_noise_scale', 'run_gate', 'PopulationActor', 'PopulationCritic', 'gaussian_log_prob', 'gaussian_entropy', 'gaussian_kl']
 
-# %% notebooks/05b_population_nets.py, cell 7 (line 170)
+# %% notebooks/05b_population_nets.py, cell 7 (line 189)
 import copy
 import math
 
@@ -43,7 +43,7 @@ def masked_mixed(bank, x, experts, weights):
     return out
 
 
-# %% notebooks/05b_population_nets.py, cell 9 (line 244)
+# %% notebooks/05b_population_nets.py, cell 9 (line 263)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -100,6 +100,12 @@ class ParamLayout:
             a, b = self.span(n)
             m[a:b] = True
         return m
+
+    def indices(self, name: str) -> torch.Tensor:
+        """The flat positions of parameter `name`, shaped like it: `indices("fc1.weight")[u]` are
+        where row u of that weight lives in a member's row, for partial edits and optimizer masks."""
+        a, b = self.span(name)
+        return torch.arange(a, b).reshape(self.shapes[self.index[name]])
 
     def expert_index(self, name: str, expert: int) -> torch.Tensor:
         """Flat indices of slice `expert` along the leading axis of parameter `name` (E, ...)."""
@@ -227,6 +233,12 @@ class _Population:
 
     def params(self, flat=None) -> dict:
         return self.layout.views(self.flat if flat is None else flat)
+
+    def member_param(self, r: int, name: str) -> torch.Tensor:
+        """Member r's parameter `name` as a view of the flat row, shaped like the parameter: edit it
+        in place under `torch.no_grad()` (`actor.member_param(0, "fc1.weight")[3] = 0.0`)."""
+        a, b = self.layout.span(name)
+        return self.flat[r, a:b].view(self.layout.shapes[self.layout.index[name]])
 
     def member(self, r: int, module=None):
         """Member r as a single-run module (a copy; `module` is filled in place if given)."""

@@ -69,8 +69,9 @@ def plugin_method():
 
 
 def test_method_order_follows_the_registry_and_keeps_unknown_names(plugin_method):
-    assert analysis.method_order() == list(METHOD_REGISTRY)
-    assert analysis.method_order()[-1] == "zz_plugin"
+    assert analysis.method_order() == [m for m, spec in METHOD_REGISTRY.items() if spec.compared]
+    assert analysis.method_order()[-1] == "zz_plugin" and "smoe_redo" not in analysis.method_order()
+    assert analysis.method_order({"smoe_redo", "mlp"}) == ["mlp", "smoe_redo"]  # named, it takes its place
     assert analysis.method_order({"zz_plugin", "unknown", proposed_method(), "mlp"}) == [
         "mlp", proposed_method(), "zz_plugin", "unknown"]
     assert analysis.is_proposed(proposed_method()) and not analysis.is_proposed("zz_plugin")

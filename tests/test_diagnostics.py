@@ -90,7 +90,7 @@ def test_plasticity_diagnostics_names_and_values(kind):
     g = torch.Generator().manual_seed(0)
     obs, state = torch.randn(n, obs_dim, generator=g), torch.randn(n, state_dim, generator=g)
     d = dg.plasticity_diagnostics(actor, critic, obs, state)
-    n_exp = 1 if kind == "mlp" else 3
+    n_exp = 1 if METHOD_REGISTRY[kind].network == "mlp" else 3
     assert all(isinstance(v, float) for v in d.values())
     for name in ("stable", "effective", "srank"):
         assert f"rank/{name}/mean" in d

@@ -3,7 +3,8 @@
 The test takes the example's code from CONTRIBUTING.md itself, installs it as a plugin module,
 runs it in a ci-scale sweep next to a built-in method (worker processes load it through
 $PEMAMOE_PLUGINS), draws it in a training-curve figure with its own label, and checks that no
-file of the package or the notebooks names it.
+file of the package or the notebooks names it. A second one-file plugin, which reads the probe
+batch at a switch and logs a metric of its own, trains through `python -m pemamoe train`.
 """
 
 import re
@@ -100,3 +101,55 @@ def test_a_method_preset_sets_its_controller_and_combinations_keep_their_labels(
         assert TrainConfig.for_scale("ci", method="pemamoe").controller.noise_gamma == 0.005
     finally:
         METHOD_REGISTRY.pop("mlp_pc_test", None)
+
+
+PROBE_PLUGIN = '''
+import torch
+
+from pemamoe.methods import MethodSpec, register_method
+from pemamoe.population_plasticity import NoPlasticity, register_plasticity
+
+
+@register_plasticity
+class ProbeMean(NoPlasticity):
+    """At each switch, read each member's probe batch and log its mean |observation|."""
+
+    name = "probe_mean"
+    probe_rows = 64
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.seen = [float("nan")] * self.R
+
+    @torch.no_grad()
+    def on_switch(self, iteration):
+        self.seen = [float(self.probe_batch(r).abs().mean()) for r in range(self.R)]
+
+    def metrics(self, r):
+        return {"probe_mean/abs_obs": self.seen[r]}
+
+
+register_method(MethodSpec("mlp_probe_mean", network="mlp", plasticity="probe_mean", label="MLP + probe mean"))
+'''
+
+
+def test_a_one_file_plugin_trains_from_the_command_line_with_its_own_metric(tmp_path):
+    import os
+    import subprocess
+
+    import pandas as pd
+
+    (tmp_path / "probe_plugin.py").write_text(PROBE_PLUGIN)
+    env = {**os.environ, "PEMAMOE_PLUGINS": "probe_plugin", "PYTHONPATH": f"{tmp_path}:{ROOT}"}
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "pemamoe", "train", "--method", "mlp_probe_mean", "--scale", "ci",
+                           "--iterations", "3", "--out", str(out)], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    metrics = pd.read_parquet(out / "metrics.parquet")
+    assert len(metrics) == 3 and metrics.switch.tolist() == [False, False, True]
+    seen = metrics["probe_mean/abs_obs"]
+    assert seen.iloc[:2].isna().all() and seen.iloc[2] > 0  # read at the switch, from the last rollout
+    refused = subprocess.run([sys.executable, "-m", "pemamoe", "train", "--method", "mlp_probe_mean", "--scale", "ci"],
+                             cwd=tmp_path, env={**env, "PEMAMOE_PLUGINS": ""}, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "mlp_probe_mean" in refused.stderr  # without the plugin: a usage error

@@ -23,11 +23,12 @@ from pemamoe.nets import (
     make_critic,
 )
 
-from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.methods import METHOD_REGISTRY, compared_methods
 from pemamoe.netcost import cost_table
 
-ACTOR_KINDS = tuple(METHOD_REGISTRY)  # every registered method (make_actor resolves its network)
-MOE_KINDS = tuple(name for name, spec in METHOD_REGISTRY.items() if spec.network != "mlp")
+# every method compared by default (make_actor resolves its network); the others reuse these networks
+ACTOR_KINDS = compared_methods()
+MOE_KINDS = tuple(name for name in ACTOR_KINDS if METHOD_REGISTRY[name].network != "mlp")
 IMPLS = ("stacked", "masked", "loop", "auto")
 
 

@@ -21,7 +21,7 @@ from pemamoe.execution import status_summary, sweep_status
 from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep, sweep_cli
 
 ROOT = Path(__file__).resolve().parent.parent
-BASELINES = tuple(n for n, sp in METHOD_REGISTRY.items() if not sp.proposed)  # three runs without the controller
+BASELINES = tuple(n for n, sp in METHOD_REGISTRY.items() if sp.compared and not sp.proposed)  # three runs without the controller
 
 
 def test_spec_resolves_to_config_and_folder(tmp_path):
