@@ -44,8 +44,9 @@
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py`, `pemamoe/analysis.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
-# | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
+# | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
+# | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #
