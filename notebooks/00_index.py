@@ -30,9 +30,9 @@
 # | III-B channel model | `01_channel.py` | `pemamoe/channel.py` | `channel_*` figures |
 # | III-C energy model | `02_energy.py` | `pemamoe/energy.py` | `energy_power_vs_speed` |
 # | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
-# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env.py` | reward anatomy table |
+# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py`, `pemamoe/env.py` | reward anatomy table |
 # | (appendix to III-E) the compiled step engine, the random streams, the PettingZoo wrappers | `04b_engine.py` | `pemamoe/env_kernel.py`, `pemamoe/streams.py`, `pemamoe/env_wrappers.py` | |
-# | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
+# | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py`, `pemamoe/routing.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/controller.py` | schedule figures |
@@ -46,8 +46,9 @@
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py`, `pemamoe/analysis.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
-# | (appendix to VI) executing a sweep: process pool, Ray, stopping, the command line | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
+# | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
+# | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
 # | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #

@@ -20,8 +20,8 @@
 # * **validation**: `require`, the one checker behind every configuration class;
 # * **files**: atomic writes that follow the umask, and figure/table output into the repository's
 #   `paper_figures/`, wherever the notebook runs from;
-# * **the headless runner**: `run_notebook` and `make_figures`, behind `make figures`, with the
-#   provenance table `paper_figures/README.md`.
+# * **the headless runner**: `run_notebook`, which `make figures` (appendix 09e) calls for every
+#   notebook, and the provenance table `paper_figures/README.md`.
 #
 # The module keeps its historical name, `pemamoe.core`, so imports did not change when it moved
 # here from notebook 00.
@@ -53,7 +53,6 @@ import numbers
 import os
 import sys
 import tempfile
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -493,16 +492,13 @@ def _kernel_manager_config():
 # %% [markdown]
 # ## Regenerating every figure
 #
-# `make_figures` runs the notebooks in paper order with the same runner, pointing their
-# `figures_dir` at `paper_figures/`. It then writes `paper_figures/README.md`, which records for
-# every file the notebook that wrote it, its counterpart in the paper, the scale, the command and
-# the commit, so each figure can be traced to what produced it. Plotting notebooks read logged
+# `make figures` runs the notebooks in paper order (`figure_notebooks`) with the same runner,
+# pointing their `figures_dir` at `paper_figures/`; the command itself, `make_figures`, trains the
+# sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`). Here is what it
+# writes at the end: `paper_figures/README.md` (`write_figures_readme`), which records for every
+# file the notebook that wrote it, its counterpart in the paper, the scale, the command and the
+# commit, so each figure can be traced to what produced it. Plotting notebooks read logged
 # results; they never retrain what a sweep already cached.
-#
-# A full run takes from minutes (`ci`) to hours (`paper`), so it reports as it goes: one line when
-# notebook *i* of *N* starts and one when it ends, with the time spent on it and in total, and in
-# between the notebook's own output, streamed. These are plain lines rather than a progress bar,
-# because the streamed output would tear a bar apart, and plain lines read the same in a log file.
 
 # %%
 #| export
@@ -564,62 +560,6 @@ def figure_notebooks(root=None) -> list:
                   key=lambda p: p.name)
 
 
-def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
-                 stream: bool = True, precompute: bool | None = None, **extra) -> Path:
-    """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
-
-    figures_dir: default paper_figures/ (a relative path is under the repository root).
-    stream:      print progress lines and the notebooks' own output (False: silent).
-    precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
-                 09 and 10, the learning-budget study of 09b, the gating comparison of 05c) as one sweep, so that compatible
-                 runs of different experiments share populations, no notebook trains for hours
-                 under its timeout, and the notebooks only read results (None: when all notebooks run).
-    extra:       further parameters (e.g. backend="ray", workers=2, retrain=True), given to the
-                 notebooks that declare them. retrain=True: ignore the committed records (appendix
-                 09d), train every run into the cache and write the records again.
-    """
-    import subprocess
-
-    check_scale(scale)
-    figures_dir = repo_path(figures_dir or "paper_figures")
-    figures_dir.mkdir(parents=True, exist_ok=True)
-    say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
-    records, t0 = {}, time.perf_counter()
-    if precompute if precompute is not None else notebooks is None:
-        from pemamoe.sweep import experiment_specs, run_sweep  # the sweep imports core: import here
-
-        say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
-        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
-                  extra.get("backend", "local"), extra.get("workers", 2),
-                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"),
-                  records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
-        say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
-    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
-    for i, nb in enumerate(notebooks, start=1):
-        before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
-        start = time.perf_counter()
-        say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
-        declared = notebook_parameters(nb)
-        params = {"scale": scale, "figures_dir": str(figures_dir), **{k: v for k, v in extra.items() if k in declared}}
-        run_notebook(nb, params, timeout=timeout, stream=stream)
-        now = time.perf_counter()
-        say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
-        for p in figures_dir.iterdir():
-            if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
-                records[p.name] = nb.name
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        ).stdout.strip() or "unknown"
-        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
-                               capture_output=True, text=True).stdout.strip()
-        commit += "+dirty" if dirty else ""
-    except OSError:
-        commit = "unknown"
-    return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
-
-
 def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str) -> Path:
     """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
     readme = repo_path(figures_dir) / "README.md"
@@ -645,11 +585,6 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
 
 # %%
 #| exporti
-def _clock(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
-
-
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}

@@ -44,7 +44,7 @@
 #   `04b_engine.py`; this notebook only calls them.
 
 # %%
-#| default_exp env
+#| default_exp env_model
 
 # %% tags=["parameters"]
 scale = "small"
@@ -71,20 +71,8 @@ from pemamoe.channel import (
     sample_channel,
     sinr,
 )
-from pemamoe.core import config_error, require, require_field
+from pemamoe.core import config_error, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
-from pemamoe.env_wrappers import (  # re-export: the public environments, rendering, reference policies (appendix 04b)
-    HEURISTICS,
-    UAVParallelEnv,
-    UAVVectorEnv,
-    compile_step_kernels,
-    hover_policy,
-    kmeans_policy,
-    random_policy,
-    render_frame,
-    rollout_heuristic,
-    vector_seeds,
-)
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
 from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04b)
@@ -468,7 +456,7 @@ class UAVBatchCore:
         if cfg.step_engine == "compiled":
             from pemamoe.env_kernel import CompiledStep  # imported here: `import pemamoe.env` needs no numba
 
-            self.engine = CompiledStep(cfg)
+            self.engine = CompiledStep(cfg, (observation_dim(cfg), state_dim(cfg)), slot_draws(cfg))
         self.clock = np.zeros(self.B, dtype=int)  # steps since construction: the env's phase clock
         self.phase = np.zeros(self.B, dtype=int)
         self.t = np.zeros(self.B, dtype=int)  # step within the episode
@@ -653,7 +641,9 @@ class UAVBatchCore:
 #
 # Two thin wrappers of the core are the public environments. Both live in appendix 04b (module
 # `pemamoe.env_wrappers`), with the renderer, `compile_step_kernels` and the reference policies
-# (`HEURISTICS`, `rollout_heuristic`); `pemamoe.env` re-exports them all and builds the two here:
+# (`HEURISTICS`, `rollout_heuristic`). The cells above export the model to `pemamoe.env_model`; the
+# cell below is the module `pemamoe.env`, the one outside code imports: it sits on top of the model
+# and the wrappers, re-exports both, and builds the two environments:
 #
 # * `make_vector_env(num_envs, seed)` returns a `UAVVectorEnv`, the batched environment the trainer
 #   uses: B environments stepped in one process (obs `(B, U, obs_dim)`, state `(B, state_dim)`),
@@ -669,7 +659,17 @@ class UAVBatchCore:
 # without them (appendix 04b says how), and `make_env` says what to install where they are missing.
 
 # %%
-#| export
+#| export env
+from pemamoe.core import require
+from pemamoe.env_model import (  # re-export: the model above
+    STEP_ENGINES, EnvConfig, Schedule, UAVBatchCore, build_observations, colour_weights, observation_dim,
+    observation_layout, pair_distances, realised_rates, reward_terms, schedule_users, slot_draws, state_dim)
+from pemamoe.env_wrappers import (  # re-export: the public environments, rendering, reference policies (appendix 04b)
+    HEURISTICS, UAVParallelEnv, UAVVectorEnv, compile_step_kernels, hover_policy, kmeans_policy, random_policy,
+    render_frame, rollout_heuristic, vector_seeds)
+from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04b)
+
+
 def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
     """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
     return UAVParallelEnv(EnvConfig.from_overrides(**overrides), render_mode=render_mode)

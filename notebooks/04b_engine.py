@@ -30,10 +30,12 @@
 # Read it when you change the dynamics of notebook 04 (the compiled step must follow, and the tests
 # that step both engines side by side will say where it does not), when you need to know why the
 # environment runs at the speed it does, or when you change what the environments return.
-# `pemamoe.env` re-exports `BatchRandom` and the wrappers; it imports `pemamoe.env_kernel` only
-# when a core with the compiled engine is built, so `import pemamoe.env` never loads numba. The
-# wrappers fetch the core and the configuration from `pemamoe.env` when an environment is built,
-# not when their module loads, so no two of these modules import each other while loading.
+# The modules stack without import cycles: `pemamoe.streams` and `pemamoe.env_kernel` sit below
+# notebook 04's model (`pemamoe.env_model`), the wrappers above it, and `pemamoe.env`, which outside
+# code imports, on top, re-exporting the model, `BatchRandom` and the wrappers. The model imports
+# `pemamoe.env_kernel` only when a core with the compiled engine is built, so `import pemamoe.env`
+# never loads numba, and it hands the engine what the engine needs from it (the observation and
+# state sizes, the random numbers one slot draws) as arguments.
 
 # %%
 #| default_exp env_kernel
@@ -275,7 +277,6 @@ import numpy as np
 
 from pemamoe.channel import height_correction, interference_weights, reuse_colours
 from pemamoe.energy import propulsion_power_w
-from pemamoe.env import observation_dim, slot_draws, state_dim
 from pemamoe.mobility import hotspot_membership
 from pemamoe.streams import BatchRandom
 
@@ -816,10 +817,13 @@ def _info_dict(float_info, int_info, **more) -> dict:
 class CompiledStep:
     """The compiled engine of a UAVBatchCore: the same step, with the same random numbers, as one loop."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, dims: tuple, draws: tuple):
+        # dims: (observation_dim(cfg), state_dim(cfg)); draws: slot_draws(cfg), the normals and
+        # uniforms one slot takes per environment. The core computes both (notebook 04).
         self.cfg = cfg
         self.params = kernel_params(cfg)
-        self.dims = observation_dim(cfg), state_dim(cfg)
+        self.dims = tuple(dims)
+        self.draws = tuple(draws)
 
     def _channel_randoms(self, rng, n):
         """This slot's channel draws, in the reference's order: normals (Rician x, y, shadowing),
@@ -857,7 +861,7 @@ class CompiledStep:
         N, U, G = cfg.n_users, cfg.n_uavs, cfg.mobility.n_hotspots
         NU = N * U
         # All of a slot's draws at once; per stream this is the reference's order exactly.
-        n_normals, n_uniforms = slot_draws(cfg)
+        n_normals, n_uniforms = self.draws
         normals, uniforms = rng.standard_normal((B, n_normals)), rng.random((B, n_uniforms))
         nakagami = self._nakagami(uniforms[:, 2 * G + NU:2 * G + 2 * NU])
         old_phase = core.phase.copy()
@@ -921,6 +925,7 @@ for name, s in seconds.items():
 #| export env_wrappers
 import numpy as np
 
+from pemamoe.env_model import EnvConfig, UAVBatchCore, observation_dim, state_dim
 from pemamoe.phases import phase_values
 
 
@@ -929,9 +934,6 @@ class UAVVectorEnv:
 
     def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: "EnvConfig | None" = None, *, seeds=None,
                  **overrides):
-        # imported when an environment is built, not at load: pemamoe.env imports this module
-        from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
-
         if cfg is not None and overrides:
             raise ValueError("pass either cfg or keyword overrides, not both")
         self.cfg = cfg or EnvConfig.from_overrides(**overrides)
@@ -1028,9 +1030,6 @@ class UAVParallelEnv(_ParallelEnvBase):
                               "(pip install pettingzoo gymnasium); the trainer and the vector env "
                               "(make_vector_env) do not") from _PETTINGZOO_MISSING
         from gymnasium import spaces
-
-        # imported when an environment is built, not at load: pemamoe.env imports this module
-        from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
 
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")

@@ -57,6 +57,7 @@ from torch.distributions import Independent, Normal
 
 from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
+from pemamoe.routing import RoutingSample  # re-export: the random choices of a gated pass (below)
 
 # The batched machinery of appendix 05b, used by the classes below and re-exported from here:
 from pemamoe.popnets import (ParamLayout, PopulationActor, PopulationCritic, gaussian_entropy,  # re-export  # noqa: F401
@@ -362,7 +363,12 @@ class ExpertBank(nn.Module):
 # gradient. For the dense MoE, $f_i$ counts the samples whose largest weight is expert $i$.
 
 # %%
-#| export
+#| export routing
+from typing import NamedTuple
+
+import torch
+
+
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 
@@ -397,6 +403,8 @@ class RoutingSample(NamedTuple):
         return RoutingSample(*(torch.cat([getattr(s, f) for s in samples], dim) for f in RoutingSample._fields))
 
 
+# %%
+#| export
 class GateOutput(NamedTuple):
     features: torch.Tensor  # (B, hidden) gate-weighted mix of expert features
     probs: torch.Tensor  # (B, E) router probabilities g (noisy while sampling)

@@ -103,6 +103,8 @@ from pemamoe.population_plasticity import (
     group_index,
     plasticity_method,
 )
+import pemamoe.controller  # noqa: F401, E402  registers PE-MAMoE's PhaseController (notebook 06)
+import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
     EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, RunResult, _build, check_population, evaluate_policy, load_run,

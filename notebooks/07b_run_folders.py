@@ -165,7 +165,7 @@ def read_parquet(path):
 def read_config(path, cls=None):
     """The TrainConfig stored in `path` (a config.json); RunFolderError when it is not one."""
     if cls is None:
-        from pemamoe.mappo import TrainConfig as cls  # runs.py sits below mappo.py
+        from pemamoe.train_config import TrainConfig as cls  # runs.py sits below train_config.py
     path = Path(path)
     return _config_from_dict(read_json(path), cls, path)
 

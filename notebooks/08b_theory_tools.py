@@ -57,6 +57,7 @@ import torch.nn.functional as F
 from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import BaseSchedule, PhaseControllerConfig, expert_parameters, n_experts_of
+from pemamoe.controller import PhaseController
 from pemamoe.population_plasticity import MemberConfig, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
@@ -291,7 +292,7 @@ def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, kee
     )
     member = MemberConfig(_controller_config(cfg), base, seed=seed + 7912)  # its noise generator: seed + 7919
     single = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
-    ctrl = population_method("phase_controller", [member], [single], eps=1e-8)  # Adam's eps, no weight decay
+    ctrl = population_method(PhaseController.name, [member], [single], eps=1e-8)  # Adam's eps, no weight decay
     actor, opt = ctrl.actor, ctrl.actor_opt
     sparse = actor.gated and actor.k < actor.n_experts
     sizes = [idx.numel() for idx in ctrl.expert_indices()]

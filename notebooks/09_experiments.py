@@ -21,14 +21,22 @@
 #
 # Compute and plotting are separate. The first half defines **sweeps**: a run is a point
 # (method, seed, ablation, noise level, scale) whose resolved training configuration is hashed to
-# name its folder under `results/`. A sweep skips every run whose folder holds a `done.json` that
-# verifies (notebook 07b), and a run killed half-way resumes from its last checkpoint, so rerunning
-# a sweep after an interruption (Ctrl-C, SIGTERM, even SIGKILL) only does the missing work. The second half only *reads* those folders and draws; changing a plot
-# never retrains.
+# name its folder under `results/`. A finished run is never trained again, and a run killed
+# half-way (Ctrl-C, SIGTERM, even SIGKILL) resumes from its last checkpoint, so rerunning a sweep
+# only does the missing work. The second half only *reads* the runs' records and draws; changing a
+# plot never retrains.
 #
-# Runs execute on a local process pool by default (each worker single-threaded so 2 cores are not
-# oversubscribed) or as Ray tasks, on a local Ray instance or on a cluster given its address; how,
-# and the command line, is the subject of appendix 09c.
+# `run_sweep(specs, backend, workers, results_dir, ...)` trains every spec not yet done and returns
+# the run folders in the order of the specs; `sweep_records` does the same and returns the runs'
+# record markers, which is what the figures read. Pending runs whose configs differ only in the
+# member fields of notebook 07 train together as one population (`train_population`), on a local
+# process pool or as Ray tasks. The machinery lives in appendices, so that this notebook reads as
+# the experiments and their results: appendix 09c (`pemamoe.execution`, whose names
+# `pemamoe.sweep` re-exports) is the run cache (a run is done when its folder's `done.json` or its
+# record verifies), the grouping into populations, the two backends, stopping and `--status`;
+# appendix 09d (`pemamoe.records`) is the published record of a finished run and the reading of
+# records back into tables; appendix 09e (`pemamoe.commands`) is the command line, `python -m
+# pemamoe sweep`, which calls the same `run_sweep`, so a sweep started from the shell is reused here.
 
 # %%
 #| default_exp sweep
@@ -48,232 +56,21 @@ retrain = False  # True: ignore the records, train into results_dir and write th
 
 # %%
 #| export
-import math
-import os
-import time
-from dataclasses import dataclass, field
-from pathlib import Path
-
-import numpy as np
-
 from pemamoe.core import by_scale, check_scale
-from pemamoe.env import compile_step_kernels
-# how the runs execute (appendix 09c)
-from pemamoe.execution import (  # re-export (public names only)
-    BACKENDS, SweepInterrupted, _progress, _run_local, _run_ray, _stop_on_signals, execute_population, sweep_cli)
-from pemamoe.mappo import METHODS, TrainConfig, population_key
-from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import RECORDS_DIR, RecordError, record_files, verify_record, write_record
-from pemamoe.runs import verify_done
+from pemamoe.execution import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
+    BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
+    pending_runs, record_marker, run_sweep, sweep_records)
+from pemamoe.mappo import METHODS, TrainConfig
 
 # %% [markdown]
 # ## A run, and its place in the cache
 #
-# `RunSpec` names a run the way an experiment table would: the method, the seed, the scale, which
-# phase-controller mechanisms are switched off (an ablation), the noise level γ, and any further
-# training overrides. `to_config` resolves it to the full `TrainConfig`; the cache key is the hash
-# of that resolved configuration, so two specs that mean the same run share one folder, and any
-# change to a default (a new preset, say) gives new folders instead of silently reusing stale ones.
-
-# %%
-#| export
-@dataclass(frozen=True)
-class RunSpec:
-    """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
-
-    method: str
-    seed: int = 0
-    scale: str = "small"
-    without: tuple = ()  # phase-controller mechanisms switched off (ablation)
-    noise_gamma: float | None = None  # None: the preset's gamma0
-    overrides: tuple = ()  # further TrainConfig.for_scale overrides, as sorted (key, value) pairs
-    tag: str = field(default="", compare=False)  # which experiment asked for it; not part of the run
-
-    def __post_init__(self):
-        try:
-            method_spec(self.method)  # the registry (plugins included)
-        except ValueError:
-            raise ValueError(f"RunSpec.method must be one of {', '.join(METHOD_REGISTRY)}, got {self.method!r}") from None
-        check_scale(self.scale)
-        if isinstance(self.seed, np.integer):  # e.g. seeds=np.arange(3): plain ints, so JSON can save them
-            object.__setattr__(self, "seed", int(self.seed))
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
-            raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
-        if isinstance(self.noise_gamma, np.floating):
-            object.__setattr__(self, "noise_gamma", float(self.noise_gamma))
-        object.__setattr__(self, "without", tuple(sorted(self.without)))
-        object.__setattr__(self, "overrides", tuple(sorted(dict(self.overrides).items())))
-
-    def to_config(self) -> TrainConfig:
-        extra = dict(self.overrides)
-        if self.without:
-            extra["without"] = self.without
-        if self.noise_gamma is not None:
-            extra["noise_gamma"] = self.noise_gamma
-        return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
-
-    def run_dir(self, results_dir) -> Path:
-        return Path(results_dir) / self.scale / self.to_config().run_name()
-
-    def label(self) -> str:
-        parts = [self.method, f"seed {self.seed}"]
-        if self.without:
-            parts.append("without " + "+".join(self.without))
-        if self.noise_gamma is not None:
-            parts.append(f"gamma {self.noise_gamma:g}")
-        return ", ".join(parts)
-
-
-# %% [markdown]
-# ## Executing one run, and many
-#
-# `run_sweep` drops finished runs first, groups the rest into populations (`group_specs`: runs
-# whose configs differ only in the member fields of notebook 07, at most `population` members
-# each), then hands the populations to a backend: `local`, a pool of worker processes, or `ray`,
-# Ray tasks on a local instance or on a cluster. Each worker trains its population with
-# `train_population` (notebook 07), which resumes every member from its checkpoint and reads
-# finished members back. SIGINT or SIGTERM stop the sweep without leaving workers behind and raise
-# `SweepInterrupted`; rerunning the sweep resumes the killed runs. How a worker runs a population
-# (`execute_population`), how the backends start, stop and report, and the command line are in
-# appendix 09c (`pemamoe.execution`); `pemamoe.sweep` imports them from there and re-exports
-# `BACKENDS`, `SweepInterrupted`, `execute_population` and `sweep_cli`.
-#
-# Both backends return the run folders in the order of the specs.
-
-# %%
-#| export
-def group_specs(specs, population: int, workers: int = 1) -> list:
-    """Pending runs as populations: runs whose configs share everything but the member fields
-    (seed, controller settings, force_controller) go together, at most `population` per group,
-    in the order they first appear. A compatible set larger than `population` is split into
-    groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
-    far more per member, and with no more parts than workers, equal parts finish together). A
-    group larger than the others is also split so that `workers` processes get work when there
-    are fewer groups than workers."""
-    groups = {}
-    for spec in specs:
-        groups.setdefault(population_key(spec.to_config()), []).append(spec)
-    out = []
-    for members in groups.values():
-        size = population
-        if len(groups) < workers:  # fewer populations than workers: spread each one over the workers
-            size = min(size, max(1, -(-len(members) // max(1, workers // len(groups)))))
-        parts = -(-len(members) // size)
-        base, extra = divmod(len(members), parts)
-        bounds = [0]
-        for i in range(parts):
-            bounds.append(bounds[-1] + base + (i < extra))
-        out += [members[a:b] for a, b in zip(bounds, bounds[1:])]
-    return out
-
-
-DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
-
-
-def check_counts(**counts) -> None:
-    """Each keyword must be an integer >= 1 (a bool is not): `name must be an integer >= 1, got X`."""
-    for name, value in counts.items():
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-
-
-def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) -> tuple:
-    """({run folder: spec}, the specs still to train: whose folder holds no verified finished run
-    and, with records_dir, whose record does not verify either (retrain: records ignored). Two specs
-    can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
-    point): keyed by run folder, such a run is trained once, not twice at once."""
-    by_folder = {}
-    for spec in specs:
-        by_folder.setdefault(spec.run_dir(Path(results_dir)), spec)
-
-    def done(folder, spec):
-        config = spec.to_config()
-        if records_dir is not None and not retrain and verify_record(record_marker(spec, records_dir), config):
-            return True
-        return verify_done(folder, config) is not None
-
-    return by_folder, [spec for folder, spec in by_folder.items() if not done(folder, spec)]
-
-
-def record_marker(spec, records_dir=RECORDS_DIR) -> Path:
-    """Where the record of `spec`'s run lives (its marker; appendix 09d)."""
-    return record_files(records_dir, spec.scale, spec.to_config().run_name())["marker"]
-
-
-def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
-              threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
-              population: int = DEFAULT_POPULATION, hours: float | None = None, records_dir=None,
-              retrain: bool = False) -> list:
-    """Run every spec not yet done; return all run folders, in the order of `specs`.
-
-    records_dir: also keep the runs' records there (appendix 09d): a run whose record verifies
-    counts as done and is not trained (unless retrain), each run's record is written as it
-    finishes, and a finished run folder without a record gets one. retrain: ignore the records,
-    train into the cache whatever is not in it, and write every record again (byte-identical
-    when nothing changed).
-
-    hours: train for at most this long: then every running population checkpoints at the end of
-    its current iteration and stops, no queued one starts, and the sweep returns (rerun it to go
-    on; nothing is lost but the iteration in flight). The folders of unfinished runs are returned
-    too: check them with pemamoe.runs.verify_done, or call pending_runs.
-
-    A run counts as done only when its done.json (or record) verifies (a corrupt or foreign one
-    raises). progress: a tqdm bar of runs done out of all (cached ones counted), with an ETA;
-    None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start no
-    queued one and raise SweepInterrupted (rerun to resume)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    check_counts(workers=workers, threads_per_run=threads_per_run, population=population)
-    if hours is not None and not (isinstance(hours, (int, float)) and not isinstance(hours, bool)
-                                  and math.isfinite(hours) and hours > 0):
-        raise ValueError(f"hours must be a number > 0, got {hours!r}")
-    deadline = None if hours is None else time.time() + 3600.0 * hours
-    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
-        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
-    specs = list(specs)
-    results_dir = Path(results_dir)
-    by_folder, todo = pending_runs(specs, results_dir, records_dir, retrain)
-    groups = group_specs(todo, population, workers)
-    if verbose:
-        print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
-              f"as {len(groups)} populations on {backend} ({workers} workers)", flush=True)
-    if todo:
-        start = time.perf_counter()
-        compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
-        runner = _run_local if backend == "local" else _run_ray
-        with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            runner(groups, results_dir, workers, address, threads_per_run, report, deadline, records_dir)
-        left = pending_runs(specs, results_dir, records_dir, retrain)[1]
-        if verbose and left:
-            print(f"[sweep] stopped after {hours} h ({time.perf_counter() - start:.0f} s): "
-                  f"{len(todo) - len(left)} of {len(todo)} runs finished, {len(left)} left, checkpointed; "
-                  "rerun the same command to go on", flush=True)
-        elif verbose:
-            print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
-    if records_dir is not None:  # finished folders without a (verified) record, e.g. trained before records
-        for folder, spec in by_folder.items():
-            config = spec.to_config()
-            marker = record_marker(spec, records_dir)
-            if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
-                write_record(folder, spec.scale, records_dir)
-    return [s.run_dir(results_dir) for s in specs]
-
-
-def sweep_records(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
-                  records_dir=RECORDS_DIR, retrain: bool = False, **options) -> list:
-    """The record markers of every spec, in order, training only the runs without a record
-    (`run_sweep` with records_dir; retrain: ignore the records). What the notebooks read."""
-    specs = list(specs)
-    run_sweep(specs, backend, workers, results_dir, address, records_dir=records_dir, retrain=retrain, **options)
-    return [record_marker(spec, records_dir) for spec in specs]
-
-
-def _record_ok(marker, config) -> bool:
-    try:
-        return verify_record(marker, config) is not None
-    except RecordError:  # a damaged record of a run whose folder is here: written again from the folder
-        return False
-
+# `RunSpec(method, seed, scale, without=(), noise_gamma=None, overrides=())` names a run the way an
+# experiment table would: the method, the seed, the scale, which phase-controller mechanisms are
+# switched off (an ablation), the noise level γ, and any further training overrides. `to_config`
+# resolves it to the full `TrainConfig`; the cache key is the hash of that resolved configuration,
+# so two specs that mean the same run share one folder, and any change to a default (a new preset,
+# say) gives new folders instead of silently reusing stale ones. The class is in appendix 09c.
 
 # %% [markdown]
 # ## The paper's experiments as sweeps
@@ -433,26 +230,15 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
 
 
 # %% [markdown]
-# ## Command line
-#
-# `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
-# experiments above; `--address` joins a Ray cluster. It is the same `run_sweep` the notebooks
-# call, so a sweep started from the shell is reused by the notebooks. The command's parser,
-# `sweep_cli`, is in appendix 09c.
-
-# %% [markdown]
 # ## Reading results back
 #
 # Everything below reads the runs' **records** (appendix 09d), the compact published form of a
 # finished run that git keeps under `records/<scale>/`; nothing trains unless a record is missing
-# (`sweep_records` trains those runs first). `load_runs` stacks the records of a list of runs into
-# two tidy frames: the per-iteration log (one row per block of iterations in a long run), and the
-# rows in which episodes ended, with each metric's mean over those episodes. Each row carries its
-# run's labels, read from **that run's own config** (the resolved `TrainConfig` the record holds),
-# never from a marker left by whichever experiment asked for the run first: the method, the seed,
-# the phase-controller mechanisms switched off, whether a baseline ran the controller, the noise
-# scale γ, a short `variant` ("", "w/o lr_drop", "+ noise_injection") and the display `label` of
-# `TrainConfig.label()`.
+# (`sweep_records` trains those runs first). `load_runs` (appendix 09d, re-exported here) stacks the
+# records of a list of runs into two tidy frames, the per-iteration log and the rows in which
+# episodes ended; every row carries its run's labels (`RUN_COLUMNS`: the method, the seed, the
+# mechanisms switched off, the noise scale γ, a short `variant`, the display `label`), read from
+# that run's own config.
 #
 # Which methods exist, in which order, with which label and colour, comes from the method registry
 # (`pemamoe.methods`, appendix 05b): a method registered by outside code (a plugin) appears in every
@@ -473,18 +259,10 @@ import pandas as pd
 from scipy import stats
 
 from pemamoe.core import atomic_write_text, by_scale
-from pemamoe.methods import (
-    METHOD_REGISTRY,
-    compared_methods,
-    load_plugins,
-    method_colour,
-    method_label,
-    proposed_method,
-)
-from pemamoe.records import read_record
-
-# The columns that label each row of load_runs' frames (one value per run).
-RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
+from pemamoe.methods import (METHOD_REGISTRY, compared_methods, load_plugins, method_colour, method_label,
+                             proposed_method)
+from pemamoe.records import (  # re-export: reading records back into frames (appendix 09d)
+    RECORD_EPISODE_COLUMNS, RUN_COLUMNS, load_runs, run_labels)
 
 
 def method_order(names=None) -> list:
@@ -500,48 +278,6 @@ def method_order(names=None) -> list:
 def is_proposed(name: str) -> bool:
     """Whether `name` is the registry's proposed method (the headline comparisons are against it)."""
     return name in METHOD_REGISTRY and METHOD_REGISTRY[name].proposed
-
-
-def run_labels(config: dict, run: str = "") -> dict:
-    """The labels of one run, from its config.json (a TrainConfig.to_dict())."""
-    from pemamoe.mappo import TrainConfig
-    from pemamoe.phase_controller import MECHANISMS
-
-    ctrl = config.get("controller", {})
-    force = bool(config.get("force_controller", False))
-    try:
-        cfg = TrainConfig.from_dict(config)
-        enabled, label = cfg.controller_enabled, cfg.label()
-    except ValueError:  # a method no loaded plugin registers: describe it from the dict alone
-        enabled, label = force, config["method"]
-    off = [m for m in MECHANISMS if enabled and not ctrl.get(m, True)]
-    on = [m for m in MECHANISMS if enabled and ctrl.get(m, True)]
-    variant = ("+ " + "+".join(on) if on else "+ controller") if force else ("w/o " + "+".join(off) if off else "")
-    return {"run": run, "method": config["method"], "seed": int(config["seed"]),
-            "without": "+".join(off) or "none", "force_controller": force,
-            "noise_gamma": float(ctrl.get("noise_gamma", float("nan"))), "variant": variant, "label": label}
-
-
-# The per-iteration episode means of a record, under the names of the per-episode log
-RECORD_EPISODE_COLUMNS = {"episode_return": "return", "coverage": "coverage", "served_users": "served_users",
-                          "energy_rate_kj": "energy_rate_kj", "collisions_per_episode": "collisions"}
-
-
-def load_runs(records) -> tuple:
-    """(metrics, episode_means) DataFrames of recorded runs (paths of record markers, appendix
-    09d); every row carries RUN_COLUMNS, from the run's own config. metrics: one row per record row
-    (an iteration, or a block of them in a long run). episode_means: the rows in which episodes
-    ended, with the episode columns under the per-episode log's names (return, coverage, ...) and
-    `episodes`, the number that ended there: what the run scores are computed from."""
-    metrics, episodes = [], []
-    for marker in map(Path, records):
-        config, frame = read_record(marker)  # a missing, damaged or foreign record raises, naming it
-        label = run_labels(config, marker.stem)
-        metrics.append(frame.assign(**label))
-        ended = frame[frame.episodes > 0]
-        episodes.append(ended[["iteration", "phase", "episodes", *RECORD_EPISODE_COLUMNS]].rename(
-            columns=RECORD_EPISODE_COLUMNS).assign(**label))
-    return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
 
 
 # %% [markdown]

@@ -16,18 +16,19 @@
 # Notebook 09 says *what* a sweep trains (the run specs of every experiment) and what `run_sweep`
 # promises: every spec not yet done is trained, compatible runs train together as one population,
 # finished runs are never retrained, and the run folders come back in the order of the specs. This
-# appendix is *how* the runs get executed, in the module `pemamoe.execution`:
+# appendix is *how*, in the module `pemamoe.execution`:
 #
+# * `RunSpec`, a run's name and its folder in the cache, and the run cache: which runs are done
+#   (`pending_runs`), how the rest are grouped into populations (`group_specs`), `run_sweep` and
+#   `sweep_records`;
 # * `execute_population`, what one worker runs for one population;
 # * the two backends: a local process pool (`_run_local`) and Ray (`_run_ray`, on a local instance
 #   or on a cluster);
 # * stopping: the signal handling of the sweep, the workers that die with it, the progress bar and
-#   the report of failed runs;
-# * the command line, `python -m pemamoe sweep`.
+#   the report of failed runs; a time budget (`hours`), and where a long sweep stands (`--status`).
 #
-# The module does not import `pemamoe.sweep` at load time (the command line imports it when it
-# runs); `pemamoe.sweep` imports this module and re-exports `SweepInterrupted`,
-# `execute_population` and `sweep_cli`, so `from pemamoe.sweep import sweep_cli` keeps working.
+# `pemamoe.sweep` imports this module and re-exports its public names; this module knows nothing of
+# the experiments. The command line, `python -m pemamoe sweep`, is appendix 09e.
 
 # %%
 #| default_exp execution
@@ -40,6 +41,7 @@ seed = 0
 # %%
 #| export
 import dataclasses
+import math
 import os
 import signal
 import sys
@@ -47,15 +49,221 @@ import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 import multiprocessing as mp
 
+import numpy as np
+
 from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
-from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
-from pemamoe.records import PORTABLE_DIR, drop_portable_state, restore_portable_state, write_portable_state, write_record
+from pemamoe.env import compile_step_kernels
+from pemamoe.mappo import TrainConfig, population_key
+from pemamoe.methods import METHOD_REGISTRY, method_spec
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, record_files,
+                             restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
+
+# %% [markdown]
+# ## A run, and the run cache
+#
+# `RunSpec` is a run as notebook 09 describes it; `run_dir` is its folder in the cache,
+# `<results_dir>/<scale>/<run name>`, the run name ending in the hash of the resolved config.
+
+# %%
+#| export
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
+
+    method: str
+    seed: int = 0
+    scale: str = "small"
+    without: tuple = ()  # phase-controller mechanisms switched off (ablation)
+    noise_gamma: float | None = None  # None: the preset's gamma0
+    overrides: tuple = ()  # further TrainConfig.for_scale overrides, as sorted (key, value) pairs
+    tag: str = field(default="", compare=False)  # which experiment asked for it; not part of the run
+
+    def __post_init__(self):
+        try:
+            method_spec(self.method)  # the registry (plugins included)
+        except ValueError:
+            raise ValueError(f"RunSpec.method must be one of {', '.join(METHOD_REGISTRY)}, got {self.method!r}") from None
+        check_scale(self.scale)
+        if isinstance(self.seed, np.integer):  # e.g. seeds=np.arange(3): plain ints, so JSON can save them
+            object.__setattr__(self, "seed", int(self.seed))
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
+        if isinstance(self.noise_gamma, np.floating):
+            object.__setattr__(self, "noise_gamma", float(self.noise_gamma))
+        object.__setattr__(self, "without", tuple(sorted(self.without)))
+        object.__setattr__(self, "overrides", tuple(sorted(dict(self.overrides).items())))
+
+    def to_config(self) -> TrainConfig:
+        extra = dict(self.overrides)
+        if self.without:
+            extra["without"] = self.without
+        if self.noise_gamma is not None:
+            extra["noise_gamma"] = self.noise_gamma
+        return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
+
+    def run_dir(self, results_dir) -> Path:
+        return Path(results_dir) / self.scale / self.to_config().run_name()
+
+    def label(self) -> str:
+        parts = [self.method, f"seed {self.seed}"]
+        if self.without:
+            parts.append("without " + "+".join(self.without))
+        if self.noise_gamma is not None:
+            parts.append(f"gamma {self.noise_gamma:g}")
+        return ", ".join(parts)
+
+
+# %% [markdown]
+# `run_sweep` drops finished runs first (`pending_runs`: a run is done when its folder's
+# `done.json` verifies, notebook 07b, or its record does, appendix 09d; two specs that resolve to
+# one folder train once), groups the rest into populations (`group_specs`: runs whose configs
+# differ only in the member fields of notebook 07, at most `population` members each), then hands
+# the populations to a backend: `local`, a pool of worker processes, or `ray`, Ray tasks on a local
+# instance or on a cluster. Each worker trains its population with `train_population` (notebook
+# 07), which resumes every member from its checkpoint and reads finished members back. SIGINT or
+# SIGTERM stop the sweep without leaving workers behind and raise `SweepInterrupted`; rerunning the
+# sweep resumes the killed runs. Both backends return the run folders in the order of the specs.
+
+# %%
+#| export
+def group_specs(specs, population: int, workers: int = 1) -> list:
+    """Pending runs as populations: runs whose configs share everything but the member fields
+    (seed, controller settings, force_controller) go together, at most `population` per group,
+    in the order they first appear. A compatible set larger than `population` is split into
+    groups of near-equal size (21 with a cap of 16: 11 + 10, not 16 + 5: a small population costs
+    far more per member, and with no more parts than workers, equal parts finish together). A
+    group larger than the others is also split so that `workers` processes get work when there
+    are fewer groups than workers."""
+    groups = {}
+    for spec in specs:
+        groups.setdefault(population_key(spec.to_config()), []).append(spec)
+    out = []
+    for members in groups.values():
+        size = population
+        if len(groups) < workers:  # fewer populations than workers: spread each one over the workers
+            size = min(size, max(1, -(-len(members) // max(1, workers // len(groups)))))
+        parts = -(-len(members) // size)
+        base, extra = divmod(len(members), parts)
+        bounds = [0]
+        for i in range(parts):
+            bounds.append(bounds[-1] + base + (i < extra))
+        out += [members[a:b] for a, b in zip(bounds, bounds[1:])]
+    return out
+
+
+DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
+
+
+def check_counts(**counts) -> None:
+    """Each keyword must be an integer >= 1 (a bool is not): `name must be an integer >= 1, got X`."""
+    for name, value in counts.items():
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+
+def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) -> tuple:
+    """({run folder: spec}, the specs still to train: whose folder holds no verified finished run
+    and, with records_dir, whose record does not verify either (retrain: records ignored). Two specs
+    can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
+    point): keyed by run folder, such a run is trained once, not twice at once."""
+    by_folder = {}
+    for spec in specs:
+        by_folder.setdefault(spec.run_dir(Path(results_dir)), spec)
+
+    def done(folder, spec):
+        config = spec.to_config()
+        if records_dir is not None and not retrain and verify_record(record_marker(spec, records_dir), config):
+            return True
+        return verify_done(folder, config) is not None
+
+    return by_folder, [spec for folder, spec in by_folder.items() if not done(folder, spec)]
+
+
+def record_marker(spec, records_dir=RECORDS_DIR) -> Path:
+    """Where the record of `spec`'s run lives (its marker; appendix 09d)."""
+    return record_files(records_dir, spec.scale, spec.to_config().run_name())["marker"]
+
+
+def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
+              threads_per_run: int = 1, verbose: bool = True, progress: bool | None = None,
+              population: int = DEFAULT_POPULATION, hours: float | None = None, records_dir=None,
+              retrain: bool = False) -> list:
+    """Run every spec not yet done; return all run folders, in the order of `specs`.
+
+    records_dir: also keep the runs' records there (appendix 09d): a run whose record verifies
+    counts as done and is not trained (unless retrain), each run's record is written as it
+    finishes, and a finished run folder without a record gets one. retrain: ignore the records,
+    train into the cache whatever is not in it, and write every record again (byte-identical
+    when nothing changed).
+
+    hours: train for at most this long: then every running population checkpoints at the end of
+    its current iteration and stops, no queued one starts, and the sweep returns (rerun it to go
+    on; nothing is lost but the iteration in flight). The folders of unfinished runs are returned
+    too: check them with pemamoe.runs.verify_done, or call pending_runs.
+
+    A run counts as done only when its done.json (or record) verifies (a corrupt or foreign one
+    raises). progress: a tqdm bar of runs done out of all (cached ones counted), with an ETA;
+    None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start no
+    queued one and raise SweepInterrupted (rerun to resume)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    check_counts(workers=workers, threads_per_run=threads_per_run, population=population)
+    if hours is not None and not (isinstance(hours, (int, float)) and not isinstance(hours, bool)
+                                  and math.isfinite(hours) and hours > 0):
+        raise ValueError(f"hours must be a number > 0, got {hours!r}")
+    deadline = None if hours is None else time.time() + 3600.0 * hours
+    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
+        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
+    specs = list(specs)
+    results_dir = Path(results_dir)
+    by_folder, todo = pending_runs(specs, results_dir, records_dir, retrain)
+    groups = group_specs(todo, population, workers)
+    if verbose:
+        print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
+              f"as {len(groups)} populations on {backend} ({workers} workers)", flush=True)
+    if todo:
+        start = time.perf_counter()
+        compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
+        runner = _run_local if backend == "local" else _run_ray
+        with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
+            runner(groups, results_dir, workers, address, threads_per_run, report, deadline, records_dir)
+        left = pending_runs(specs, results_dir, records_dir, retrain)[1]
+        if verbose and left:
+            print(f"[sweep] stopped after {hours} h ({time.perf_counter() - start:.0f} s): "
+                  f"{len(todo) - len(left)} of {len(todo)} runs finished, {len(left)} left, checkpointed; "
+                  "rerun the same command to go on", flush=True)
+        elif verbose:
+            print(f"[sweep] finished {len(todo)} runs in {time.perf_counter() - start:.0f} s", flush=True)
+    if records_dir is not None:  # finished folders without a (verified) record, e.g. trained before records
+        for folder, spec in by_folder.items():
+            config = spec.to_config()
+            marker = record_marker(spec, records_dir)
+            if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
+                write_record(folder, spec.scale, records_dir)
+    return [s.run_dir(results_dir) for s in specs]
+
+
+def sweep_records(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
+                  records_dir=RECORDS_DIR, retrain: bool = False, **options) -> list:
+    """The record markers of every spec, in order, training only the runs without a record
+    (`run_sweep` with records_dir; retrain: ignore the records). What the notebooks read."""
+    specs = list(specs)
+    run_sweep(specs, backend, workers, results_dir, address, records_dir=records_dir, retrain=retrain, **options)
+    return [record_marker(spec, records_dir) for spec in specs]
+
+
+def _record_ok(marker, config) -> bool:
+    try:
+        return verify_record(marker, config) is not None
+    except RecordError:  # a damaged record of a run whose folder is here: written again from the folder
+        return False
 
 # %% [markdown]
 # ## One population, in one worker
@@ -336,8 +544,6 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
 # is back afterwards. A failed run is reported with its spec's label once the others have finished:
 
 # %%
-from pemamoe.sweep import RunSpec
-
 if threading.current_thread() is threading.main_thread():  # elsewhere the sweep installs no handler
     _before = signal.getsignal(signal.SIGTERM)
     try:
@@ -428,8 +634,6 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
     iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
     import pandas as pd
 
-    from pemamoe.sweep import DEFAULT_POPULATION, check_counts, group_specs, pending_runs  # the sweep imports this module
-
     population = DEFAULT_POPULATION if population is None else population
     check_counts(population=population, workers=workers)
     results_dir = Path(results_dir)
@@ -478,136 +682,3 @@ from pemamoe.sweep import experiment_specs
 _status = sweep_status(experiment_specs("main", scale), repo_path("results"), workers=2)
 print(status_summary(_status, workers=2))
 _status
-
-# %% [markdown]
-# ## Command line
-#
-# `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
-# experiments of notebook 09; `--address` joins a Ray cluster. It calls the same `run_sweep` as the
-# notebooks, so a sweep started from the shell is reused by the notebooks. Counts and method
-# names are checked while the arguments are parsed, so a typo fails with a usage message before
-# anything trains.
-
-# %%
-#| export
-def sweep_cli(argv=None) -> int:
-    import argparse
-
-    from pemamoe.sweep import DEFAULT_POPULATION, experiment_specs, pending_runs, run_sweep  # the sweep imports this module
-
-    parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
-    parser.add_argument("--scale", default="small")
-    parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
-                        help="one or more seeds (default: the scale's)")
-    parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
-                        help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
-                             f"default: {', '.join(compared_methods())})")
-    parser.add_argument("--backend", default="local", choices=BACKENDS)
-    parser.add_argument("--workers", type=_count(1), default=2)
-    parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
-                        help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
-    parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
-    parser.add_argument("--results-dir", default="results")
-    parser.add_argument("--records-dir", default="records",
-                        help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
-                             "record is written as it finishes (default: records/)")
-    parser.add_argument("--retrain", action="store_true",
-                        help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
-    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                        help="progress bar (default: when stderr is a terminal)")
-    parser.add_argument("--hours", type=_hours, default=None, metavar="H",
-                        help="train for at most H hours, then checkpoint every running population, stop, and "
-                             "print what finished and what is left (rerun to go on)")
-    parser.add_argument("--status", action="store_true",
-                        help="print where the sweep stands (populations, iterations, hours left) and train nothing")
-    args = parser.parse_args(argv)
-    try:
-        check_scale(args.scale)
-    except ValueError as err:
-        parser.error(str(err))
-    if str(args.results_dir).strip() == "":
-        parser.error("--results-dir must be a folder path")
-    if str(args.records_dir).strip() == "":
-        parser.error("--records-dir must be a folder path")
-    methods = tuple(args.methods) if args.methods else compared_methods()
-    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
-    if args.status:
-        import pandas as pd
-
-        table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
-        with pd.option_context("display.width", 120, "display.max_columns", 10):
-            print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
-        print(status_summary(table, args.workers))
-        return 0
-    try:
-        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
-                  population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
-        if args.hours is not None and pending_runs(specs, args.results_dir, args.records_dir)[1]:
-            import pandas as pd
-
-            table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
-            with pd.option_context("display.width", 120, "display.max_columns", 10):
-                print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
-            print(status_summary(table, args.workers))
-            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt.zst"))
-            if moved:
-                print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
-                      f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
-    except SweepInterrupted as stop:
-        print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
-        return 128 + stop.signum
-    return 0
-
-
-def _hours(text: str) -> float:
-    import argparse
-    import math
-
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a number of hours > 0, got {text!r}")
-    return value
-
-
-def _method(text: str) -> str:
-    import argparse
-
-    try:
-        return method_spec(text).name
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _count(low: int):
-    def parse(text: str) -> int:
-        import argparse
-
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
-        return value
-
-    return parse
-
-# %% [markdown]
-# The checks, without training anything:
-
-# %%
-import argparse
-
-for _parse, _text in ((_count(1), "0"), (_count(0), "two"), (_method, "nope")):
-    try:
-        _parse(_text)
-    except argparse.ArgumentTypeError as err:
-        print(f"{_text!r}: {err}")
-try:
-    sweep_cli(["--scale", "huge"])
-except SystemExit as stop:
-    assert stop.code == 2

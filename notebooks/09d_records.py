@@ -378,6 +378,66 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
 
 
 # %% [markdown]
+# ## Reading records back into frames
+#
+# `load_runs` stacks the records of a list of runs into two tidy frames: the per-iteration log (one
+# row per block of iterations in a long run), and the rows in which episodes ended, with each
+# metric's mean over those episodes. Each row carries its run's labels, read from **that run's own
+# config** (the resolved `TrainConfig` the record holds), never from a marker left by whichever
+# experiment asked for the run first: the method, the seed, the phase-controller mechanisms switched
+# off, whether a baseline ran the controller, the noise scale γ, a short `variant` ("", "w/o
+# lr_drop", "+ noise_injection") and the display `label` of `TrainConfig.label()`. The figures of
+# notebook 09 and after read their runs this way; `pemamoe.analysis` re-exports these names.
+
+# %%
+#| export
+# The columns that label each row of load_runs' frames (one value per run).
+RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
+
+
+def run_labels(config: dict, run: str = "") -> dict:
+    """The labels of one run, from its config.json (a TrainConfig.to_dict())."""
+    from pemamoe.mappo import TrainConfig
+    from pemamoe.phase_controller import MECHANISMS
+
+    ctrl = config.get("controller", {})
+    force = bool(config.get("force_controller", False))
+    try:
+        cfg = TrainConfig.from_dict(config)
+        enabled, label = cfg.controller_enabled, cfg.label()
+    except ValueError:  # a method no loaded plugin registers: describe it from the dict alone
+        enabled, label = force, config["method"]
+    off = [m for m in MECHANISMS if enabled and not ctrl.get(m, True)]
+    on = [m for m in MECHANISMS if enabled and ctrl.get(m, True)]
+    variant = ("+ " + "+".join(on) if on else "+ controller") if force else ("w/o " + "+".join(off) if off else "")
+    return {"run": run, "method": config["method"], "seed": int(config["seed"]),
+            "without": "+".join(off) or "none", "force_controller": force,
+            "noise_gamma": float(ctrl.get("noise_gamma", float("nan"))), "variant": variant, "label": label}
+
+
+# The per-iteration episode means of a record, under the names of the per-episode log
+RECORD_EPISODE_COLUMNS = {"episode_return": "return", "coverage": "coverage", "served_users": "served_users",
+                          "energy_rate_kj": "energy_rate_kj", "collisions_per_episode": "collisions"}
+
+
+def load_runs(records) -> tuple:
+    """(metrics, episode_means) DataFrames of recorded runs (paths of record markers, appendix
+    09d); every row carries RUN_COLUMNS, from the run's own config. metrics: one row per record row
+    (an iteration, or a block of them in a long run). episode_means: the rows in which episodes
+    ended, with the episode columns under the per-episode log's names (return, coverage, ...) and
+    `episodes`, the number that ended there: what the run scores are computed from."""
+    metrics, episodes = [], []
+    for marker in map(Path, records):
+        config, frame = read_record(marker)  # a missing, damaged or foreign record raises, naming it
+        label = run_labels(config, marker.stem)
+        metrics.append(frame.assign(**label))
+        ended = frame[frame.episodes > 0]
+        episodes.append(ended[["iteration", "phase", "episodes", *RECORD_EPISODE_COLUMNS]].rename(
+            columns=RECORD_EPISODE_COLUMNS).assign(**label))
+    return pd.concat(metrics, ignore_index=True), pd.concat(episodes, ignore_index=True)
+
+
+# %% [markdown]
 # ## Demonstration: a ci run and its record
 #
 # One short run, trained into a temporary folder; its record; the record read back; and the same

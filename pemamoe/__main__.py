@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     if argv[:1] == ["sweep"]:  # the sweep command owns its own options
         if _option_value(argv[1:], "--backend") == "ray":
             _require_extra("python -m pemamoe sweep --backend ray", RAY_MODULES, "ray", parser)
-        from pemamoe.sweep import sweep_cli
+        from pemamoe.commands import sweep_cli
 
         return sweep_cli(argv[1:])
     args = parser.parse_args(argv)
@@ -46,7 +46,7 @@ def main(argv=None) -> int:
 
         return literate.main(["export" if args.command == "export" else "check"])
     if args.command == "figures":
-        from pemamoe.core import check_scale, make_figures
+        from pemamoe.core import check_scale
 
         try:
             check_scale(args.scale)
@@ -58,6 +58,8 @@ def main(argv=None) -> int:
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
+        from pemamoe.commands import make_figures  # after the checks: it imports the trainer
+
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
                               workers=args.workers, ray_address=args.ray_address, retrain=args.retrain)
         print(f"[figures] provenance written to {readme}")

@@ -3,7 +3,7 @@
 
 __all__ = ['FLOAT_INFO', 'INT_INFO', 'UAV_INFO', 'KernelParams', 'kernel_params', 'step_kernel', 'score_kernel', 'CompiledStep']
 
-# %% notebooks/04b_engine.py, cell 9 (line 268)
+# %% notebooks/04b_engine.py, cell 9 (line 270)
 import math
 from typing import NamedTuple
 
@@ -12,7 +12,6 @@ import numpy as np
 
 from pemamoe.channel import height_correction, interference_weights, reuse_colours
 from pemamoe.energy import propulsion_power_w
-from pemamoe.env import observation_dim, slot_draws, state_dim
 from pemamoe.mobility import hotspot_membership
 from pemamoe.streams import BatchRandom
 
@@ -154,7 +153,7 @@ def kernel_params(cfg) -> KernelParams:
     )
 
 
-# %% notebooks/04b_engine.py, cell 11 (line 424)
+# %% notebooks/04b_engine.py, cell 11 (line 425)
 @numba.njit(cache=True)
 def _reflect(x, area):
     """Mirror x into [0, area]; returns (position, flipped). See mobility.reflect_into_area."""
@@ -240,7 +239,7 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
             user_vel[b, n, d] = -v_new if flipped else v_new
 
 
-# %% notebooks/04b_engine.py, cell 13 (line 516)
+# %% notebooks/04b_engine.py, cell 13 (line 517)
 @numba.njit(cache=True)
 def _required_power(p, rate, band, gain, interference):
     """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
@@ -413,7 +412,7 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
     int_info[2, i] = admitted_n
 
 
-# %% notebooks/04b_engine.py, cell 15 (line 694)
+# %% notebooks/04b_engine.py, cell 15 (line 695)
 @numba.njit(cache=True)
 def _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state):
     """Write environment b's observations and global state into row i (see build_observations)."""
@@ -509,7 +508,7 @@ def score_kernel(p, rows, uav_xy, battery_j, user_xy, demand, rate_frac, serving
         _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state)
 
 
-# %% notebooks/04b_engine.py, cell 17 (line 801)
+# %% notebooks/04b_engine.py, cell 17 (line 802)
 _NOT_NEEDED = np.zeros((1, 1))  # placeholder for the kernel's nakagami argument when m = 1
 
 # The keys of info, in the order the numpy reference's info has them.
@@ -526,10 +525,13 @@ def _info_dict(float_info, int_info, **more) -> dict:
 class CompiledStep:
     """The compiled engine of a UAVBatchCore: the same step, with the same random numbers, as one loop."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, dims: tuple, draws: tuple):
+        # dims: (observation_dim(cfg), state_dim(cfg)); draws: slot_draws(cfg), the normals and
+        # uniforms one slot takes per environment. The core computes both (notebook 04).
         self.cfg = cfg
         self.params = kernel_params(cfg)
-        self.dims = observation_dim(cfg), state_dim(cfg)
+        self.dims = tuple(dims)
+        self.draws = tuple(draws)
 
     def _channel_randoms(self, rng, n):
         """This slot's channel draws, in the reference's order: normals (Rician x, y, shadowing),
@@ -567,7 +569,7 @@ class CompiledStep:
         N, U, G = cfg.n_users, cfg.n_uavs, cfg.mobility.n_hotspots
         NU = N * U
         # All of a slot's draws at once; per stream this is the reference's order exactly.
-        n_normals, n_uniforms = slot_draws(cfg)
+        n_normals, n_uniforms = self.draws
         normals, uniforms = rng.standard_normal((B, n_normals)), rng.random((B, n_uniforms))
         nakagami = self._nakagami(uniforms[:, 2 * G + NU:2 * G + 2 * NU])
         old_phase = core.phase.copy()

@@ -3,9 +3,10 @@
 
 __all__ = ['UAVVectorEnv', 'vector_seeds', 'UAVParallelEnv', 'compile_step_kernels', 'CLASS_COLOURS', 'render_frame', 'random_policy', 'hover_policy', 'kmeans_policy', 'HEURISTICS', 'rollout_heuristic']
 
-# %% notebooks/04b_engine.py, cell 21 (line 920)
+# %% notebooks/04b_engine.py, cell 21 (line 924)
 import numpy as np
 
+from pemamoe.env_model import EnvConfig, UAVBatchCore, observation_dim, state_dim
 from pemamoe.phases import phase_values
 
 
@@ -14,9 +15,6 @@ class UAVVectorEnv:
 
     def __init__(self, num_envs: int = 16, seed: int | None = 0, cfg: "EnvConfig | None" = None, *, seeds=None,
                  **overrides):
-        # imported when an environment is built, not at load: pemamoe.env imports this module
-        from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
-
         if cfg is not None and overrides:
             raise ValueError("pass either cfg or keyword overrides, not both")
         self.cfg = cfg or EnvConfig.from_overrides(**overrides)
@@ -62,7 +60,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04b_engine.py, cell 23 (line 1006)
+# %% notebooks/04b_engine.py, cell 23 (line 1008)
 try:  # PettingZoo (which brings Gymnasium) is optional for everything but this environment
     from pettingzoo import ParallelEnv as _ParallelEnvBase
 
@@ -86,9 +84,6 @@ class UAVParallelEnv(_ParallelEnvBase):
                               "(pip install pettingzoo gymnasium); the trainer and the vector env "
                               "(make_vector_env) do not") from _PETTINGZOO_MISSING
         from gymnasium import spaces
-
-        # imported when an environment is built, not at load: pemamoe.env imports this module
-        from pemamoe.env import EnvConfig, UAVBatchCore, observation_dim, state_dim
 
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -204,7 +199,7 @@ def compile_step_kernels() -> None:
     env.step(np.zeros((2, env.n_agents, 2)))
 
 
-# %% notebooks/04b_engine.py, cell 25 (line 1155)
+# %% notebooks/04b_engine.py, cell 25 (line 1154)
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -241,7 +236,7 @@ def render_frame(core: "UAVBatchCore", b: int = 0, size_px: int = 480) -> np.nda
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04b_engine.py, cell 27 (line 1203)
+# %% notebooks/04b_engine.py, cell 27 (line 1202)
 def random_policy(core: "UAVBatchCore", rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

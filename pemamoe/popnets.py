@@ -11,6 +11,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from pemamoe.routing import RoutingSample  # notebook 05
+
 
 def loop_experts(bank, x):
     """Every expert of an ExpertBank on every row of x (B, in_dim), one expert at a time, as two
@@ -43,7 +45,7 @@ def masked_mixed(bank, x, experts, weights):
     return out
 
 
-# %% notebooks/05b_population_nets.py, cell 9 (line 263)
+# %% notebooks/05b_population_nets.py, cell 9 (line 265)
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -266,8 +268,6 @@ class PopulationActor(_Population):
         generators: one torch.Generator per member (its gate noise, then its action noise),
         noise_std (R,): sigma of `fixed` or `annealed` routing noise (None: the config's noise_std).
         Returns (action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None)."""
-        from pemamoe.nets import RoutingSample  # here: pemamoe.nets imports this module while loading
-
         R, n, _ = obs.shape
         tau_rows = tau.reshape(R, 1).expand(R, n).contiguous()
         noise = None

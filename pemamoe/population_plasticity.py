@@ -208,14 +208,16 @@ def register_plasticity(cls):
 
 
 def plasticity_method(name: str):
-    """The registered plasticity method class called `name` (plug-ins are loaded if needed)."""
-    import pemamoe.controller  # noqa: F401  PE-MAMoE's controller (notebook 06) registers itself on import
+    """The registered plasticity method class called `name` (plug-ins are loaded if needed).
+    Methods register when their module is imported: PE-MAMoE's `PhaseController` with
+    `pemamoe.controller` (notebook 06), ReDo and shrink-and-perturb with
+    `pemamoe.plasticity_baselines` (appendix 06c); the trainer imports both."""
     if name not in PLASTICITY_METHODS:
-        import pemamoe.plasticity_baselines  # noqa: F401  appendix 06c's methods (it imports this module)
-
         load_plugins()
     if name not in PLASTICITY_METHODS:
-        raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r}")
+        raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r} "
+                         "(a method registers when its module is imported: pemamoe.controller, "
+                         "pemamoe.plasticity_baselines, or a plugin)")
     return PLASTICITY_METHODS[name]
 
 
@@ -353,7 +355,7 @@ class NoPlasticity:
         return done
 
 
-# %% notebooks/06b_population_plasticity.py, cell 13 (line 485)
+# %% notebooks/06b_population_plasticity.py, cell 13 (line 487)
 @dataclass(frozen=True)
 class MemberConfig:
     """What a plasticity method reads of a member's config (TrainConfig has the same four)."""

@@ -3,7 +3,7 @@
 
 __all__ = ['BatchRandom']
 
-# %% notebooks/04b_engine.py, cell 5 (line 58)
+# %% notebooks/04b_engine.py, cell 5 (line 60)
 import math
 
 import numpy as np

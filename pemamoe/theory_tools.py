@@ -16,11 +16,12 @@ import torch.nn.functional as F
 from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import BaseSchedule, PhaseControllerConfig, expert_parameters, n_experts_of
+from pemamoe.controller import PhaseController
 from pemamoe.population_plasticity import MemberConfig, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 
-# %% notebooks/08b_theory_tools.py, cell 7 (line 82)
+# %% notebooks/08b_theory_tools.py, cell 7 (line 83)
 @dataclass(frozen=True)
 class TrackingProblemConfig:
     """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
@@ -95,7 +96,7 @@ class TrackingProblem:
         return np.linalg.norm(np.diff(self.W, axis=0).reshape(self.cfg.n_phases - 1, -1), axis=1)
 
 
-# %% notebooks/08b_theory_tools.py, cell 10 (line 180)
+# %% notebooks/08b_theory_tools.py, cell 10 (line 181)
 CONTROLLERS = ("off", "noise")
 
 
@@ -208,7 +209,7 @@ def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, kee
     )
     member = MemberConfig(_controller_config(cfg), base, seed=seed + 7912)  # its noise generator: seed + 7919
     single = make_actor(cfg.kind, d, m, NetConfig(hidden=cfg.hidden, n_experts=cfg.n_experts))
-    ctrl = population_method("phase_controller", [member], [single], eps=1e-8)  # Adam's eps, no weight decay
+    ctrl = population_method(PhaseController.name, [member], [single], eps=1e-8)  # Adam's eps, no weight decay
     actor, opt = ctrl.actor, ctrl.actor_opt
     sparse = actor.gated and actor.k < actor.n_experts
     sizes = [idx.numel() for idx in ctrl.expert_indices()]
@@ -313,7 +314,7 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
     }
 
 
-# %% notebooks/08b_theory_tools.py, cell 14 (line 437)
+# %% notebooks/08b_theory_tools.py, cell 14 (line 438)
 def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
     """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
 
@@ -361,7 +362,7 @@ def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: flo
     return out
 
 
-# %% notebooks/08b_theory_tools.py, cell 17 (line 504)
+# %% notebooks/08b_theory_tools.py, cell 17 (line 505)
 def gaussian_l1(mu1, mu2, std) -> np.ndarray:
     """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
     Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
@@ -410,7 +411,7 @@ def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
     return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
 
 
-# %% notebooks/08b_theory_tools.py, cell 21 (line 585)
+# %% notebooks/08b_theory_tools.py, cell 21 (line 586)
 def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
     """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
     dy (n,) or (n, p); dx (n,) or (n, r)."""
@@ -442,7 +443,7 @@ def lipschitz_envelope(y, U) -> np.ndarray:
     return res.x / scale
 
 
-# %% notebooks/08b_theory_tools.py, cell 24 (line 639)
+# %% notebooks/08b_theory_tools.py, cell 24 (line 640)
 DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
 
 

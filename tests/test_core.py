@@ -147,7 +147,9 @@ def test_runner_streams_progress_without_kernel_warnings_and_is_silent_by_defaul
     core.run_notebook(nb, {"scale": "ci"}, output_dir=tmp_path / "exec")
     quiet = capfd.readouterr()
     assert quiet.out == "" and quiet.err == ""  # no "Kernel is running over TCP without encryption"
-    readme = core.make_figures("ci", tmp_path / "figs", [nb], stream=True)
+    from pemamoe import commands  # make_figures sits above the sweep (appendix 09e)
+
+    readme = commands.make_figures("ci", tmp_path / "figs", [nb], stream=True)
     loud = capfd.readouterr()
     assert "without encryption" not in loud.out + loud.err
     lines = loud.out.splitlines()

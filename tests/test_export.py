@@ -186,8 +186,8 @@ def test_star_imports_bring_the_appendix_names_the_main_modules_reexport():
     exec("from pemamoe.sweep import *", sweep_ns)
     assert mappo_ns["TrainConfig"] is train_config.TrainConfig
     assert {"EpisodeTracker", "resolve_device", "train_population"} <= mappo_ns.keys()
-    assert sweep_ns["sweep_cli"] is execution.sweep_cli
-    assert {"SweepInterrupted", "execute_population", "run_sweep"} <= sweep_ns.keys()
+    assert sweep_ns["run_sweep"] is execution.run_sweep
+    assert {"RunSpec", "SweepInterrupted", "execute_population", "run_sweep", "sweep_records"} <= sweep_ns.keys()
     # private helpers of the marked imports and incidental imports stay out of __all__
     for ns in (mappo_ns, sweep_ns):
         assert not {"_plain", "_progress", "np", "Path", "SCALES", "METHOD_REGISTRY"} & ns.keys()

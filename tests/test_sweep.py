@@ -17,8 +17,9 @@ import torch
 
 from pemamoe.mappo import train
 from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.commands import sweep_cli
 from pemamoe.execution import status_summary, sweep_status
-from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep, sweep_cli
+from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 BASELINES = tuple(n for n, sp in METHOD_REGISTRY.items() if sp.compared and not sp.proposed)  # three runs without the controller

@@ -1,0 +1,258 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 09e · Appendix: the commands `python -m pemamoe sweep` and `python -m pemamoe figures`
+#
+# Two commands sit on top of everything else. The sweep command runs one of the experiments of
+# notebook 09 from the shell; `make figures` trains every run the notebooks read and then executes
+# every notebook. Both need the experiments (`pemamoe.sweep`), so they live here, in the module
+# `pemamoe.commands`, above the sweep and above everything the sweep imports. The hand-written
+# `pemamoe/__main__.py` parses the top-level command and calls them.
+
+# %%
+#| default_exp commands
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seed = 0
+
+# %%
+#| export
+import time
+from pathlib import Path
+
+from pemamoe.core import (REPO_ROOT, check_scale, figure_notebooks, notebook_parameters, repo_path, run_notebook,
+                          write_figures_readme)
+from pemamoe.execution import status_summary, sweep_status
+from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
+from pemamoe.records import PORTABLE_DIR
+from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, experiment_specs, pending_runs,
+                           run_sweep)
+
+# %% [markdown]
+# ## The sweep command
+#
+# `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
+# experiments of notebook 09; `--address` joins a Ray cluster. It calls the same `run_sweep` as the
+# notebooks, so a sweep started from the shell is reused by the notebooks. Counts and method
+# names are checked while the arguments are parsed, so a typo fails with a usage message before
+# anything trains. `--status` prints `sweep_status` (appendix 09c) and trains nothing.
+
+# %%
+#| export
+def sweep_cli(argv=None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
+    parser.add_argument("--scale", default="small")
+    parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
+                        help="one or more seeds (default: the scale's)")
+    parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
+                        help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
+                             f"default: {', '.join(compared_methods())})")
+    parser.add_argument("--backend", default="local", choices=BACKENDS)
+    parser.add_argument("--workers", type=_count(1), default=2)
+    parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
+                        help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
+    parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
+    parser.add_argument("--results-dir", default="results")
+    parser.add_argument("--records-dir", default="records",
+                        help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
+                             "record is written as it finishes (default: records/)")
+    parser.add_argument("--retrain", action="store_true",
+                        help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bar (default: when stderr is a terminal)")
+    parser.add_argument("--hours", type=_hours, default=None, metavar="H",
+                        help="train for at most H hours, then checkpoint every running population, stop, and "
+                             "print what finished and what is left (rerun to go on)")
+    parser.add_argument("--status", action="store_true",
+                        help="print where the sweep stands (populations, iterations, hours left) and train nothing")
+    args = parser.parse_args(argv)
+    try:
+        check_scale(args.scale)
+    except ValueError as err:
+        parser.error(str(err))
+    if str(args.results_dir).strip() == "":
+        parser.error("--results-dir must be a folder path")
+    if str(args.records_dir).strip() == "":
+        parser.error("--records-dir must be a folder path")
+    methods = tuple(args.methods) if args.methods else compared_methods()
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
+    if args.status:
+        import pandas as pd
+
+        table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
+        with pd.option_context("display.width", 120, "display.max_columns", 10):
+            print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+        print(status_summary(table, args.workers))
+        return 0
+    try:
+        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
+                  population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
+        if args.hours is not None and pending_runs(specs, args.results_dir, args.records_dir)[1]:
+            import pandas as pd
+
+            table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
+            with pd.option_context("display.width", 120, "display.max_columns", 10):
+                print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+            print(status_summary(table, args.workers))
+            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt.zst"))
+            if moved:
+                print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
+                      f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
+    except SweepInterrupted as stop:
+        print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
+        return 128 + stop.signum
+    return 0
+
+
+def _hours(text: str) -> float:
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number of hours > 0, got {text!r}")
+    return value
+
+
+def _method(text: str) -> str:
+    import argparse
+
+    try:
+        return method_spec(text).name
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _count(low: int):
+    def parse(text: str) -> int:
+        import argparse
+
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
+        return value
+
+    return parse
+
+# %% [markdown]
+# The checks, without training anything:
+
+# %%
+import argparse
+
+for _parse, _text in ((_count(1), "0"), (_count(0), "two"), (_method, "nope")):
+    try:
+        _parse(_text)
+    except argparse.ArgumentTypeError as err:
+        print(f"{_text!r}: {err}")
+try:
+    sweep_cli(["--scale", "huge"])
+except SystemExit as stop:
+    assert stop.code == 2
+
+# %% [markdown]
+# ## Regenerating every figure
+#
+# `make_figures` runs the notebooks in paper order (`pemamoe.core.figure_notebooks`) with the
+# headless runner of appendix 00b, pointing their `figures_dir` at `paper_figures/`, and then
+# writes the provenance table `paper_figures/README.md` (`write_figures_readme`, appendix 00b).
+# When it runs every notebook it first trains, as one sweep, every run the notebooks read, so that
+# compatible runs of different experiments share populations and no notebook trains for hours
+# under its cell timeout.
+#
+# A full run takes from minutes (`ci`) to hours (`paper`), so it reports as it goes: one line when
+# notebook *i* of *N* starts and one when it ends, with the time spent on it and in total, and in
+# between the notebook's own output, streamed. These are plain lines rather than a progress bar,
+# because the streamed output would tear a bar apart, and plain lines read the same in a log file.
+
+# %%
+#| export
+def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
+                 stream: bool = True, precompute: bool | None = None, **extra) -> Path:
+    """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
+
+    figures_dir: default paper_figures/ (a relative path is under the repository root).
+    stream:      print progress lines and the notebooks' own output (False: silent).
+    precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
+                 09 and 10, the learning-budget study of 09b, the gating comparison of 05c) as one sweep, so that compatible
+                 runs of different experiments share populations, no notebook trains for hours
+                 under its timeout, and the notebooks only read results (None: when all notebooks run).
+    extra:       further parameters (e.g. backend="ray", workers=2, retrain=True), given to the
+                 notebooks that declare them. retrain=True: ignore the committed records (appendix
+                 09d), train every run into the cache and write the records again.
+    """
+    import subprocess
+
+    check_scale(scale)
+    figures_dir = repo_path(figures_dir or "paper_figures")
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
+    records, t0 = {}, time.perf_counter()
+    if precompute if precompute is not None else notebooks is None:
+        say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
+        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
+                  extra.get("backend", "local"), extra.get("workers", 2),
+                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"),
+                  records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
+        say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
+    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
+    for i, nb in enumerate(notebooks, start=1):
+        before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
+        start = time.perf_counter()
+        say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
+        declared = notebook_parameters(nb)
+        params = {"scale": scale, "figures_dir": str(figures_dir), **{k: v for k, v in extra.items() if k in declared}}
+        run_notebook(nb, params, timeout=timeout, stream=stream)
+        now = time.perf_counter()
+        say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
+        for p in figures_dir.iterdir():
+            if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
+                records[p.name] = nb.name
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
+        ).stdout.strip() or "unknown"
+        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
+                               capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except OSError:
+        commit = "unknown"
+    return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
+
+
+# %%
+#| exporti
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+# %% [markdown]
+# The notebooks `make figures` runs, in order, and the parameters each one declares (the ones
+# `make_figures` passes on to it):
+
+# %%
+for _nb in figure_notebooks():
+    print(f"{_nb.name:32s} {', '.join(sorted(notebook_parameters(_nb)))}")
+print(f"_clock(3725) = {_clock(3725)}")
