@@ -32,7 +32,7 @@
 # | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
 # | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py`, `pemamoe/env.py` | reward anatomy table |
 # | (appendix to III-E) the compiled step engine, the random streams, the PettingZoo wrappers | `04b_engine.py` | `pemamoe/env_kernel.py`, `pemamoe/streams.py`, `pemamoe/env_wrappers.py` | |
-# | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py`, `pemamoe/routing.py` | `architecture_*`, `cost_table` |
+# | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/controller.py` | schedule figures |

@@ -13,27 +13,30 @@
 # %% [markdown]
 # # 05b · Appendix: the machinery behind the networks
 #
-# Notebook 05 builds the actors and critics as single networks: what each computes, and why. The
-# experiments need more than that, and nothing in this appendix changes what a network computes:
+# Notebook 05 builds the actors and critics and writes their gate once, with a leading run axis,
+# so that a single network and the trainer's population run the same code. Around that method the
+# experiments need machinery that changes nothing a network computes:
 #
-# * the **method registry** (module `pemamoe.methods`): a method pairs a network kind of notebook 05
+# * the **registries** (module `pemamoe.methods`): a method pairs a network kind of notebook 05
 #   with a plasticity method of notebook 06 and gives them the label and colour every figure uses;
-# * two more **ways to execute the expert bank** besides notebook 05's `stacked` one: `masked`
-#   (genuine conditional computation) and `loop` (the textbook version), and how `"auto"` picks;
-# * the **run axis** (module `pemamoe.popnets`): R independent networks of one kind held as one set of
-#   tensors, which is how the trainer of notebook 07 trains a population of runs in one process;
-# * **latency and the cost table** (module `pemamoe.netcost`): timing an agent step, and the
-#   function that assembles the cost table regenerated at the end of notebook 05.
+#   a network kind names an actor and a critic class, whose parameter groups are checked;
+# * the **expert bank** (`ExpertBank`): the stacked storage of the $E$ trunks and the two ways a
+#   single network can run them besides the batched default: `masked` (genuine conditional
+#   computation) and `loop` (the textbook version), and how `"auto"` picks;
+# * the **run axis** (module `pemamoe.popnets`): the batched building blocks that notebook 05's
+#   `run_gate` calls, and R independent networks of one kind held as one set of tensors, which is
+#   how the trainer of notebook 07 trains a population of runs in one process;
+# * **cost accounting and latency** (module `pemamoe.netcost`): the parameter and
+#   multiply-accumulate counts in the paper's conventions, timing an agent step, the cost table
+#   and the architecture diagram of notebook 05.
 #
-# Read it when you add a method or a network kind (the registry and `run_features`), or when you
+# Read it when you add a method or a network kind (the registries and `run_features`), or when you
 # need to know why training runs at the speed it does.
 #
-# **Imports.** `pemamoe.methods` and `pemamoe.popnets` import nothing from `pemamoe.nets` while
-# loading, so `pemamoe.nets` imports them and re-exports what callers have always taken from it
-# (`from pemamoe.nets import PopulationActor, gaussian_kl` still works). The one thing
-# `pemamoe.popnets` needs from notebook 05, the `RoutingSample` that `PopulationActor.act` returns,
-# is imported inside that method. `pemamoe.netcost` builds actors, so it imports `pemamoe.nets`,
-# and nothing in `pemamoe.nets` imports it.
+# **Imports.** `pemamoe.methods` and `pemamoe.popnets` import nothing from `pemamoe.nets`, so
+# `pemamoe.nets` imports them and re-exports what callers have always taken from it
+# (`from pemamoe.nets import PopulationActor, RoutingSample` still works). `pemamoe.netcost`
+# builds actors, so it imports `pemamoe.nets`, and nothing in `pemamoe.nets` imports it.
 
 # %%
 #| default_exp popnets
@@ -160,13 +163,76 @@ register_method(MethodSpec("smoe_snp", network="smoe", plasticity="shrink_and_pe
 
 
 # %% [markdown]
-# ## Executing the expert bank: stacked, masked, loop
+# ## The network kinds: a registry and its contract
 #
-# Notebook 05 stores the $E$ experts **stacked** (`w1` of shape `(E, obs_dim, hidden)`, `w2` of
-# shape `(E, hidden, hidden)`, plus biases) and runs them the `stacked` way: every expert on every
-# sample with two batched matrix products, then the selected experts' rows are picked. Under top-1
-# routing that wastes $E-1$ of $E$ experts' arithmetic, but it makes only a handful of kernel calls.
-# The same stored weights can be run two other ways, which give the same outputs:
+# A network kind is an actor class and a critic class under one name. `register_network` adds
+# one (notebook 05 registers `mlp`, `moe` and `smoe`; a plugin may add more, see CONTRIBUTING.md);
+# `network_kind` resolves a kind or a method's name. What an actor class writes is listed in
+# notebook 05 ("What a network kind writes"). One part of the contract is checked whenever a
+# network is built: the parameter groups. The optimizer and the phase controller schedule
+# parameters by group name (learning-rate drops, the router freeze), so an actor's
+# `param_groups()` must file every parameter exactly once under one of `ACTOR_PARAM_GROUPS`, a
+# critic's under `CRITIC_PARAM_GROUPS`; `check_param_groups` says which group or parameter breaks
+# it, and which names are allowed.
+
+# %%
+#| export methods
+ACTOR_PARAM_GROUPS = ("router", "experts", "head", "log_std")  # the groups the phase controller schedules
+CRITIC_PARAM_GROUPS = ("critic",)
+NETWORKS: dict = {}  # network kind -> (actor class, critic class)
+
+
+def register_network(kind: str, actor_cls, critic_cls) -> None:
+    """Make a network kind available to make_actor / make_critic (and so to the method registry).
+    The actor subclasses pemamoe.nets.GaussianActor (run_features, trunk_parameters, param_groups
+    over ACTOR_PARAM_GROUPS, cost_parts; see notebook 05); the critic provides forward,
+    run_features and param_groups over CRITIC_PARAM_GROUPS."""
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"network kind must be a non-empty string, got {kind!r}")
+    NETWORKS[kind] = (actor_cls, critic_cls)
+
+
+def network_kind(name: str) -> str:
+    """A network kind, or a method name resolved through the method registry."""
+    if name not in NETWORKS and name not in METHOD_REGISTRY:
+        load_plugins()
+    if name in NETWORKS:
+        return name
+    if name in METHOD_REGISTRY:
+        return METHOD_REGISTRY[name].network
+    raise ValueError(f"network kind must be one of {', '.join(NETWORKS)} (or a method: {', '.join(METHOD_REGISTRY)}), "
+                     f"got {name!r}")
+
+
+def check_param_groups(module, allowed: tuple):
+    """`module` if its param_groups() files every parameter once, under names from `allowed`;
+    else a ValueError naming the class, the offending group or parameter, and the allowed groups."""
+    where = f"{type(module).__name__}.param_groups()"
+    seen = {}
+    for group, params in module.param_groups().items():
+        if group not in allowed:
+            raise ValueError(f"{where} has group {group!r}; the groups are {', '.join(allowed)}")
+        for p in params:
+            if id(p) in seen:
+                raise ValueError(f"{where} files a parameter under both {seen[id(p)]!r} and {group!r}")
+            seen[id(p)] = group
+    missing = [name for name, p in module.named_parameters() if id(p) not in seen]
+    if missing:
+        raise ValueError(f"{where} leaves out {', '.join(missing)}; file each under one of {', '.join(allowed)}")
+    return module
+
+
+# %% [markdown]
+# ## The expert bank: storage, and three ways to run it
+#
+# The $E$ experts are stored **stacked**: `w1` of shape `(E, obs_dim, hidden)`, `w2` of shape
+# `(E, hidden, hidden)`, plus biases. Parameter counts, state dicts, optimiser groups and the phase
+# controller's noise injection read this one storage, whichever way the experts are executed.
+# `run_gate` (notebook 05) runs every expert on every sample with batched matrix products
+# (`run_experts`, below) and picks the selected experts' rows: under top-1 routing that wastes
+# $E-1$ of $E$ experts' arithmetic, but it makes only a handful of kernel calls. A single network
+# (`NetConfig.expert_impl`, or `bank.impl`) can run its sparse gate's experts two other ways, which
+# give the same outputs up to float rounding and the same routing:
 #
 # * `masked`: for each expert, gather only the rows routed to it (`index_select`), run the two
 #   layers on those rows, and add the weighted result back into place (`index_add`). This is the
@@ -175,27 +241,28 @@ register_method(MethodSpec("smoe_snp", network="smoe", plasticity="shrink_and_pe
 # * `loop`: the textbook version, a Python loop that runs each expert as a pair of ordinary linear
 #   layers (`torch.addmm`, what `nn.Linear` does) on the whole batch, then selects.
 #
-# `benchmarks/bench_nets.py` times the three at batch 1 (an agent step), 256 (a typical PPO
-# minibatch) and 2048 (a rollout). On our 2-core CPU, `stacked` wins up to a few hundred rows,
-# where kernel-call overhead dominates the tiny matrices, and `masked` wins from roughly 512 rows
-# on, where doing a third of the arithmetic pays for the indexing (forward and backward of the
-# top-1 actor at 2048 rows, one thread: 4.6 to 6.7 ms masked against 6.0 to 8.8 ms stacked and
-# 7.0 to 10.3 ms loop over our runs at `469129f`). No single strategy is fastest everywhere, so the default
-# `"auto"` takes `masked` for sparse mixing at batches of at least `NetConfig.masked_min_batch`
-# rows and `stacked` otherwise (dense mixing always runs every expert, so it uses `stacked`).
-# `ExpertBank` (notebook 05) calls the two functions below for `masked` and `loop`; each strategy
-# stays selectable with `NetConfig(expert_impl=...)` or by setting `bank.impl`.
+# `benchmarks/bench_nets.py` times the strategies at batch 1 (an agent step), 256 (a typical PPO
+# minibatch) and 2048 (a rollout). On our 2-core CPU the batched products win up to a few hundred
+# rows, where kernel-call overhead dominates the tiny matrices, and `masked` wins from roughly 512
+# rows on, where doing a third of the arithmetic pays for the indexing (forward and backward of the
+# top-1 actor at 2048 rows, one thread: 4.6 to 6.7 ms masked against 6.0 to 8.8 ms batched and
+# 7.0 to 10.3 ms loop over our runs at `469129f`, before the batched path became `run_experts`).
+# So `"auto"` takes `masked` for sparse mixing at batches of at least `NetConfig.masked_min_batch`
+# rows and the batched products otherwise; dense mixing always runs every expert, batched.
+# `selected_mixer` hands `run_gate` the strategy as its `mix_selected`. `all_experts` also returns
+# each layer's pre-activations and activations for every expert, which the diagnostics read.
 
 # %%
 #| export
 import copy
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from pemamoe.routing import RoutingSample  # notebook 05
+EXPERT_IMPLS = ("auto", "stacked", "masked", "loop")
 
 
 def loop_experts(bank, x):
@@ -229,6 +296,97 @@ def masked_mixed(bank, x, experts, weights):
     return out
 
 
+class ExpertBank(nn.Module):
+    """E expert trunks in_dim -> hidden -> hidden (ReLU), stored as stacked weights.
+
+    Parameters: w1 (E, in_dim, hidden), b1 (E, hidden), w2 (E, hidden, hidden), b2 (E, hidden).
+    `impl` ("auto" | "stacked" | "masked" | "loop") only changes how a single network's sparse
+    gate executes its experts (`selected_mixer`); "auto" means "masked" from `masked_min_batch`
+    rows on, else "stacked" (run_gate's batched products over every expert).
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        hidden: int,
+        n_experts: int,
+        impl: str = "auto",
+        gain: float = math.sqrt(2.0),
+        masked_min_batch: int = 512,
+    ):
+        super().__init__()
+        self.in_dim, self.hidden, self.n_experts = in_dim, hidden, n_experts
+        self.masked_min_batch = masked_min_batch
+        self.w1 = nn.Parameter(torch.empty(n_experts, in_dim, hidden))
+        self.b1 = nn.Parameter(torch.zeros(n_experts, hidden))
+        self.w2 = nn.Parameter(torch.empty(n_experts, hidden, hidden))
+        self.b2 = nn.Parameter(torch.zeros(n_experts, hidden))
+        self.impl = impl
+        with torch.no_grad():
+            for e in range(n_experts):  # same init as an nn.Linear(out, in) weight, transposed
+                self.w1[e].copy_(nn.init.orthogonal_(torch.empty(hidden, in_dim), gain).T)
+                self.w2[e].copy_(nn.init.orthogonal_(torch.empty(hidden, hidden), gain).T)
+
+    @property
+    def impl(self) -> str:
+        return self._impl
+
+    @impl.setter
+    def impl(self, value: str):
+        if value not in EXPERT_IMPLS:
+            raise ValueError(f"ExpertBank.impl must be one of {', '.join(EXPERT_IMPLS)}, got {value!r}")
+        self._impl = value
+
+    def params_per_expert(self) -> int:
+        return sum(p.numel() for p in self.parameters()) // self.n_experts
+
+    def macs_per_expert(self) -> int:
+        return self.w1.shape[1] * self.w1.shape[2] + self.w2.shape[1] * self.w2.shape[2]
+
+    def all_experts(self, x: torch.Tensor, impl: str | None = None, return_layers: bool = False):
+        """Every expert on every row of x (B, in_dim) -> (E, B, hidden).
+
+        With return_layers=True returns (out, [pre1, pre2], [act1, act2]), each (E, B, hidden).
+        """
+        impl = impl or self.impl
+        if impl in ("auto", "stacked"):
+            xe = x.unsqueeze(0).expand(self.n_experts, *x.shape)
+            p1 = torch.baddbmm(self.b1.unsqueeze(1), xe, self.w1)
+            a1 = F.relu(p1)
+            p2 = torch.baddbmm(self.b2.unsqueeze(1), a1, self.w2)
+            a2 = F.relu(p2)
+        else:  # "loop" (and "masked", which degenerates to a loop when every expert sees every row)
+            p1, a1, p2, a2 = loop_experts(self, x)
+        if return_layers:
+            return a2, [p1, p2], [a1, a2]
+        return a2
+
+    def selected_mixer(self, x: torch.Tensor):
+        """How a single network mixes the selected experts of rows x (B, in_dim) under `impl`, as
+        run_gate's `mix_selected`: None (every expert, batched) for "stacked" and for "auto" below
+        masked_min_batch rows, else fn(experts (1, B, k), weights (1, B, k)) -> (1, B, hidden)."""
+        impl = self.impl
+        if impl == "auto":
+            impl = "masked" if x.shape[0] >= self.masked_min_batch else "stacked"
+        if impl == "stacked":
+            return None
+        return lambda experts, weights: self.mixed(x, experts[0], weights[0], impl).unsqueeze(0)
+
+    def mixed(self, x: torch.Tensor, experts: torch.Tensor, weights: torch.Tensor, impl: str | None = None):
+        """sum_j weights[:, j] * expert_{experts[:, j]}(x) -> (B, hidden).
+
+        x (B, in_dim); experts (B, k) long; weights (B, k).
+        """
+        impl = impl or self.impl
+        if impl == "auto":
+            impl = "masked" if x.shape[0] >= self.masked_min_batch else "stacked"
+        if impl == "masked":  # each expert on its own rows only
+            return masked_mixed(self, x, experts, weights)
+        h = self.all_experts(x, impl).transpose(0, 1)  # (B, E, hidden)
+        picked = h.gather(1, experts.unsqueeze(-1).expand(-1, -1, self.hidden))  # (B, k, hidden)
+        return (picked * weights.unsqueeze(-1)).sum(1)
+
+
 # %% [markdown]
 # ## A population of networks: the run axis
 #
@@ -242,9 +400,9 @@ def masked_mixed(bank, x, experts, weights):
 #   `(R, *shape)` views, so gradients, the optimizer, gradient clipping and noise injection are
 #   a handful of tensor operations for all members together.
 # * Each network kind computes its features for all members with batched matrix products: its
-#   `run_features` method (notebook 05, one per actor and critic class) is built from `run_linear`,
-#   `run_experts` and `run_gate` below; member r only ever reads row r of the parameters and its
-#   own rows of the input.
+#   `run_features` method (notebook 05, one per actor and critic class) is built from `run_linear`
+#   and `run_experts` below and notebook 05's `run_gate`; member r only ever reads row r of the
+#   parameters and its own rows of the input. A single network runs the same code at R = 1.
 # * Members are built as single-run modules (same constructor, same seed, so the same
 #   initialisation as a run trained alone) and stacked; `member(r)` copies row r back into a
 #   single-run module for diagnostics, evaluation and checkpoints. A checkpoint of a member is
@@ -260,10 +418,58 @@ def masked_mixed(bank, x, experts, weights):
 # then its action noise), `evaluate` (the PPO update's pass with the stored routing replayed, as
 # notebook 05's `GaussianActor.evaluate` does for one network) and the critic's call. The Gaussian
 # helpers at the end compute log-densities, entropies and KL divergences per member from the means
-# and log-standard-deviations.
+# and log-standard-deviations. `RoutingSample` is what a gated pass stores to be replayed (its
+# noise, its chosen experts, its temperature), with the indexing a rollout buffer needs, and
+# `routing_noise_std` the per-iteration sigma of `fixed` and `annealed` routing noise that the
+# trainer hands `act`.
 
 # %%
 #| export
+class RoutingSample(NamedTuple):
+    """The random choices of one gated forward pass, stored in the rollout buffer.
+
+    noise (..., E): the gate noise drawn, per unit of the gate's noise_scale: standard normal for
+        `learned` noise, already times sigma for `fixed` and `annealed`, zeros when noiseless;
+    experts (..., k): the selected expert indices (all E, in order, for the dense MoE);
+    temperature (...,): the router temperature in force.
+    Passing it back as `routing=` replays the pass exactly.
+    """
+
+    noise: torch.Tensor
+    experts: torch.Tensor
+    temperature: torch.Tensor
+
+    def select(self, index) -> "RoutingSample":
+        """Rows `index` of every field (a minibatch), e.g. routing.select(mb_idx)."""
+        return RoutingSample(self.noise[index], self.experts[index], self.temperature[index])
+
+    def reshape(self, *lead) -> "RoutingSample":
+        """Give the leading axes the shape `lead` (e.g. flatten (T, N) to (T*N,))."""
+        return RoutingSample(
+            self.noise.reshape(*lead, self.noise.shape[-1]),
+            self.experts.reshape(*lead, self.experts.shape[-1]),
+            self.temperature.reshape(*lead),
+        )
+
+    def to(self, device) -> "RoutingSample":
+        return RoutingSample(*(t.to(device) for t in self))
+
+    @staticmethod
+    def cat(samples, dim: int = 0) -> "RoutingSample":
+        return RoutingSample(*(torch.cat([getattr(s, f) for s in samples], dim) for f in RoutingSample._fields))
+
+
+def routing_noise_std(cfg, iteration: int, iterations: int) -> float:
+    """Sigma of the routing noise of NetConfig cfg at `iteration` of a run of `iterations`: cfg.noise_std for
+    `fixed`, falling linearly to 0 over the first noise_anneal_portion of the run for `annealed`,
+    0 for `off` (and for `learned`, whose scale the network computes)."""
+    if cfg.routing_noise == "fixed":
+        return float(cfg.noise_std)
+    if cfg.routing_noise == "annealed":
+        return float(cfg.noise_std * max(0.0, 1.0 - iteration / (cfg.noise_anneal_portion * iterations)))
+    return 0.0
+
+
 class ParamLayout:
     """Where each parameter of one member lives in a flat vector of length P.
 
@@ -375,58 +581,21 @@ def run_experts(x, w1, b1, w2, b2):
 
 
 def run_load_balance(probs, experts, n_experts):
-    """Switch balance loss per member: probs (R, n, E), experts (R, n, k) -> (R,)."""
+    """Switch balance loss E * sum_i f_i P_i per member: probs (R, n, E), experts (R, n, k) -> (R,);
+    f_i the share of the n*k routing slots on expert i (no gradient), P_i the mean of probs[..., i]."""
     onehot = F.one_hot(experts.reshape(experts.shape[0], -1), n_experts).to(probs.dtype)
     counts = onehot.sum(1)
     f = counts / counts.sum(-1, keepdim=True)
     return n_experts * (f * probs.mean(1)).sum(-1)
 
 
-def topk_weights(kept, top1_weight: str):
-    """Mixing weights of the k selected experts from their router probabilities kept (..., k):
-    renormalised over the k (the paper's equation). At k = 1 that is exactly 1 and `top1_weight`
-    says what trains the router through it (notebook 05): "straight_through" keeps the value 1
-    with the gradient of the kept probability, "switch" uses the probability itself as the weight
-    (Switch Transformers), "paper" keeps 1 with no gradient (the balance loss alone trains the
-    router)."""
-    weights = kept / kept.sum(-1, keepdim=True)
-    if kept.shape[-1] != 1:
-        return weights
-    if top1_weight == "straight_through":
-        return weights.detach() + (kept - kept.detach())
-    if top1_weight == "switch":
-        return kept
-    return weights.detach()
-
-
 def run_noise_scale(p, prefix, x, gate):
-    """Multiplier of the stored noise draws (R, n, E), the batched GatedExperts.noise_scale."""
+    """Multiplier of the stored noise draws (R, n, E): softplus of the noise gate for `learned`
+    noise; 1 for `fixed` and `annealed`, whose draws are stored already scaled by their sigma;
+    0 when noiseless."""
     if gate.noise == "learned":
         return F.softplus(run_linear(x, p[prefix + "noise_gate.weight"], p[prefix + "noise_gate.bias"]))
     return x.new_full((*x.shape[:2], gate.n_experts), 1.0 if gate.noisy else 0.0)
-
-
-def run_gate(p, prefix, x, tau, noise, experts, gate):
-    """Gated trunk of every member (the batched GatedExperts): x (R, n, in), tau (R, n),
-    noise (R, n, E) or None (noiseless), experts (R, n, k) to replay or None ->
-    (features (R, n, hidden), (probs (R, n, E), experts (R, n, k) or None, weights))."""
-    sparse, k = gate.sparse, gate.k
-    logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
-    if gate.noisy and noise is not None:
-        logits = logits + noise * run_noise_scale(p, prefix, x, gate)
-    probs = torch.softmax(logits, dim=-1)
-    h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
-                    p[prefix + "experts.b2"])  # (R, E, n, hidden)
-    if not sparse:
-        features = torch.einsum("rne,renh->rnh", probs, h)
-        return features, (probs, None, probs)
-    if experts is None:
-        experts = probs.topk(k, dim=-1).indices
-    weights = topk_weights(probs.gather(2, experts), gate.top1_weight)
-    R, E, n, hid = h.shape
-    picked = h.permute(0, 2, 1, 3).gather(2, experts.unsqueeze(-1).expand(R, n, k, hid))  # (R, n, k, hidden)
-    features = (picked * weights.unsqueeze(-1)).sum(2)
-    return features, (probs, experts, weights)
 
 
 class _Population:
@@ -598,15 +767,17 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
 
 
 # %% [markdown]
-# ## Latency and the cost table
+# ## Cost accounting, latency and the cost table
 #
-# `time_forward` measures an agent step (`act`, sampling, no gradient) and reports the median
-# over repeats in microseconds; `time_train_step` measures a forward and backward pass of a
-# surrogate loss. `cost_table` assembles, for each method and each named observation dimension,
-# the counts of notebook 05 (`count_parameters`, `active_parameters` in its three conventions,
-# `macs_per_step`) and the measured latency at batch 1 and batch 2048. The counting functions stay
-# in notebook 05 beside the conventions they implement; the timing is machinery, so it lives here,
-# in module `pemamoe.netcost`, which imports `pemamoe.nets`.
+# The counting functions implement the conventions notebook 05 explains, from each kind's
+# `cost_parts()` (its parts' parameters and multiply-accumulates, built with `nets.linear_cost`):
+# `count_parameters` (trainable parameters), `active_parameters(actor, mode)` (what takes part in
+# one agent step: `paper`, `sampling` or `eval`) and `macs_per_step(actor, mode)`. `time_forward`
+# measures an agent step (`act`, sampling, no gradient) and reports the median over repeats in
+# microseconds; `time_train_step` a forward and backward pass of a surrogate loss. `cost_table`
+# assembles, for each method and each named observation dimension, the counts and the measured
+# latency at batch 1 and batch 2048. `draw_actor_architecture` draws notebook 05's diagram of an
+# actor from its modules. All of it lives in module `pemamoe.netcost`, which imports `pemamoe.nets`.
 
 # %%
 #| export netcost
@@ -616,8 +787,46 @@ import time
 import torch
 
 from pemamoe.methods import METHOD_REGISTRY
-from pemamoe.nets import (PAPER_NET, GaussianActor, NetConfig, active_parameters, count_parameters, macs_per_step,
-                          make_actor)
+from pemamoe.nets import PAPER_NET, GaussianActor, NetConfig, make_actor
+
+ACTIVE_MODES = ("paper", "sampling", "eval")
+MAC_MODES = ("sampling", "eval")
+
+
+def count_parameters(module: torch.nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def _executed(actor: GaussianActor, mode: str) -> dict:
+    # How many copies of each part run in one agent step under `mode`.
+    sparse = getattr(actor, "sparse", None)
+    if sparse is None:  # MLP
+        return {"router": 0, "noise_gate": 0, "one_expert": 1, "head": 1, "log_std": 1}
+    gate = actor.gate
+    experts = gate.k if sparse else gate.n_experts
+    learned = gate.noise == "learned"  # only learned noise runs a noise gate
+    noise = 0 if (mode == "eval" or not learned) else 1
+    if mode == "paper":
+        noise = 1 if learned else 0
+    head = 0 if (mode == "paper" and sparse) else 1
+    return {"router": 1, "noise_gate": noise, "one_expert": experts, "head": head, "log_std": head}
+
+
+def active_parameters(actor: GaussianActor, mode: str = "paper") -> int:
+    """Parameters taking part in one agent step; mode in ACTIVE_MODES (see notebook 05)."""
+    if mode not in ACTIVE_MODES:
+        raise ValueError(f"active_parameters mode must be one of {', '.join(ACTIVE_MODES)}, got {mode!r}")
+    parts, used = actor.cost_parts(), _executed(actor, mode)
+    return sum(parts[name][0] * n for name, n in used.items())
+
+
+def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
+    """Multiply-accumulates of the linear layers for one agent step; mode in MAC_MODES."""
+    if mode not in MAC_MODES:
+        raise ValueError(f"macs_per_step mode must be one of {', '.join(MAC_MODES)}, got {mode!r}")
+    parts, used = actor.cost_parts(), _executed(actor, mode)
+    return sum(parts[name][1] * n for name, n in used.items())
 
 
 def _median_us(fn, repeats: int, warmup: int) -> float:
@@ -705,6 +914,70 @@ def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
             row["torch_threads"] = torch.get_num_threads()
             rows.append(row)
     return rows
+
+
+def _box(ax, x, y, w, h, text, color, fontsize=7.5, style="round,pad=0.02"):
+    from matplotlib.patches import FancyBboxPatch  # here: the package does not need matplotlib to load
+
+    ax.add_patch(FancyBboxPatch((x - w / 2, y - h / 2), w, h, boxstyle=style, fc=color, ec="0.25", lw=0.8))
+    ax.text(x, y, text, ha="center", va="center", fontsize=fontsize)
+
+
+def _arrow(ax, x0, y0, x1, y1, dashed=False, color="0.2"):
+    ax.annotate(
+        "", xy=(x1, y1), xytext=(x0, y0),
+        arrowprops=dict(arrowstyle="-|>", lw=0.8, color=color, ls="--" if dashed else "-", shrinkA=1, shrinkB=1),
+    )
+
+
+def draw_actor_architecture(ax, actor, method: str) -> None:
+    """Box diagram of `actor` (the network of `method`) on matplotlib axes `ax`: layer shapes and
+    parameter counts read off the modules (notebook 05's figure `architecture_actors`)."""
+    spec = METHOD_REGISTRY[method]
+    parts = actor.cost_parts()
+    d, h = actor.obs_dim, actor.cfg.hidden
+    ax.set_xlim(0, 11.2), ax.set_ylim(0.2, 10), ax.axis("off")
+    title = f"{spec.label} ({actor.kind} network)"
+    ax.set_title(f"{title}\n{count_parameters(actor):,} params, {active_parameters(actor):,} active (paper conv.)", fontsize=9)
+    _box(ax, 5, 9.4, 3.6, 0.7, f"observation $o$ ({d})", "#eeeeee")
+    head_y, out_y = 2.4, 0.9
+    if actor.kind == "mlp":
+        _box(ax, 5, 6.0, 4.0, 3.2, f"trunk\n{d}→{h}→{h}, ReLU\n{parts['one_expert'][0]:,} params", "#cfe2f3")
+        _arrow(ax, 5, 9.05, 5, 7.6)
+        _arrow(ax, 5, 4.4, 5, head_y + 0.4)
+    else:
+        e = actor.gate.n_experts
+        xs = [2.2 + i * 2.8 for i in range(e)]
+        sparse = actor.gate.sparse
+        for i, x in enumerate(xs):
+            chosen = (not sparse) or i == 1
+            color = "#cfe2f3" if chosen else "#f3f3f3"
+            _box(ax, x, 5.6, 2.4, 1.6, f"expert {i + 1}\n{d}→{h}→{h}\n{parts['one_expert'][0]:,}", color, fontsize=7)
+            _arrow(ax, 5, 9.05, x, 6.4, dashed=not chosen)
+            _arrow(ax, x, 4.8, 5, 4.05, dashed=not chosen)
+        lines = [f"router {d}→{e} ({parts['router'][0]})"]
+        if actor.gate.noise == "learned":
+            lines += [f"noise gate {d}→{e} ({parts['noise_gate'][0]})", "z/τ + ε·softplus(z$_n$)", "softmax, keep top-1"]
+        elif actor.gate.noisy:
+            lines += [f"z/τ + σε ({actor.gate.noise} σ)", "softmax, keep top-1"]
+        elif sparse:
+            lines += ["softmax(z/τ)", "keep top-1"]
+        else:
+            lines += ["softmax(z/τ)", "mix all experts"]
+        _box(ax, 9.5, 8.2, 3.1, 1.7, "\n".join(lines), "#fce5cd", fontsize=6.5)
+        _arrow(ax, 6.8, 9.4, 7.95, 9.0)
+        _box(ax, 5, 3.7, 3.6, 0.7, "Σ$_j$ w$_j$ · features$_j$", "#d9ead3", fontsize=7.5)
+        ax.plot([10.6, 10.6], [7.35, 3.7], color="#b45f06", lw=0.8)
+        _arrow(ax, 10.6, 3.7, 6.8, 3.7, color="#b45f06")
+        ax.text(10.5, 4.9, "gate\nweights", ha="right", va="center", fontsize=6, color="#b45f06")
+        _arrow(ax, 5, 3.35, 5, head_y + 0.4)
+        if spec.plasticity != "none":
+            _box(ax, 9.3, 1.5, 3.1, 1.3, "phase controller\n(0 params): τ, log σ,\nexpert noise, LR, KL", "#ead1dc", fontsize=6)
+            ax.plot([9.3, 9.3], [2.15, 7.35], color="#741b47", lw=0.8, ls="--")
+            _arrow(ax, 7.75, 1.7, 6.85, head_y, dashed=True, color="#741b47")
+    _box(ax, 5, head_y, 3.7, 0.8, f"shared head {h}→2 ({parts['head'][0]})\n+ log σ ({parts['log_std'][0]})", "#d9d2e9", fontsize=7)
+    _arrow(ax, 5, head_y - 0.4, 5, out_y + 0.35)
+    _box(ax, 5, out_y, 3.4, 0.7, "a ~ N(μ, diag σ²)", "#eeeeee")
 
 
 # %% [markdown]

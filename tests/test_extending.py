@@ -78,6 +78,28 @@ def test_shrink_and_perturb_acts_at_the_switch_on_its_own_member(plugin):
     assert not torch.equal(after[0].actor.fc1.weight, after[1].actor.fc1.weight)
 
 
+def test_the_example_kind_logs_the_mean_action_it_takes(plugin):
+    # the example writes run_features only: its features, probe and so the logged mean action
+    # are the layer-normalised network that acts (an inherited MLP probe would skip the norm)
+    import torch
+
+    from pemamoe.diagnostics import plasticity_diagnostics
+    from pemamoe.methods import method_spec
+    from pemamoe.nets import make_actor
+
+    actor = make_actor(method_spec(plugin).network, 12)
+    with torch.no_grad():
+        actor.head.weight.mul_(100)  # a head large enough that the norm visibly moves the mean
+        obs = torch.randn(64, 12)
+        mean = actor(obs, deterministic_gate=True)[0].mean
+        probe = actor.probe(obs)
+    assert torch.equal(probe["mean"], mean)
+    torch.testing.assert_close(probe["features"].mean(-1), torch.zeros(64), atol=1e-5, rtol=0)
+    logged = plasticity_diagnostics(actor, None, obs)
+    assert logged["action/mean_x"] == pytest.approx(float(mean[:, 0].mean()), abs=1e-7)
+    assert logged["action/mean_y"] == pytest.approx(float(mean[:, 1].mean()), abs=1e-7)
+
+
 def test_no_package_file_names_the_example():
     names = ("ln_mlp", "shrink_perturb", "ShrinkPerturb", "LayerNormMLPActor")
     for folder in ("pemamoe", "notebooks"):

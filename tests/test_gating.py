@@ -1,6 +1,7 @@
 """Top-1 gating choices (notebook 05): the weight of the kept expert, the routing noise, the critic
-beside a gated actor; each at R = 1 equal to its population form; the controller inert without a
-switch; the routing that ran, as the trainer logs it."""
+beside a gated actor. A single network's gate is the population's run_gate read at R = 1 (bit for
+bit), and its whole pass, head and log-density included, equals its one-member population's; the
+controller inert without a switch; the routing that ran, as the trainer logs it."""
 
 import itertools
 
@@ -57,6 +58,25 @@ def test_critic_gating_picks_the_critic():
 
 
 CHOICES = list(itertools.product(TOP1_WEIGHTS, ROUTING_NOISES))
+
+
+@pytest.mark.parametrize("kind", ["smoe", "moe"])
+@pytest.mark.parametrize("top1_weight, noise", CHOICES)
+def test_the_single_gate_is_run_gate_at_r1_bit_for_bit(kind, top1_weight, noise):
+    cfg = NetConfig(top1_weight=top1_weight, routing_noise=noise, noise_std=0.8, critic_gating="gated")
+    torch.manual_seed(0)
+    for net in (make_actor(kind, 20, 2, cfg), make_critic(kind, 20, cfg)):
+        pop = (PopulationActor if hasattr(net, "log_std") else PopulationCritic)([net])
+        obs = torch.randn(48, 20)
+        out = net.gate(obs, 1.3)  # sampling: the single network draws its own noise
+        r = out.routing
+        feat, (probs, experts, weights) = net.run_features(pop.params(), obs.unsqueeze(0), r.temperature.unsqueeze(0),
+                                                           r.noise.unsqueeze(0), r.experts.unsqueeze(0) if net.gate.sparse else None)
+        assert torch.equal(feat[0], out.features) and torch.equal(probs[0], out.probs)
+        assert torch.equal(weights[0], out.weights)
+        assert experts is None if kind == "moe" else torch.equal(experts[0], out.experts)
+        replayed = net.gate(obs, None, r)
+        assert torch.equal(replayed.features, out.features) and torch.equal(replayed.load_balance, out.load_balance)
 
 
 @pytest.mark.parametrize("top1_weight, noise", CHOICES)

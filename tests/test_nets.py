@@ -8,23 +8,26 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pemamoe.nets import (
+    ACTOR_PARAM_GROUPS,
+    NETWORKS,
     PAPER_NET,
     PAPER_ACTIVE_PARAMS,
     PAPER_ACTOR_PARAMS,
     PAPER_OBS_DIM,
     ExpertBank,
+    MLPActor,
+    MLPCritic,
     NetConfig,
     RoutingSample,
-    active_parameters,
-    count_parameters,
+    linear_cost,
     load_balance_loss,
-    macs_per_step,
     make_actor,
     make_critic,
+    register_network,
 )
 
 from pemamoe.methods import METHOD_REGISTRY, compared_methods
-from pemamoe.netcost import cost_table
+from pemamoe.netcost import active_parameters, cost_table, count_parameters, macs_per_step
 
 # every method compared by default (make_actor resolves its network); the others reuse these networks
 ACTOR_KINDS = compared_methods()
@@ -326,6 +329,66 @@ def test_param_groups_cover_every_parameter_once(kind):
     assert set(cgroups) == {"critic"}
     assert {id(p) for p in cgroups["critic"]} == {id(p) for p in critic.parameters()}
     assert len(cgroups["critic"]) == len(list(critic.parameters()))
+
+
+@pytest.mark.parametrize("kind", ACTOR_KINDS)
+def test_probe_reads_the_network_that_acts(kind):
+    # probe derives from features: its features and mean are the deterministic forward's, bit for bit
+    actor = make_actor(kind, 14, 2, PAPER_NET)
+    obs = torch.randn(40, 14)
+    probe = actor.probe(obs)
+    with torch.no_grad():
+        dist, _ = actor(obs, deterministic_gate=True)
+        feat, gate = actor.features(obs, None, None, deterministic_gate=True, with_aux=False)
+    assert torch.equal(probe["mean"], dist.mean) and torch.equal(probe["features"], feat)
+    if gate is not None:
+        assert torch.equal(probe["router_probs"], gate.probs) and torch.equal(probe["selected"], gate.experts)
+    assert probe["act"][-1].shape[1:] == (40, 32)
+
+
+def test_a_new_kind_gets_its_probe_from_its_own_features():
+    class Doubled(MLPActor):  # only run_features changes: features, forward and probe follow it
+        def run_features(self, p, x, tau=None, noise=None, experts=None):
+            h, _ = super().run_features(p, x)
+            return 2 * h, None
+
+    register_network("doubled_test", Doubled, MLPCritic)
+    try:
+        actor, obs = make_actor("doubled_test", 9), torch.randn(16, 9)
+        plain = make_actor("mlp", 9)
+        plain.load_state_dict(actor.state_dict())
+        with torch.no_grad():
+            torch.testing.assert_close(actor(obs, deterministic_gate=True)[0].mean, plain.head(2 * plain.probe(obs)["features"]))
+            assert torch.equal(actor.probe(obs)["mean"], actor(obs, deterministic_gate=True)[0].mean)
+    finally:
+        NETWORKS.pop("doubled_test")
+
+
+def test_param_groups_outside_the_declared_names_are_refused_by_name():
+    class Renamed(MLPActor):
+        def param_groups(self):
+            groups = super().param_groups()
+            return {"trunk" if g == "experts" else g: ps for g, ps in groups.items()}
+
+    class Forgetful(MLPActor):
+        def param_groups(self):
+            return {**super().param_groups(), "head": []}
+
+    for cls, message in ((Renamed, r"group 'trunk'; the groups are router, experts, head, log_std"),
+                         (Forgetful, r"leaves out head\.weight, head\.bias")):
+        register_network("bad_groups_test", cls, MLPCritic)
+        try:
+            with pytest.raises(ValueError, match=message):
+                make_actor("bad_groups_test", 5)
+        finally:
+            NETWORKS.pop("bad_groups_test")
+    assert ACTOR_PARAM_GROUPS == ("router", "experts", "head", "log_std")
+
+
+def test_linear_cost_by_hand():
+    a, b = torch.nn.Linear(7, 5), torch.nn.Linear(5, 3)
+    assert linear_cost(a) == (7 * 5 + 5, 7 * 5)
+    assert linear_cost(a, None, b) == (40 + 18, 35 + 15) and linear_cost(None) == (0, 0)
 
 
 # ---------------------------------------------------------------- validation
