@@ -407,16 +407,14 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 # Stable-Baselines3. CleanRL checks the same quantity only at epoch ends; checking every minibatch
 # keeps the policy inside the trust region at a finer grain.
 #
-# **Parameter groups.** The optimiser has five named groups, `router`, `experts`, `head`,
-# `log_std` (actor) and `critic`, built by `build_param_groups`. The phase controller sets each
-# group's learning rate every iteration (the LR drop and warm-up after a switch, learning rate 0 for
-# the router while it is frozen), clears Adam's moments at a switch, and perturbs the expert
-# group's weights; the trainer never touches a learning rate itself (except for the optional
-# `anneal_lr` factor). **Where the controller enters an iteration:** `on_switch(t)` before the
-# rollout at a switch, `begin_iteration(t)` for the iteration's settings, `kl_penalty` inside every
-# minibatch loss, and `after_epoch(selected experts)` after each update epoch. A plasticity method
-# may also keep rows of each rollout for its next switch (`observe_rollout`, appendix 06b) and add
-# columns of its own to the log row (`metrics`); nothing else.
+# **Parameter groups.** `RunAdamW` (appendix 06b) knows five named groups, `router`, `experts`,
+# `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller sets each group's
+# learning rate every iteration (the LR drop and warm-up after a switch, a frozen router), clears
+# Adam's moments at a switch and perturbs the experts; the trainer never sets a learning rate
+# itself (but for the optional `anneal_lr` factor). **Where the controller enters:** `on_switch(t)`
+# before the rollout at a switch, `begin_iteration(t)` for the settings, `extra_loss(batch)` in
+# every minibatch loss, `after_epoch(expert_counts, stepped)` after each epoch. A method may also
+# keep rollout rows for its next switch (`observe_rollout`) and log columns (`metrics`).
 
 # %%
 #| export

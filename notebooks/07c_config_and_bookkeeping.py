@@ -105,12 +105,12 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 # * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
 # * **small**: the budget of `make figures`: 39 runs (four methods × three seeds, the ablations
 #   and the noise sweep); the sweep took 18 min 34 s on two cores with two worker processes
-#   (measured at `dc5e4d6`, README).
+#   (measured at `dc5e4d6`, `benchmarks/HISTORY.md`).
 #   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts
 #   60 iterations (540 iterations, 276k environment steps in all) and the update runs 4 epochs of
 #   4 minibatches. What a run costs is measured by `make bench` (`benchmarks/bench_train.py`),
 #   which prints the throughput of populations of 1, 4 and 16 runs and the projected sweep times;
-#   the README quotes its latest figures with the commit that measured them.
+#   `benchmarks/RESULTS.md` holds the latest figures with the commit that measured them.
 # * **medium**: the scale at which learning is visible. It keeps the small update settings and
 #   gives each phase `MEDIUM_PHASE_ITERS` iterations, three phases twice over (six phases). Both
 #   numbers come from the learning-budget study of notebook 09b, which trains every method in each
@@ -121,7 +121,7 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 #   off no higher (`paper_figures/learning_budget_compute.md` and `learning_budget.md`, study runs
 #   at `d02f78f`), and a phase is counted in environment steps. Two cycles instead of the paper's
 #   three, because a third would add half again to a sweep that already runs several times over
-#   its two-hour budget (README); two cycles still show every switch the paper is about: each phase
+#   its two-hour budget (`benchmarks/HISTORY.md`); two cycles still show every switch the paper is about: each phase
 #   is entered cold, left, and entered again.
 # * **ci**: a handful of iterations crossing two phase switches, seconds per run.
 #

@@ -73,7 +73,7 @@
 # the update; the environment stays on the CPU. A CUDA run is not bit-identical to a CPU run, so
 # the resolved device is part of the run's identity (its hash).
 #
-# **What it buys, and where it stops.** `make bench` measures it (figures in the README; the rates
+# **What it buys, and where it stops.** `make bench` measures it (figures in `benchmarks/RESULTS.md`; the rates
 # with the training code of `8ca3ef6`, the profile with the benchmark of `be55e3e`): on one
 # core, a 16-member PE-MAMoE population at the paper preset trains 3,039 member environment steps
 # per second, 3.7x a lone run. The same benchmark profiles a 16-member iteration: the matrix
