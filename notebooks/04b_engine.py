@@ -1022,7 +1022,8 @@ _STEP_ONLY_INFO = {"action_clipped": (True, False), "move_infeasible": (True, Fa
 
 
 class UAVParallelEnv(_ParallelEnvBase):
-    metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+    metadata = {"name": "pemamoe_uav_ecn_v0", "render_modes": ["rgb_array", "human"], "is_parallelizable": True,
+                "render_fps": 4}
 
     def __init__(self, cfg: "EnvConfig | None" = None, render_mode: str | None = None):
         if _PETTINGZOO_MISSING is not None:
@@ -1031,8 +1032,8 @@ class UAVParallelEnv(_ParallelEnvBase):
                               "(make_vector_env) do not") from _PETTINGZOO_MISSING
         from gymnasium import spaces
 
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {render_mode!r}")
         self.cfg = cfg or EnvConfig()
         self.render_mode = render_mode
         self.possible_agents = [f"uav_{u}" for u in range(self.cfg.n_uavs)]
@@ -1060,6 +1061,9 @@ class UAVParallelEnv(_ParallelEnvBase):
             raise RuntimeError(f"{method}() called before reset(): call reset() first")
 
     def reset(self, seed=None, options=None):
+        if seed is not None and (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
+                                 or not 0 <= int(seed) < 2 ** 63):
+            raise ValueError(f"reset(seed=...) must be None or an int in [0, 2**63), got {seed!r}")
         if seed is not None or not self._seeded:
             self.core.rng.reseed(0, seed)
             self._seeded = True
@@ -1089,8 +1093,8 @@ class UAVParallelEnv(_ParallelEnvBase):
             stacked = None
         if stacked is None or stacked.shape != (len(self.possible_agents), 2):
             for a in self.possible_agents:
-                if np.size(actions[a]) != 2:
-                    raise ValueError(f"action of {a} must have 2 entries, got shape {np.shape(actions[a])}")
+                if np.shape(actions[a]) != (2,):  # a (1, 2) or (2, 1) array is refused, not reshaped
+                    raise ValueError(f"action of {a} must have shape (2,), got shape {np.shape(actions[a])}")
             stacked = np.stack([np.asarray(actions[a], dtype=float).reshape(2) for a in self.possible_agents])
         obs, state, reward, terminated, truncated, info = self.core.step(stacked[None])
         self._state = state[0]
@@ -1112,13 +1116,32 @@ class UAVParallelEnv(_ParallelEnvBase):
         return self._state
 
     def render(self):
+        """rgb_array: the frame (H, W, 3) uint8; human: the frame shown in a matplotlib window
+        (nothing visible under a non-interactive backend, as in a headless test), returns None."""
         if self.render_mode is None:
             return None
         self._need_reset("render")
-        return render_frame(self.core, 0)
+        frame = render_frame(self.core, 0)
+        if self.render_mode == "rgb_array":
+            return frame
+        import matplotlib.pyplot as plt
+
+        if getattr(self, "_window", None) is None or not plt.fignum_exists(self._window[0].number):
+            fig, ax = plt.subplots()
+            ax.axis("off")
+            self._window = (fig, ax.imshow(frame))
+        else:
+            self._window[1].set_data(frame)
+        plt.pause(1 / self.metadata["render_fps"])
+        return None
 
     def close(self):
-        pass
+        window = getattr(self, "_window", None)
+        if window is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(window[0])
+            self._window = None
 
 
 def _agent_infos(info: dict, b: int, agents: list) -> dict:

@@ -32,7 +32,7 @@ seed = 0
 import time
 from pathlib import Path
 
-from pemamoe.core import (REPO_ROOT, check_scale, figure_notebooks, notebook_parameters, repo_path, run_notebook,
+from pemamoe.core import (REPO_ROOT, SCALES, check_scale, figure_notebooks, notebook_parameters, repo_path, run_notebook,
                           write_figures_readme)
 from pemamoe.execution import status_summary, sweep_status
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
@@ -54,20 +54,30 @@ from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, exper
 def sweep_cli(argv=None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m pemamoe sweep")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"])
-    parser.add_argument("--scale", default="small")
+    parser = argparse.ArgumentParser(
+        prog="python -m pemamoe sweep",
+        description="Train the runs of one experiment (notebook 09) that are neither finished in --results-dir nor "
+                    "recorded in --records-dir, compatible runs together as populations, on a local process pool "
+                    "or on Ray. Rerun the same command to resume; --status says where it stands.")
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating"],
+                        help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
+                             "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
+                             "gating readings (05c) (default: main)")
+    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")
     parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
                         help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
                              f"default: {', '.join(compared_methods())})")
-    parser.add_argument("--backend", default="local", choices=BACKENDS)
-    parser.add_argument("--workers", type=_count(1), default=2)
+    parser.add_argument("--backend", default="local", choices=BACKENDS,
+                        help="local: a process pool on this machine; ray: Ray tasks (default: local)")
+    parser.add_argument("--workers", type=_count(1), default=2,
+                        help="populations trained at once, one core each (default: 2)")
     parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
-    parser.add_argument("--results-dir", default="results")
+    parser.add_argument("--results-dir", default="results",
+                        help="the training cache: one run folder per run (default: results/)")
     parser.add_argument("--records-dir", default="records",
                         help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
                              "record is written as it finishes (default: records/)")

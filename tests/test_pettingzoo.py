@@ -87,8 +87,38 @@ def test_rgb_array_on_request():
 
 
 def test_unknown_render_mode_is_rejected():
-    with pytest.raises(ValueError, match="'human'"):
-        E.make_env(render_mode="human")
+    with pytest.raises(ValueError, match=r"None, 'rgb_array' or 'human', got 'ansi'"):
+        E.make_env(render_mode="ansi")
+
+
+def test_pettingzoos_render_test_passes_with_human_and_rgb_array(monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")  # headless: "human" draws into a figure nobody sees
+    from pettingzoo.test import render_test
+
+    render_test(lambda render_mode=None: E.aec_env(render_mode=render_mode))
+    env = E.make_env(render_mode="human")
+    env.reset(seed=0)
+    assert env.render() is None and env.render() is None  # the second frame reuses the window
+    env.close()
+
+
+@pytest.mark.parametrize("seed", [-1, "a", 1.5, True, 2 ** 63])
+def test_reset_names_a_bad_seed(seed):
+    env = E.make_env()
+    with pytest.raises(ValueError, match=r"reset\(seed=\.\.\.\) must be None or an int in \[0, 2\*\*63\), got"):
+        env.reset(seed=seed)
+
+
+@pytest.mark.parametrize("shape", [(1, 2), (2, 1), (3,)])
+def test_an_action_of_another_shape_is_refused_not_reshaped(shape):
+    env = E.make_env()
+    env.reset(seed=0)
+    actions = {a: np.zeros(2, np.float32) for a in env.agents}
+    actions[env.agents[1]] = np.zeros(shape, np.float32)
+    with pytest.raises(ValueError, match=rf"action of {env.agents[1]} must have shape \(2,\), got shape"):
+        env.step(actions)
 
 
 # -- misuse ------------------------------------------------------------------------------------

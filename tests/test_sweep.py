@@ -321,3 +321,15 @@ def test_sweep_cli_hours_prints_what_is_left(tmp_path, capsys):
                       "--hours", "0.0000001", "--no-progress"])
     out = capsys.readouterr().out
     assert code == 0 and "1 left" in out and "0 of 1 runs finished" in out and "hours_left" in out
+
+
+def test_sweep_help_describes_the_command_and_every_option(capsys):
+    """sweep --help says what the command does, and each option what it means and its default."""
+    with pytest.raises(SystemExit) as exit_:
+        sweep_cli(["--help"])
+    assert exit_.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "Train the runs of one experiment" in out
+    for shown in ("{ci,small,medium,paper}", "(default: main)", "(default: small)", "(default: local)",
+                  "(default: 2)", "(default: results/)", "(default: records/)"):
+        assert shown in out, shown
