@@ -36,7 +36,7 @@ from pemamoe.core import (REPO_ROOT, SCALES, check_scale, figure_notebooks, note
                           write_figures_readme)
 from pemamoe.execution import status_summary, sweep_status
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
-from pemamoe.records import PORTABLE_DIR
+from pemamoe.records import portable_state_path
 from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, experiment_specs, pending_runs,
                            run_sweep)
 
@@ -90,11 +90,7 @@ def sweep_cli(argv=None) -> int:
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
-    args = parser.parse_args(argv)
-    try:
-        check_scale(args.scale)
-    except ValueError as err:
-        parser.error(str(err))
+    args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path")
     if str(args.records_dir).strip() == "":
@@ -119,7 +115,8 @@ def sweep_cli(argv=None) -> int:
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
-            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt.zst"))
+            moved = [p for p in (portable_state_path(args.records_dir, spec.scale, spec.to_config().run_name())
+                                 for spec in specs) if p.exists()]  # this sweep's runs, no other's
             if moved:
                 print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
                       f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)

@@ -11,7 +11,7 @@ from pemamoe.core import (REPO_ROOT, SCALES, check_scale, figure_notebooks, note
                           write_figures_readme)
 from pemamoe.execution import status_summary, sweep_status
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
-from pemamoe.records import PORTABLE_DIR
+from pemamoe.records import portable_state_path
 from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, experiment_specs, pending_runs,
                            run_sweep)
 
@@ -56,11 +56,7 @@ def sweep_cli(argv=None) -> int:
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
-    args = parser.parse_args(argv)
-    try:
-        check_scale(args.scale)
-    except ValueError as err:
-        parser.error(str(err))
+    args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path")
     if str(args.records_dir).strip() == "":
@@ -85,7 +81,8 @@ def sweep_cli(argv=None) -> int:
             with pd.option_context("display.width", 120, "display.max_columns", 10):
                 print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
             print(status_summary(table, args.workers))
-            moved = sorted(Path(args.records_dir).glob(f"*/{PORTABLE_DIR}/*.pt.zst"))
+            moved = [p for p in (portable_state_path(args.records_dir, spec.scale, spec.to_config().run_name())
+                                 for spec in specs) if p.exists()]  # this sweep's runs, no other's
             if moved:
                 print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
                       f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
@@ -132,7 +129,7 @@ def _count(low: int):
     return parse
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 199)
+# %% notebooks/09e_commands.py, cell 10 (line 196)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -187,7 +184,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 255)
+# %% notebooks/09e_commands.py, cell 11 (line 252)
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
