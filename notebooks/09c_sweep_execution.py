@@ -59,8 +59,8 @@ from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, record_files,
-                             restore_portable_state, verify_record, write_portable_state, write_record)
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration,
+                             record_files, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -592,7 +592,8 @@ except RuntimeError as err:
 # A `medium` sweep trains for hours, across interruptions. `sweep_status` says where it stands
 # without training anything: it groups the unfinished runs into the populations `run_sweep` would
 # start now (the same `group_specs` call) and reads each member's `metrics.parquet`, which grows at
-# every checkpoint. Per population it reports the iteration every member has reached, the seconds
+# every checkpoint (or, for a run this machine has not restored yet, the iteration of its committed
+# portable state). Per population it reports the iteration every member has reached, the seconds
 # one iteration of the whole population takes and the hours left at that rate. The rate comes from
 # the logged `wall_time` (the run's own clock, which stops between sessions) over the last 500
 # iterations, so it includes the checkpoints, whose cost grows with the logs. A process that was
@@ -643,6 +644,10 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
         config = group[0].to_config()
         total = config.iterations
         progress = [_logged_progress(spec.run_dir(results_dir), config.checkpoint_every) for spec in group]
+        if records_dir is not None:  # a committed portable state not restored here yet counts as reached
+            carried = [portable_state_iteration(records_dir, spec.scale, spec.run_dir(results_dir).name)
+                       for spec in group]
+            progress = [(max(n, c or 0), rate) for (n, rate), c in zip(progress, carried)]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
         seconds = max(rates) if rates else float("nan")

@@ -371,6 +371,22 @@ def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> N
     portable_state_path(records_dir, scale, run_name).unlink(missing_ok=True)
 
 
+def portable_state_iteration(records_dir, scale: str, run_name: str) -> int | None:
+    """The iteration the portable state of `run_name` has reached, or None when there is none
+    (what `sweep --status` reports for a run this machine has not restored yet)."""
+    import io
+
+    import torch
+
+    source = portable_state_path(records_dir, scale, run_name)
+    if not source.exists():
+        return None
+    try:
+        return int(torch.load(io.BytesIO(read_portable_state(source)), weights_only=True)["iteration"])
+    except (RuntimeError, KeyError, TypeError, ValueError) as err:
+        raise RecordError(source, f"holds no readable checkpoint ({type(err).__name__}: {err})") from None
+
+
 def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
     """{scale: megabytes} of the portable states under records_dir."""
     return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.pt.zst")) / 1e6

@@ -23,8 +23,8 @@ from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, record_files,
-                             restore_portable_state, verify_record, write_portable_state, write_record)
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration,
+                             record_files, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 
 BACKENDS = ("local", "ray")
@@ -456,7 +456,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 17 (line 606)
+# %% notebooks/09c_sweep_execution.py, cell 17 (line 607)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
@@ -495,6 +495,10 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
         config = group[0].to_config()
         total = config.iterations
         progress = [_logged_progress(spec.run_dir(results_dir), config.checkpoint_every) for spec in group]
+        if records_dir is not None:  # a committed portable state not restored here yet counts as reached
+            carried = [portable_state_iteration(records_dir, spec.scale, spec.run_dir(results_dir).name)
+                       for spec in group]
+            progress = [(max(n, c or 0), rate) for (n, rate), c in zip(progress, carried)]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
         seconds = max(rates) if rates else float("nan")

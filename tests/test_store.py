@@ -91,3 +91,19 @@ def test_a_finished_run_has_no_portable_state(tmp_path):
     spec = RunSpec("mlp", 0, "ci")
     execute_population([spec], tmp_path / "res")
     assert write_portable_state(spec.run_dir(tmp_path / "res"), "ci", tmp_path / "rec") is None
+
+
+def test_status_on_a_fresh_machine_counts_the_committed_portable_state(tmp_path):
+    from pemamoe.execution import sweep_status
+    from pemamoe.records import portable_state_iteration
+
+    spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
+    train_population([spec.to_config()], [spec.run_dir(tmp_path / "first")], max_iterations=5)
+    records = tmp_path / "records"
+    write_portable_state(spec.run_dir(tmp_path / "first"), "ci", records)
+    assert portable_state_iteration(records, "ci", spec.to_config().run_name()) == 5
+    assert portable_state_iteration(records, "ci", "mlp-s9-000000000000") is None
+    fresh = tmp_path / "fresh"  # nothing restored here yet
+    assert sweep_status([spec], fresh, workers=1).iteration.tolist() == [0]
+    assert sweep_status([spec], fresh, workers=1, records_dir=records).iteration.tolist() == [5]
+    assert not spec.run_dir(fresh).exists()  # status restores nothing
