@@ -9,13 +9,14 @@ BACKEND ?= local
 WORKERS ?= 2
 PYTEST_ARGS ?= -n 2
 RETRAIN ?=
+RESULTS ?= results
 LAB_ARGS ?=
 
 .PHONY: help test figures export check-export lab bench clean lock venv
 
 help:
 	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
-	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them)"
+	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1] [RESULTS=s3://...]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them; RESULTS: the results store)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
 	@echo "make bench                 print the performance figures and write them to benchmarks/RESULTS.md"
@@ -43,7 +44,7 @@ test: $(STAMP)
 # kernels' "Kernel is running over TCP without encryption" warnings are fixed at their cause, not
 # filtered: the runner provisions CurveZMQ keys (transport_encryption="auto"; notebooks/00b_core.py).
 figures: $(STAMP)
-	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS) $(if $(RETRAIN),--retrain,)
+	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS) --results-dir $(RESULTS) $(if $(RETRAIN),--retrain,)
 
 export: $(STAMP)
 	$(PY) -m pemamoe.literate export

@@ -453,15 +453,17 @@ def heuristic_episodes(policy: str, config, phase: int, n_envs: int, episodes: i
 
 def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE_POLICIES)) -> pd.DataFrame:
     """Mean per-episode metric of each heuristic in each phase at `scale`, one row per (policy,
-    phase), columns named as the training curves; cached in <results_dir>/<scale>/reference_levels.csv."""
+    phase), columns named as the training curves; cached in <results_dir>/<scale>/reference_levels.csv
+    (for a results store at a URL, in its local cache: appendix 09f)."""
     from pemamoe.mappo import TrainConfig
+    from pemamoe.store import open_store
 
     config = TrainConfig.for_scale(scale, proposed_method(), 0)
     n_envs, episodes = by_scale(scale, ci=(4, 1), small=(16, 2), paper=(32, 4))
     identity = {"env": dataclasses.asdict(config.env_config()), "n_phases": config.n_phases,
                 "policies": list(policies), "n_envs": n_envs, "episodes": episodes, "version": 1}
     key = hashlib.sha256(json.dumps(identity, sort_keys=True, default=str).encode()).hexdigest()[:16]
-    path = Path(results_dir) / scale / "reference_levels.csv"
+    path = open_store(results_dir).folder / scale / "reference_levels.csv"
     if path.is_file():
         cached = pd.read_csv(path)
         if "key" in cached and (cached["key"] == key).all() and len(cached) == len(policies) * config.n_phases:

@@ -62,6 +62,7 @@ from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration,
                              record_files, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
+from pemamoe.store import checked_out, open_store, pull_run, refresh_finished
 
 BACKENDS = ("local", "ray")
 
@@ -109,7 +110,9 @@ class RunSpec:
         return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
 
     def run_dir(self, results_dir) -> Path:
-        return Path(results_dir) / self.scale / self.to_config().run_name()
+        """The run's folder on this machine: in the results store's folder, or in its local cache
+        when the store is a URL (appendix 09f)."""
+        return open_store(results_dir).run_dir(self.scale, self.to_config().run_name())
 
     def label(self) -> str:
         parts = [self.method, f"seed {self.seed}"]
@@ -172,15 +175,18 @@ def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) ->
     """({run folder: spec}, the specs still to train: whose folder holds no verified finished run
     and, with records_dir, whose record does not verify either (retrain: records ignored). Two specs
     can resolve to one configuration (the main PE-MAMoE run is also the noise sweep's gamma = 0.005
-    point): keyed by run folder, such a run is trained once, not twice at once."""
+    point): keyed by run folder, such a run is trained once, not twice at once. results_dir: a
+    folder or a results store's URL (appendix 09f; its sealed files are read through the cache)."""
+    store = open_store(results_dir)
     by_folder = {}
     for spec in specs:
-        by_folder.setdefault(spec.run_dir(Path(results_dir)), spec)
+        by_folder.setdefault(spec.run_dir(store), spec)
 
     def done(folder, spec):
         config = spec.to_config()
         if records_dir is not None and not retrain and verify_record(record_marker(spec, records_dir), config):
             return True
+        refresh_finished(store, spec.scale, folder.name)
         return verify_done(folder, config) is not None
 
     return by_folder, [spec for folder, spec in by_folder.items() if not done(folder, spec)]
@@ -219,11 +225,9 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
                                   and math.isfinite(hours) and hours > 0):
         raise ValueError(f"hours must be a number > 0, got {hours!r}")
     deadline = None if hours is None else time.time() + 3600.0 * hours
-    if not isinstance(results_dir, (str, os.PathLike)) or str(results_dir).strip() == "":
-        raise ValueError(f"results_dir must be a non-empty folder path, got {results_dir!r}")
+    store = open_store(results_dir)  # checks it: a folder path or a URL fsspec knows
     specs = list(specs)
-    results_dir = Path(results_dir)
-    by_folder, todo = pending_runs(specs, results_dir, records_dir, retrain)
+    by_folder, todo = pending_runs(specs, store, records_dir, retrain)
     groups = group_specs(todo, population, workers)
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
@@ -233,8 +237,11 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            runner(groups, results_dir, workers, address, threads_per_run, report, deadline, records_dir)
-        left = pending_runs(specs, results_dir, records_dir, retrain)[1]
+            if store.remote and records_dir is not None:  # the workers may be elsewhere: records are written here
+                report = _recording(report, store, records_dir)
+            runner(groups, store, workers, address, threads_per_run, report, deadline,
+                   None if store.remote else records_dir)
+        left = pending_runs(specs, store, records_dir, retrain)[1]
         if verbose and left:
             print(f"[sweep] stopped after {hours} h ({time.perf_counter() - start:.0f} s): "
                   f"{len(todo) - len(left)} of {len(todo)} runs finished, {len(left)} left, checkpointed; "
@@ -246,8 +253,28 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
             config = spec.to_config()
             marker = record_marker(spec, records_dir)
             if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
-                write_record(folder, spec.scale, records_dir)
-    return [s.run_dir(results_dir) for s in specs]
+                _write_record_from(store, folder, spec.scale, records_dir)
+    return [s.run_dir(store) for s in specs]
+
+
+def _write_record_from(store, folder, scale: str, records_dir) -> None:
+    """write_record of a finished run folder; from a remote store, after pulling its checkpoint
+    (the record keeps the final actor)."""
+    if store.remote:
+        pull_run(store, scale, folder.name)
+    write_record(folder, scale, records_dir)
+
+
+def _recording(report, store, records_dir):
+    """report(spec), after writing the record of the run that just finished (remote stores)."""
+    def record_then_report(spec):
+        folder = spec.run_dir(store)
+        refresh_finished(store, spec.scale, folder.name)
+        if verify_done(folder, spec.to_config()):
+            _write_record_from(store, folder, spec.scale, records_dir)
+        report(spec)
+
+    return record_then_report
 
 
 def sweep_records(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
@@ -279,6 +306,14 @@ def _record_ok(marker, config) -> bool:
 #   already started torch threads); with one worker, the populations run in the sweep's own process;
 # * `ray`: each population is a Ray task needing one CPU. `ray.init(address=...)` joins a cluster when an
 #   address is given (or `RAY_ADDRESS` is set) and starts a local Ray instance otherwise.
+#
+# Where the run folders live is the **results store** (appendix 09f): a folder (`results/`) or a
+# URL such as `s3://bucket/prefix`. Every backend hands a worker the store's URL, never a path that
+# only the driver's disk has. With a URL, the worker leases each run of its population, pulls it into
+# its own cache, copies the changed files back every `SYNC_SECONDS` while it trains and once more
+# when it stops; the driver learns which runs are done from the store's sealed files, and writes the
+# records itself, as each population ends (the workers may be on nodes whose disks it never sees).
+# A remote store leaves no portable states: the store already outlives the machine.
 
 # %%
 #| export
@@ -301,16 +336,22 @@ def execute_population(specs, results_dir, threads: int = 1, deadline: float | N
     `time.time()` after which nothing starts and a running population checkpoints and stops.
     records_dir: write each finished run's record there (appendix 09d), as the population ends;
     resume a run from its portable state there when this machine's folder is behind, and leave a
-    portable state for each run the deadline stopped."""
+    portable state for each run the deadline stopped. results_dir: a folder, or a results store's
+    URL (appendix 09f): then each run is leased, pulled into this machine's cache, copied back to
+    the store while it trains and when it stops, and the lease released."""
     import torch
-
-    from pemamoe.mappo import train_population
 
     if deadline is not None and time.time() >= deadline:
         return []
     torch.set_num_threads(threads)
     specs = list(specs)
-    dirs = [spec.run_dir(results_dir) for spec in specs]
+    with checked_out(results_dir, [(spec.scale, spec.to_config().run_name()) for spec in specs]) as dirs:
+        return _train_checked_out(specs, dirs, threads, deadline, records_dir)
+
+
+def _train_checked_out(specs, dirs, threads, deadline, records_dir) -> list:
+    from pemamoe.mappo import train_population
+
     if records_dir is not None:
         for spec, run_dir in zip(specs, dirs):
             restore_portable_state(run_dir, spec.scale, records_dir)
@@ -440,7 +481,7 @@ def _run_local(groups, results_dir, workers, address, threads, report, deadline=
     if workers == 1:  # in this process: a signal interrupts the run itself, its lock is released
         for group in groups:
             try:
-                finished = execute_population(group, str(results_dir), threads, deadline, records_dir)
+                finished = execute_population(group, results_dir, threads, deadline, records_dir)
             except Exception as err:  # noqa: BLE001 - reported after the others ran
                 errors.append((group, err))
                 continue
@@ -450,7 +491,7 @@ def _run_local(groups, results_dir, workers, address, threads, report, deadline=
                                initializer=_worker_init, initargs=(os.getpid(),))
     try:
         records = None if records_dir is None else str(records_dir)
-        futures = {pool.submit(execute_population, group, str(results_dir), threads, deadline, records): group
+        futures = {pool.submit(execute_population, group, results_dir, threads, deadline, records): group
                    for group in groups}
         for future in as_completed(futures):
             try:
@@ -519,7 +560,9 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
         with _stop_on_signals():  # again after ray.init, which may install handlers of its own
             task = ray.remote(num_cpus=threads)(execute_population)
             records = None if records_dir is None else str(Path(records_dir).resolve())
-            refs = {task.remote(group, str(Path(results_dir).resolve()), threads, deadline, records): group
+            store = open_store(results_dir)  # a task gets the store's URL, never a path only this node has
+            where = store.uri if store.remote else str(store.folder.resolve())
+            refs = {task.remote(group, where, threads, deadline, records): group
                     for group in groups}
             pending = list(refs)
             while pending:
@@ -585,6 +628,10 @@ except RuntimeError as err:
 # its portable state is resumed from it, and no iteration is trained twice. A campaign that lives
 # longer than its machines is then: `sweep --hours H`, commit `records/`, and the same command on
 # the next machine.
+#
+# With a results store at a URL (`--results-dir s3://...`, appendix 09f) the store itself outlives
+# the machine: the deadline's last push leaves every unfinished run's checkpoint in the bucket, the
+# next sweep, anywhere, pulls it from there, and no portable state is written.
 
 # %% [markdown]
 # ## Where a long sweep stands
@@ -637,12 +684,15 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
 
     population = DEFAULT_POPULATION if population is None else population
     check_counts(population=population, workers=workers)
-    results_dir = Path(results_dir)
+    results_dir = open_store(results_dir)
     by_folder, todo = pending_runs(specs, results_dir, records_dir)
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
         config = group[0].to_config()
         total = config.iterations
+        if results_dir.remote:  # the logs as far as the store has them
+            for spec in group:
+                pull_run(results_dir, spec.scale, spec.run_dir(results_dir).name, ("metrics.parquet",))
         progress = [_logged_progress(spec.run_dir(results_dir), config.checkpoint_every) for spec in group]
         if records_dir is not None:  # a committed portable state not restored here yet counts as reached
             carried = [portable_state_iteration(records_dir, spec.scale, spec.run_dir(results_dir).name)

@@ -37,6 +37,7 @@ from pemamoe.core import (REPO_ROOT, SCALES, check_scale, figure_notebooks, note
 from pemamoe.execution import status_summary, sweep_status
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.records import portable_state_path
+from pemamoe.store import open_store
 from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, experiment_specs, pending_runs,
                            run_sweep)
 
@@ -77,7 +78,8 @@ def sweep_cli(argv=None) -> int:
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results",
-                        help="the training cache: one run folder per run (default: results/)")
+                        help="the results store, the training cache of one run folder per run: a folder or a URL "
+                             "such as s3://bucket/prefix (appendix 09f; default: results/)")
     parser.add_argument("--records-dir", default="records",
                         help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
                              "record is written as it finishes (default: records/)")
@@ -92,7 +94,7 @@ def sweep_cli(argv=None) -> int:
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
     args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
     if str(args.results_dir).strip() == "":
-        parser.error("--results-dir must be a folder path")
+        parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
         parser.error("--records-dir must be a folder path")
     methods = tuple(args.methods) if args.methods else compared_methods()
@@ -220,7 +222,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
         run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
                   extra.get("backend", "local"), extra.get("workers", 2),
-                  repo_path(extra.get("results_dir", "results")), extra.get("ray_address"),
+                  _results_store(extra.get("results_dir", "results")), extra.get("ray_address"),
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
@@ -251,6 +253,12 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
 
 # %%
 #| exporti
+def _results_store(results):
+    """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
+    store = open_store(results)
+    return store if store.remote else repo_path(store.folder)
+
+
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"

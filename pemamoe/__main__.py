@@ -25,6 +25,9 @@ def main(argv=None) -> int:
     fig.add_argument("--backend", default="local", help="sweep backend: local | ray")
     fig.add_argument("--workers", type=int, default=2, help="parallel training runs")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
+    fig.add_argument("--results-dir", default="results",
+                     help="the results store the runs without a record train into: a folder or a URL such as "
+                          "s3://bucket/prefix (appendix 09f; default: results/)")
     sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["train"]:  # built only for train (its --without choices load the phase controller lazily)
@@ -58,15 +61,24 @@ def main(argv=None) -> int:
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
+        if str(args.results_dir).strip() == "":
+            parser.error("--results-dir must be a folder path or a URL, got an empty string")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
-                              workers=args.workers, ray_address=args.ray_address, retrain=args.retrain)
+                              workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
+                              results_dir=_results_dir(args.results_dir))
         print(f"[figures] provenance written to {readme}")
         return 0
     if args.command == "train":
         return train_command(args, args.train_parser)
     return 2
+
+
+def _results_dir(text: str) -> str:
+    """--results-dir as the notebooks need it: a URL as it is, a folder other than the default
+    relative to where the command runs (the default, results/, is the repository's)."""
+    return text if "://" in text or text == "results" else str(Path(text).resolve())
 
 
 # -- optional dependencies (pyproject.toml's extras) --------------------------------------------

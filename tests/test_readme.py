@@ -56,7 +56,9 @@ def named_paths(text: str) -> set:
     tokens = [t.strip("`'\"(),;:") for line in blocks for t in line.split()]
     found = {t for t in tokens + spans if "/" in t and " " not in t}
     found |= {s for s in spans if BARE_FILE.match(s) and s not in RUN_FOLDER_FILES}
-    return {p for p in found if not re.search(r"[<>*{}$=]", p) and not p.startswith(("-", "http"))}
+    # URLs (s3://..., https://...) and home-directory paths (~/...) are not repository paths
+    return {p for p in found if not re.search(r"[<>*{}$=]", p) and not p.startswith(("-", "http", "~"))
+            and "://" not in p}
 
 
 def makefile_targets() -> set:

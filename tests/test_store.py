@@ -5,6 +5,7 @@ an uninterrupted run's."""
 
 import shutil
 import time
+from pathlib import Path
 
 import pytest
 
@@ -107,3 +108,134 @@ def test_status_on_a_fresh_machine_counts_the_committed_portable_state(tmp_path)
     assert sweep_status([spec], fresh, workers=1).iteration.tolist() == [0]
     assert sweep_status([spec], fresh, workers=1, records_dir=records).iteration.tolist() == [5]
     assert not spec.run_dir(fresh).exists()  # status restores nothing
+
+
+# --- the results store at a URL (appendix 09f), against a real S3 server on 127.0.0.1 ---------------
+
+@pytest.fixture
+def s3_store(tmp_path, monkeypatch):
+    """An empty bucket on a moto S3 server this test starts on 127.0.0.1, named by the environment as
+    a real S3 endpoint would be (so Ray workers started afterwards reach it too); the store's cache
+    under tmp_path. Yields the store's URL."""
+    pytest.importorskip("s3fs")
+    server_mod = pytest.importorskip("moto.server")
+    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    for name, value in {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+                        "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": f"http://{host}:{port}",
+                        "PEMAMOE_CACHE": str(tmp_path / "cache"), "PEMAMOE_STORE_SYNC_SECONDS": "0.5"}.items():
+        monkeypatch.setenv(name, value)
+    import s3fs
+
+    s3fs.S3FileSystem.clear_instance_cache()
+    s3fs.S3FileSystem().mkdir("bucket")
+    yield "s3://bucket/results"
+    s3fs.S3FileSystem.clear_instance_cache()
+    server.stop()
+
+
+def _bucket_files(url):
+    from pemamoe.store import open_store
+
+    store = open_store(url)
+    return sorted(p[len(store.root) + 1:] for p in store.fs.find(store.root))
+
+
+def test_a_store_url_is_checked_before_anything_trains():
+    from pemamoe.store import open_store
+
+    with pytest.raises(ValueError, match="fsspec knows no protocol 'nosuch'.*s3"):
+        open_store("nosuch://bucket/x")
+    with pytest.raises(ValueError, match="folder path or a URL"):
+        open_store("  ")
+    assert not open_store("results").remote and not open_store("file:///tmp/r").remote
+    assert str(open_store("file:///tmp/r").folder) == "/tmp/r"
+
+
+def test_a_lease_is_exclusive_and_a_stale_one_is_taken_over(s3_store):
+    from pemamoe.store import StoreLease, StoreLeaseError, open_store
+
+    store = open_store(s3_store)
+    first = StoreLease(store, "ci", "mlp-s0-x").acquire()
+    with pytest.raises(StoreLeaseError, match="held by .* renewed"):  # the conditional put refuses a second
+        StoreLease(store, "ci", "mlp-s0-x").acquire()
+    first.renew()
+    time.sleep(0.2)
+    second = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # first looks dead: taken over
+    with pytest.raises(StoreLeaseError):
+        first.renew()  # the old holder learns that it lost the lease
+    first.release()  # not its lease any more: a no-op
+    assert store.fs.exists(second.key)
+    second.release()
+    assert not store.fs.exists(second.key)
+
+
+_SWEEP_SCRIPT = """
+import sys
+from pemamoe.sweep import RunSpec, run_sweep
+specs = [RunSpec(m, 0, "ci", overrides=(("iterations", {iterations}),)) for m in ("mlp", "smoe")]
+run_sweep(specs, "ray", workers=2, results_dir=sys.argv[1], verbose=False)
+"""
+
+
+def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3_store, tmp_path, monkeypatch):
+    """A ci sweep on a real local Ray, its store an S3 bucket: killed part way (its Ray tasks with
+    it), resumed by another driver once the dead workers' leases went stale; the records the driver
+    writes equal those of the same runs trained alone in a local folder, and the only local files are
+    the cache's."""
+    pytest.importorskip("ray")
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from pemamoe.store import open_store
+    from pemamoe.sweep import run_sweep
+
+    iterations = 40
+    specs = [RunSpec(m, 0, "ci", overrides=(("iterations", iterations),)) for m in ("mlp", "smoe")]
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)  # a results/ or records/ written by mistake would appear here
+    store = open_store(s3_store)
+    keys = [f"ci/{s.to_config().run_name()}" for s in specs]
+    driver = subprocess.Popen([sys.executable, "-c", _SWEEP_SCRIPT.format(iterations=iterations), s3_store],
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+                              start_new_session=True)
+    try:
+        deadline = time.time() + 240
+        while not all(f"{k}/checkpoint.pt" in _bucket_files(s3_store) for k in keys):
+            assert driver.poll() is None, "the sweep ended before it could be killed"
+            assert time.time() < deadline, "no checkpoint reached the bucket"
+            time.sleep(0.5)
+        os.killpg(driver.pid, signal.SIGTERM)  # the driver stops; Ray kills its tasks mid-iteration
+        driver.wait(timeout=120)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+    left = _bucket_files(s3_store)
+    assert any(f"{k}/.lease.json" in left for k in keys)  # killed tasks release nothing
+    unfinished = [k for k in keys if f"{k}/done.json" not in left]
+    assert unfinished, "both runs finished before the kill: nothing was resumed"
+    reached = {}
+    for k in unfinished:
+        unpacked = tmp_path / "ck.pt"
+        store.fs.get_file(f"{store.root}/{k}/checkpoint.pt", str(unpacked))
+        reached[k] = load_checkpoint(unpacked)["iteration"]
+    assert all(0 < n < iterations for n in reached.values()), reached
+
+    monkeypatch.setenv("PEMAMOE_LEASE_STALE_SECONDS", "1")
+    time.sleep(1.5)
+    records = tmp_path / "records"
+    folders = run_sweep(specs, "ray", workers=2, results_dir=s3_store, records_dir=records, verbose=False)
+    done = _bucket_files(s3_store)
+    assert all(f"{k}/done.json" in done and f"{k}/.lease.json" not in done for k in keys)
+    cache = Path(os.environ["PEMAMOE_CACHE"])
+    assert all(cache in f.parents for f in folders)  # the driver's view of the runs is its cache
+    assert sorted(p.name for p in work.iterdir()) == []  # nothing written beside the cache
+
+    reference = tmp_path / "reference_records"
+    for spec in specs:
+        execute_population([spec], tmp_path / "alone", records_dir=reference)
+        assert _record_bytes(record_marker(spec, records)) == _record_bytes(record_marker(spec, reference))
