@@ -177,7 +177,11 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_int_at_least(0), default=0,
                    help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",
-                   help="run directory (default: results/train/<method>-s<seed>-<config hash>)")
+                   help="run directory (default: <results-dir>/train/<method>-s<seed>-<config hash>)")
+    p.add_argument("--results-dir", default="results", metavar="STORE",
+                   help="the results store the default run directory is in: a folder or a URL such as "
+                        "s3://bucket/prefix, where the run is leased, trained in a local cache and copied back "
+                        "(appendix 09f; default: results/)")
     p.add_argument("--without", action="append", default=[], choices=_LazyChoices(_mechanisms), metavar="MECHANISM",
                    help="switch a phase-controller mechanism off (repeatable; methods with the phase controller "
                         "only): %(choices)s")
@@ -198,10 +202,18 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
     run folder (a lock held by another process, a damaged or foreign file, a failed write) and
     Ctrl-C end it with one line on stderr and a non-zero status, not a traceback."""
     from pemamoe.runs import RunFolderError, RunLockedError  # light: no torch
+    from pemamoe.store import StoreLeaseError, open_store  # light: fsspec only for a URL
 
     if args.out is not None and args.out.strip() == "":
         parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
     _check_out(args.out, parser)
+    try:
+        args.store = open_store(args.results_dir)
+    except ValueError as err:
+        parser.error(f"--results-dir: {err}")
+    if args.store.remote and args.out is not None:
+        parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
+                     "goes to <store>/train/<run name>: pass one of them")
     try:
         return _train(args, parser)
     except KeyboardInterrupt:
@@ -209,7 +221,7 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         print(f"\n{parser.prog}: interrupted; the run{where} can be resumed: run the same command again to "
               "continue from its last checkpoint (--no-resume starts it over)", file=sys.stderr)
         return 130
-    except (RunFolderError, RunLockedError, OSError) as err:
+    except (RunFolderError, RunLockedError, StoreLeaseError, OSError) as err:
         print(f"{parser.prog}: error: {err}", file=sys.stderr)
         return 1
 
@@ -243,7 +255,18 @@ def _train(args, parser: argparse.ArgumentParser) -> int:
         mappo.resolve_device(config.device)  # --device cuda on a machine whose torch sees no GPU
     except ValueError as err:
         parser.error(str(err))
-    out = Path(args.out) if args.out is not None else Path("results") / "train" / config.run_name()
+    if args.store.remote:
+        from pemamoe.store import checked_out
+
+        with checked_out(args.store, [("train", config.run_name())]) as (out,):
+            return _train_in(out, config, args, parser)
+    out = Path(args.out) if args.out is not None else args.store.run_dir("train", config.run_name())
+    return _train_in(out, config, args, parser)
+
+
+def _train_in(out: Path, config, args, parser) -> int:
+    from pemamoe import mappo
+
     _check_out(out, parser)
     stored = out / "config.json"
     if not args.no_resume and stored.exists():

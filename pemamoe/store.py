@@ -136,8 +136,9 @@ def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> di
 
 
 def push_run(store: ResultsStore, folder, scale: str, run: str, pushed: dict | None = None) -> dict:
-    """Upload the files of the cache `folder` that differ from `pushed` ({name: (mtime_ns, size)});
-    return the new `pushed`. done.json goes last, and only if it existed when the push began."""
+    """Upload the files of the cache `folder` that differ from `pushed` ({name: (mtime_ns, size)}),
+    and delete from the store those `pushed` names that are gone here; return the new `pushed`.
+    done.json goes last, and only if it existed when the push began."""
     folder, pushed = Path(folder), dict(pushed or {})
     sealed = (folder / "done.json").exists()
     for name in STORE_FILES:
@@ -146,6 +147,11 @@ def push_run(store: ResultsStore, folder, scale: str, run: str, pushed: dict | N
         try:
             st = (folder / name).stat()
         except FileNotFoundError:
+            if pushed.pop(name, None) is not None:  # deleted here since (a run started over): there too
+                try:
+                    store.fs.rm_file(store.key(scale, run, name))
+                except FileNotFoundError:
+                    pass
             continue
         stamp = (st.st_mtime_ns, st.st_size)
         if pushed.get(name) != stamp:
@@ -177,7 +183,7 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
         (folder / "done.json").unlink()
 
 
-# %% notebooks/09f_results_store.py, cell 10 (line 266)
+# %% notebooks/09f_results_store.py, cell 10 (line 272)
 class StoreLease:
     """The lease of one run in a remote store (see the top of this notebook)."""
 
@@ -232,7 +238,7 @@ class StoreLease:
             self.store.fs.rm_file(self.key)
 
 
-# %% notebooks/09f_results_store.py, cell 12 (line 332)
+# %% notebooks/09f_results_store.py, cell 12 (line 338)
 class _Mirror(threading.Thread):
     """Pushes the checked-out runs and renews their leases every `every` seconds."""
 

@@ -239,3 +239,27 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     for spec in specs:
         execute_population([spec], tmp_path / "alone", records_dir=reference)
         assert _record_bytes(record_marker(spec, records)) == _record_bytes(record_marker(spec, reference))
+
+
+def test_train_takes_the_store_as_its_results_dir(tmp_path, monkeypatch, capsys):
+    """`train --results-dir URL` leases, trains in the cache and leaves the run folder in the store
+    (memory:// stands in for a bucket: it lives in this process); a bad URL is refused first."""
+    from pemamoe.__main__ import main
+    from pemamoe.store import open_store
+
+    monkeypatch.setenv("PEMAMOE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "nosuch://b/r"])
+    assert stop.value.code == 2 and "fsspec knows no protocol 'nosuch'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "memory://b/r", "--out", "x"])
+    assert main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "memory://train-test/r"]) == 0
+    store = open_store("memory://train-test/r")
+    names = {p.rsplit("/", 1)[1] for p in store.fs.find(store.root)}
+    assert {"config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "done.json"} <= names
+    assert ".lease.json" not in names and sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+    # started over: the store loses the old seal with the old files, and gets the new ones
+    assert main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "memory://train-test/r",
+                 "--no-resume"]) == 0
+    assert "(trained)" in capsys.readouterr().out
