@@ -62,7 +62,7 @@ from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration,
                              record_files, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
-from pemamoe.store import checked_out, open_store, pull_run, refresh_finished
+from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
 
 BACKENDS = ("local", "ray")
 
@@ -178,6 +178,7 @@ def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) ->
     point): keyed by run folder, such a run is trained once, not twice at once. results_dir: a
     folder or a results store's URL (appendix 09f; its sealed files are read through the cache)."""
     store = open_store(results_dir)
+    records_dir = _local_records(records_dir, specs)[0]
     by_folder = {}
     for spec in specs:
         by_folder.setdefault(spec.run_dir(store), spec)
@@ -192,6 +193,19 @@ def pending_runs(specs, results_dir, records_dir=None, retrain: bool = False) ->
     return by_folder, [spec for folder, spec in by_folder.items() if not done(folder, spec)]
 
 
+def _local_records(records_dir, specs) -> tuple:
+    """(a local records folder, the records' store when records_dir is a URL, else None): a URL's
+    records of the specs' scales are pulled into its cache first (appendix 09f)."""
+    if records_dir is None:
+        return None, None
+    records = open_store(records_dir)
+    if not records.remote:
+        return records_dir, None
+    for scale in sorted({spec.scale for spec in specs}):
+        pull_tree(records, scale)
+    return records.folder, records
+
+
 def record_marker(spec, records_dir=RECORDS_DIR) -> Path:
     """Where the record of `spec`'s run lives (its marker; appendix 09d)."""
     return record_files(records_dir, spec.scale, spec.to_config().run_name())["marker"]
@@ -203,7 +217,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
               retrain: bool = False) -> list:
     """Run every spec not yet done; return all run folders, in the order of `specs`.
 
-    records_dir: also keep the runs' records there (appendix 09d): a run whose record verifies
+    records_dir: also keep the runs' records there (appendix 09d; a folder or a URL, appendix 09f): a run whose record verifies
     counts as done and is not trained (unless retrain), each run's record is written as it
     finishes, and a finished run folder without a record gets one. retrain: ignore the records,
     train into the cache whatever is not in it, and write every record again (byte-identical
@@ -227,6 +241,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     deadline = None if hours is None else time.time() + 3600.0 * hours
     store = open_store(results_dir)  # checks it: a folder path or a URL fsspec knows
     specs = list(specs)
+    records_dir, records_store = _local_records(records_dir, specs)
     by_folder, todo = pending_runs(specs, store, records_dir, retrain)
     groups = group_specs(todo, population, workers)
     if verbose:
@@ -237,10 +252,11 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
         runner = _run_local if backend == "local" else _run_ray
         with _progress(len(by_folder), len(by_folder) - len(todo), progress, verbose) as report, _stop_on_signals():
-            if store.remote and records_dir is not None:  # the workers may be elsewhere: records are written here
-                report = _recording(report, store, records_dir)
+            remote = store.remote or records_store is not None
+            if remote and records_dir is not None:  # the workers may be elsewhere: records are written here
+                report = _recording(report, store, records_dir, records_store)
             runner(groups, store, workers, address, threads_per_run, report, deadline,
-                   None if store.remote else records_dir)
+                   None if remote else records_dir)
         left = pending_runs(specs, store, records_dir, retrain)[1]
         if verbose and left:
             print(f"[sweep] stopped after {hours} h ({time.perf_counter() - start:.0f} s): "
@@ -253,25 +269,28 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
             config = spec.to_config()
             marker = record_marker(spec, records_dir)
             if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
-                _write_record_from(store, folder, spec.scale, records_dir)
+                _write_record_from(store, folder, spec.scale, records_dir, records_store)
     return [s.run_dir(store) for s in specs]
 
 
-def _write_record_from(store, folder, scale: str, records_dir) -> None:
+def _write_record_from(store, folder, scale: str, records_dir, records_store=None) -> None:
     """write_record of a finished run folder; from a remote store, after pulling its checkpoint
-    (the record keeps the final actor)."""
+    (the record keeps the final actor); to a records URL, uploaded after, marker last."""
     if store.remote:
         pull_run(store, scale, folder.name)
     write_record(folder, scale, records_dir)
+    if records_store is not None:
+        files = record_files(records_dir, scale, folder.name)
+        push_paths(records_store, [files[k] for k in ("data", "actor", "timing", "marker") if files[k].exists()])
 
 
-def _recording(report, store, records_dir):
+def _recording(report, store, records_dir, records_store=None):
     """report(spec), after writing the record of the run that just finished (remote stores)."""
     def record_then_report(spec):
         folder = spec.run_dir(store)
         refresh_finished(store, spec.scale, folder.name)
         if verify_done(folder, spec.to_config()):
-            _write_record_from(store, folder, spec.scale, records_dir)
+            _write_record_from(store, folder, spec.scale, records_dir, records_store)
         report(spec)
 
     return record_then_report
@@ -283,7 +302,7 @@ def sweep_records(specs, backend: str = "local", workers: int = 2, results_dir="
     (`run_sweep` with records_dir; retrain: ignore the records). What the notebooks read."""
     specs = list(specs)
     run_sweep(specs, backend, workers, results_dir, address, records_dir=records_dir, retrain=retrain, **options)
-    return [record_marker(spec, records_dir) for spec in specs]
+    return [record_marker(spec, open_store(records_dir).folder) for spec in specs]  # a URL's: in its cache
 
 
 def _record_ok(marker, config) -> bool:

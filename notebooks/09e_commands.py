@@ -82,7 +82,7 @@ def sweep_cli(argv=None) -> int:
                              "such as s3://bucket/prefix (appendix 09f; default: results/)")
     parser.add_argument("--records-dir", default="records",
                         help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
-                             "record is written as it finishes (default: records/)")
+                             "record is written as it finishes: a folder or a URL (default: records/)")
     parser.add_argument("--retrain", action="store_true",
                         help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
@@ -96,7 +96,7 @@ def sweep_cli(argv=None) -> int:
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
-        parser.error("--records-dir must be a folder path")
+        parser.error("--records-dir must be a folder path or a URL, got an empty string")
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:

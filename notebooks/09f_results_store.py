@@ -30,6 +30,12 @@
 #   starts and copies back to the store while it trains and when it stops. Nothing is kept on local
 #   disk but that cache: a fresh machine, or another node, resumes from the store.
 #
+# The records folder (`--records-dir`, appendix 09d) may be a URL too: the sweep then pulls the
+# records of its scales into the records' own cache first, and the driver uploads each record it
+# writes, marker last. Workers never write records or portable states when either setting is a
+# URL (a worker may run on a node whose disk the driver never sees); with the run folders in a
+# bucket, the bucket is what carries work in progress from one machine to the next.
+#
 # Credentials and endpoints come from the usual places of each fsspec backend (for S3: the AWS
 # environment variables and files, `AWS_ENDPOINT_URL` for a server that is not AWS).
 #
@@ -173,7 +179,7 @@ class ResultsStore:
     def run_dir(self, scale: str, run: str) -> Path:
         return self.folder / scale / run
 
-    def key(self, scale: str, run: str, name: str = "") -> str:
+    def key(self, scale: str, run: str = "", name: str = "") -> str:
         return "/".join(p for p in (self.root, scale, run, name) if p)
 
     def stored_files(self, scale: str, run: str) -> set:
@@ -389,6 +395,29 @@ def checked_out(store: ResultsStore, runs: list):
                 lease.release()
             except Exception as err:  # noqa: BLE001 - a lease left behind goes stale; never hide the real error
                 print(f"[store] could not release {lease.key}: {err}", file=sys.stderr, flush=True)
+
+
+def pull_tree(store: ResultsStore, prefix: str) -> Path:
+    """Copy every file under `prefix` of a remote store into its cache folder; return that folder.
+    What a sweep does with a records folder at a URL (appendix 09c): records are small."""
+    top = store.key(prefix)
+    store.fs.invalidate_cache(top)
+    try:
+        paths = store.fs.find(top)
+    except FileNotFoundError:
+        paths = []
+    for path in paths:
+        with atomic_path(store.folder / path[len(store.root) + 1:]) as tmp:
+            store.fs.get_file(path, str(tmp))
+    return store.folder / prefix
+
+
+def push_paths(store: ResultsStore, paths) -> None:
+    """Upload files of a remote store's cache folder to their place in the store, in the given order
+    (a record's marker last: it seals the others)."""
+    for path in paths:
+        relative = Path(path).resolve().relative_to(store.folder.resolve()).as_posix()
+        store.fs.put_file(str(path), f"{store.root}/{relative}")
 
 
 def fetch_run(store, scale: str, run: str) -> Path:
