@@ -79,7 +79,7 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results",
                         help="the results store, the training cache of one run folder per run: a folder or a URL "
-                             "such as s3://bucket/prefix (appendix 09f; default: results/)")
+                             "such as s3://bucket/prefix, appendix 09f (default: results/)")
     parser.add_argument("--records-dir", default="records",
                         help="the run records (appendix 09d): a recorded run is not trained again, and each run's "
                              "record is written as it finishes: a folder or a URL (default: records/)")

@@ -256,7 +256,8 @@ def _error_samples():
                "RunLockedError": (ROOT / "results" / "run", 4321),
                "ExportError": ("notebooks/x.py: unknown directive",),
                "SweepInterrupted": (signal.SIGTERM,),
-               "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed")}
+               "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed"),
+               "StoreLeaseError": ("bucket/results/ci/run/.lease.json", {"host": "node-2", "pid": 77, "heartbeat": 0.0})}
     found = []
     for path in sorted((ROOT / "pemamoe").glob("*.py")):
         if path.stem == "__main__":

@@ -118,7 +118,7 @@ def test_numpy_seeds_work_in_a_sweep(tmp_path, finished_mlp):
     assert type(specs[0].seed) is int and specs[0] == RunSpec("mlp", 0, "ci")
     with pytest.raises(ValueError, match="RunSpec.seed must be an int >= 0"):
         RunSpec("mlp", 1.5)
-    with pytest.raises(ValueError, match="results_dir must be a non-empty folder path"):
+    with pytest.raises(ValueError, match="results store must be a folder path or a URL such as s3://bucket/prefix, got ''"):
         run_sweep(specs, "local", workers=1, results_dir="")
 
 
