@@ -275,9 +275,10 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
 
 def _write_record_from(store, folder, scale: str, records_dir, records_store=None) -> None:
     """write_record of a finished run folder; from a remote store, after pulling its checkpoint
-    (the record keeps the final actor); to a records URL, uploaded after, marker last."""
+    (the record keeps the final actor; both callers have just refreshed the sealed files); to a
+    records URL, uploaded after, marker last."""
     if store.remote:
-        pull_run(store, scale, folder.name)
+        pull_run(store, scale, folder.name, ("checkpoint.pt",))
     write_record(folder, scale, records_dir)
     if records_store is not None:
         files = record_files(records_dir, scale, folder.name)

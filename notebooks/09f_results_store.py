@@ -233,31 +233,31 @@ def push_run(store: ResultsStore, folder, scale: str, run: str, pushed: dict | N
     for name in STORE_FILES:
         if name == "done.json" and not sealed:
             continue
-        try:
-            st = (folder / name).stat()
-        except FileNotFoundError:
+        stamp = _stamp(folder / name)
+        if stamp is None:
             if pushed.pop(name, None) is not None:  # deleted here since (a run started over): there too
                 try:
                     store.fs.rm_file(store.key(scale, run, name))
                 except FileNotFoundError:
                     pass
             continue
-        stamp = (st.st_mtime_ns, st.st_size)
         if pushed.get(name) != stamp:
             store.fs.put_file(str(folder / name), store.key(scale, run, name))
             pushed[name] = stamp
     return pushed
 
 
+def _stamp(path: Path) -> tuple | None:
+    """(mtime_ns, size) of a file, None when it is missing: what says it changed since a push."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_mtime_ns, st.st_size
+
+
 def _stats(folder: Path) -> dict:
-    out = {}
-    for name in STORE_FILES:
-        try:
-            st = (folder / name).stat()
-        except FileNotFoundError:
-            continue
-        out[name] = (st.st_mtime_ns, st.st_size)
-    return out
+    return {name: stamp for name in STORE_FILES if (stamp := _stamp(folder / name)) is not None}
 
 
 def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
@@ -349,7 +349,7 @@ class _Mirror(threading.Thread):
     def __init__(self, store, runs, folders, leases, pushed, every: float):
         super().__init__(name="pemamoe-store-mirror", daemon=True)
         self.store, self.runs, self.folders, self.leases, self.pushed = store, runs, folders, leases, pushed
-        self.every, self.stop_event, self.error = every, threading.Event(), None
+        self.every, self.stop_event = every, threading.Event()
 
     def sync(self) -> None:
         for i, ((scale, run), folder, lease) in enumerate(zip(self.runs, self.folders, self.leases)):
@@ -360,8 +360,7 @@ class _Mirror(threading.Thread):
         while not self.stop_event.wait(self.every):
             try:
                 self.sync()
-            except Exception as err:  # noqa: BLE001 - kept and raised by checked_out; training goes on
-                self.error = err
+            except Exception as err:  # noqa: BLE001 - training goes on; checked_out's last sync raises if it persists
                 print(f"[store] sync to {self.store.uri} failed, retrying: {type(err).__name__}: {err}",
                       file=sys.stderr, flush=True)
 

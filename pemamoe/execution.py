@@ -221,9 +221,10 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
 
 def _write_record_from(store, folder, scale: str, records_dir, records_store=None) -> None:
     """write_record of a finished run folder; from a remote store, after pulling its checkpoint
-    (the record keeps the final actor); to a records URL, uploaded after, marker last."""
+    (the record keeps the final actor; both callers have just refreshed the sealed files); to a
+    records URL, uploaded after, marker last."""
     if store.remote:
-        pull_run(store, scale, folder.name)
+        pull_run(store, scale, folder.name, ("checkpoint.pt",))
     write_record(folder, scale, records_dir)
     if records_store is not None:
         files = record_files(records_dir, scale, folder.name)
@@ -258,7 +259,7 @@ def _record_ok(marker, config) -> bool:
         return False
 
 
-# %% notebooks/09c_sweep_execution.py, cell 10 (line 337)
+# %% notebooks/09c_sweep_execution.py, cell 10 (line 338)
 class SweepInterrupted(KeyboardInterrupt):
     """The sweep was stopped by SIGINT or SIGTERM (`signum`); running runs were killed, queued
     ones never started, and a rerun resumes them from their checkpoints."""
@@ -324,7 +325,7 @@ def _report_finished(group, finished, report) -> None:
             report(spec)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 12 (line 418)
+# %% notebooks/09c_sweep_execution.py, cell 12 (line 419)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -510,7 +511,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 17 (line 673)
+# %% notebooks/09c_sweep_execution.py, cell 17 (line 674)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
