@@ -72,6 +72,8 @@ scale = "small"
 figures_dir = "paper_figures"
 seed = 0
 results_dir = "results"
+records_dir = "records"
+retrain = False
 
 # %%
 #| export
@@ -801,18 +803,34 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
 # `results/<scale>/<method>-s<seed>-<config hash>/`, the folders the sweep of notebook 09 uses for
 # the same runs, so `make figures` (which trains the sweep first) finds them there; a finished run
 # is read back instead of retrained.
+#
+# Where the run is already published as a record (appendix 09d: what a finished run keeps for
+# the figures, committed for every scale but `ci`), the demonstration reads the record instead:
+# a `medium` run is hours of training, and a fresh clone has no run folders. A record holds the
+# same columns as the log, averaged over blocks of iterations in long runs (one row per
+# iteration at `ci` and `small`), so the figure, the tables and the checks below read it
+# unchanged. `retrain=True` trains (or reads the cached run folder) instead.
 
 # %%
 from pemamoe.core import repo_path
+
+from types import SimpleNamespace
+
+from pemamoe.records import read_record, record_files, verify_record
 
 run_root = repo_path(results_dir) / scale
 results = {}
 for method in ("pemamoe", "mlp"):
     cfg = TrainConfig.for_scale(scale, method=method, seed=seed)
     t0 = time.perf_counter()
-    results[method] = train(cfg, run_root / cfg.run_name())
+    marker = record_files(repo_path(records_dir), scale, cfg.run_name())["marker"]
+    if not retrain and verify_record(marker, cfg) is not None:  # a damaged or foreign record raises, naming it
+        results[method] = SimpleNamespace(config=cfg, metrics=read_record(marker)[1], from_cache="record")
+    else:
+        results[method] = train(cfg, run_root / cfg.run_name())
     print(f"{method:8s} {cfg.iterations} iterations, {cfg.total_env_steps} env steps, "
-          f"{time.perf_counter() - t0:6.1f} s (cached: {results[method].from_cache})")
+          f"{time.perf_counter() - t0:6.1f} s (cached: {results[method].from_cache}, "
+          f"{len(results[method].metrics)} log rows)")
 
 # %%
 import matplotlib.pyplot as plt
@@ -826,7 +844,8 @@ def _smooth(y, w):
 
 
 cfg0 = results["pemamoe"].config
-w = max(1, cfg0.phase_length_iters // 8)
+_block = int(results["pemamoe"].metrics.get("iterations", pd.Series([1])).iloc[0])  # iterations per row (a record's block)
+w = max(1, cfg0.phase_length_iters // 8 // _block)  # smooth over an eighth of a phase
 # Each phase's level without learning (random policy dotted, k-means heuristic dash-dot; notebook 09).
 levels = reference_levels(scale, repo_path(results_dir))
 panels = [("episode_return", "team return per episode"), ("served_users", "served users (mean per slot)"),
@@ -851,7 +870,8 @@ save_figure(fig, "mappo_training_curves", figures_dir)
 plt.show()
 
 # %% [markdown]
-# The logged columns of one iteration row (PE-MAMoE, the last iteration):
+# The logged columns of one row (PE-MAMoE, the last iteration, or the last block of them when
+# read from a long run's record):
 
 # %%
 _m = results["pemamoe"].metrics

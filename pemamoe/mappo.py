@@ -3,7 +3,7 @@
 
 __all__ = ['EpisodeTracker', 'RowLog', 'RunningNorm', 'ValueNorms', 'explained_variance', 'merge_env_states', 'split_env_state', 'EVAL_ROUTINGS', 'MEMBER_FIELDS', 'MemberStates', 'RunResult', 'check_population', 'evaluate_policy', 'load_run', 'plasticity_name', 'population_key', 'train_members', 'DEVICES', 'MEDIUM_PHASE_ITERS', 'METHODS', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TIMING_COLUMNS', 'TrainConfig', 'resolve_device', 'scale_controller', 'phase_schedule', 'bootstrap_values', 'compute_gae', 'Rollout', 'collect_rollout', 'ppo_update', 'collect_probe', 'train', 'train_population']
 
-# %% notebooks/07_mappo.py, cell 4 (line 76)
+# %% notebooks/07_mappo.py, cell 4 (line 78)
 import dataclasses
 import math
 import sys
@@ -45,13 +45,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     _plain, resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 8 (line 183)
+# %% notebooks/07_mappo.py, cell 8 (line 185)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 10 (line 212)
+# %% notebooks/07_mappo.py, cell 10 (line 214)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -84,7 +84,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 15 (line 287)
+# %% notebooks/07_mappo.py, cell 15 (line 289)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -174,7 +174,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 17 (line 419)
+# %% notebooks/07_mappo.py, cell 17 (line 421)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -311,7 +311,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 19 (line 573)
+# %% notebooks/07_mappo.py, cell 19 (line 575)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -337,7 +337,7 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 605)
+# %% notebooks/07_mappo.py, cell 21 (line 607)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:
