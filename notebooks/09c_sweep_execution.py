@@ -59,8 +59,8 @@ from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration,
-                             record_files, restore_portable_state, verify_record, write_portable_state, write_record)
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration, record_files,
+                             record_timing, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
 
@@ -699,12 +699,15 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
                  records_dir=None):
     """Where a sweep stands, without training: one row per population `run_sweep` would start now
     (its methods, members, the iteration all have reached, of how many, wall seconds per population
-    iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs."""
+    iteration, hours left); DataFrame.attrs holds the numbers of finished and of all runs, and
+    `spent_hours`, the training compute that the `timed` finished runs' records measured
+    (worker-hours; NaN when none has a record with a timing)."""
     import pandas as pd
 
     population = DEFAULT_POPULATION if population is None else population
     check_counts(population=population, workers=workers)
     results_dir = open_store(results_dir)
+    records_dir = _local_records(records_dir, specs)[0]  # a URL's records pulled once, here
     by_folder, todo = pending_runs(specs, results_dir, records_dir)
     rows = []
     for i, group in enumerate(group_specs(todo, population, workers)):
@@ -726,13 +729,21 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
                      "hours_left": (total - reached) * seconds / 3600})
     table = pd.DataFrame(rows, columns=["group", "methods", "members", "iteration", "of", "s_per_iteration",
                                         "hours_left"])
-    table.attrs.update(finished=len(by_folder) - len(todo), runs=len(by_folder))
+    pending = {spec.run_dir(results_dir) for spec in todo}
+    timed = [] if records_dir is None else [  # each run once, however many experiments share it
+        t["member_compute_s"] for folder, spec in by_folder.items() if folder not in pending
+        if "member_compute_s" in (t := record_timing(record_marker(spec, records_dir)))]
+    table.attrs.update(finished=len(by_folder) - len(todo), runs=len(by_folder), timed=len(timed),
+                       spent_hours=sum(timed) / 3600 if timed else float("nan"))
     return table
 
 
 def status_summary(table, workers: int) -> str:
     """One paragraph for `sweep_status`'s table: finished runs, hours left, a lower bound on the wall time."""
     done = f"{table.attrs['finished']} of {table.attrs['runs']} runs finished"
+    if table.attrs.get("timed"):
+        done += (f" ({table.attrs['timed']} record{'s' if table.attrs['timed'] != 1 else ''} measured "
+                 f"{table.attrs['spent_hours']:.2f} worker-hours of training)")
     if table.empty:
         return f"{done}; nothing left to train."
     known = table.dropna(subset=["hours_left"])

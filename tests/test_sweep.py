@@ -241,7 +241,8 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
     train(specs[2].to_config(), specs[2].run_dir(tmp_path), max_iterations=2)
     before = sorted((p, p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
     table = sweep_status(specs, tmp_path, workers=2)
-    assert table.attrs == {"finished": 1, "runs": 4}
+    assert (table.attrs["finished"], table.attrs["runs"], table.attrs["timed"]) == (1, 4, 0)
+    assert np.isnan(table.attrs["spent_hours"])  # no records folder: nothing measured to report
     smoe, moe = (table[table.methods == m].iloc[0] for m in ("smoe", "moe"))
     # the two SMoE runs form one population that resumes from the lagging member's iteration
     assert (smoe.members, smoe.iteration, smoe.of) == (2, 2, 6)
@@ -256,6 +257,22 @@ def test_status_reports_where_a_sweep_stands_and_trains_nothing(tmp_path, capsys
                       "--results-dir", str(tmp_path), "--records-dir", str(tmp_path / "records"),
                       "--status"]) == 0
     assert "1 of 3 runs finished" in capsys.readouterr().out
+
+
+def test_status_sums_the_compute_the_finished_runs_records_measured(tmp_path):
+    from pemamoe.records import record_timing, write_record
+
+    specs = [RunSpec("mlp", 0, "ci"), RunSpec("smoe", 0, "ci")]
+    train(specs[0].to_config(), specs[0].run_dir(tmp_path))
+    marker = write_record(specs[0].run_dir(tmp_path), "ci", tmp_path / "records")
+    measured = record_timing(marker)["member_compute_s"]
+    assert measured > 0
+    # the main PE-MAMoE run shared by two experiments counts once: here, a spec given twice
+    table = sweep_status([specs[0], specs[0], specs[1]], tmp_path, workers=1, records_dir=tmp_path / "records")
+    assert table.attrs["spent_hours"] == pytest.approx(measured / 3600)
+    assert table.attrs["timed"] == 1
+    assert f"1 of 2 runs finished (1 record measured {measured / 3600:.2f} worker-hours of training)" in \
+        status_summary(table, 1)
 
 
 def test_status_rate_counts_checkpoints_but_not_pauses(tmp_path):
