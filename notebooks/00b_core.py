@@ -528,6 +528,7 @@ PAPER_COUNTERPARTS = {
     "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
     "headline_claims": "(ours) the paper's headline numbers beside ours",
     "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
     "env_reward_anatomy": "(ours) reward anatomy of objective O'",
     "mappo_training_curves": "(ours) one training run per method, notebook 07",
     "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",

@@ -765,6 +765,6 @@ def status_summary(table, workers: int) -> str:
 from pemamoe.core import repo_path
 from pemamoe.sweep import experiment_specs
 
-_status = sweep_status(experiment_specs("main", scale), repo_path("results"), workers=2)
+_status = sweep_status(experiment_specs("main", scale), repo_path("results"), workers=2, records_dir=repo_path("records"))
 print(status_summary(_status, workers=2))
 _status

@@ -377,6 +377,7 @@ PAPER_COUNTERPARTS = {
     "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
     "headline_claims": "(ours) the paper's headline numbers beside ours",
     "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
     "env_reward_anatomy": "(ours) reward anatomy of objective O'",
     "mappo_training_curves": "(ours) one training run per method, notebook 07",
     "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
@@ -432,7 +433,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 586)
+# %% notebooks/00b_core.py, cell 21 (line 587)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}
