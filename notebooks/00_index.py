@@ -61,10 +61,11 @@
 # * `make test` builds the pinned environment in `.venv` (first run only), checks that
 #   `pemamoe/` matches the notebooks, runs the unit and property tests, and executes every
 #   notebook at the `ci` scale.
-# * `make figures` (default `SCALE=small`) executes every notebook headlessly with papermill and
-#   writes the figures and tables into `paper_figures/`, printing which notebook of how many is
-#   running, the time spent, and the notebooks' own progress output. `SCALE=ci` is a smoke run in
-#   seconds; `SCALE=medium` trains each phase long enough to learn in (hours; notebook 09b says
+# * `make figures` (default `SCALE=medium`, whose runs are committed as records) executes every
+#   notebook headlessly with papermill and writes the figures and tables into `paper_figures/`,
+#   printing which notebook of how many is running, the time spent, and the notebooks' own
+#   progress output. `SCALE=ci` is a smoke run in seconds; `SCALE=small` is short training
+#   (committed too); `SCALE=medium` trains each phase long enough to learn in (notebook 09b says
 #   why this length); `SCALE=paper` uses the paper's training budget. The README gives the
 #   measured cost of each.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks. A notebook run there

@@ -154,8 +154,8 @@ from pemamoe.train_config import (  # re-export (public names only)
 # `TrainConfig` holds every number of a run, and `TrainConfig.for_scale(scale, method, seed)`
 # gives four presets: **paper**, the training table exactly (10,800 iterations of 2048 environment
 # steps); **medium**, the scale at which learning is visible (longer phases, three phases twice
-# over); **small**, the budget of `make figures`; and **ci**, a handful of iterations crossing two
-# phase switches, seconds per run. Why the smaller presets hold the numbers they hold, a table of
+# over; the default of `make figures`); **small**, short training; and **ci**, a handful of
+# iterations crossing two phase switches, seconds per run. Why the smaller presets hold the numbers they hold, a table of
 # the four side by side, and the code of `TrainConfig` (its checks, `config.json`, the hash that
 # names a run's folder) are in appendix 07c (`pemamoe.train_config`); this module re-exports them.
 #

@@ -103,7 +103,7 @@ from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerCo
 # The four presets, and why they hold these numbers:
 #
 # * **paper**: the training table exactly (10,800 iterations of 2048 environment steps).
-# * **small**: the budget of `make figures`: 39 runs (four methods × three seeds, the ablations
+# * **small**: short training, 39 runs (four methods × three seeds, the ablations
 #   and the noise sweep); the sweep took 18 min 34 s on two cores with two worker processes
 #   (measured at `dc5e4d6`, `benchmarks/HISTORY.md`).
 #   The rollout shrinks to 16 environments × 32 slots (512 environment steps), each phase lasts

@@ -588,8 +588,9 @@ def provenance(metrics: pd.DataFrame, scale: str) -> str:
 # %% [markdown]
 # ## Run (or reuse) the main comparison
 #
-# At the `ci` scale this trains a few iterations per method in seconds; at `small` it is the
-# default of `make figures`; finished runs under `results/` are reused, never retrained. The
+# At the `ci` scale this trains a few iterations per method in seconds; at `small` and `medium`
+# (the default of `make figures`) the runs are read from their committed records; finished runs
+# under `results/` are reused, never retrained. The
 # parameter `methods = None` means every registered method.
 
 # %%
