@@ -16,7 +16,8 @@ def main(argv=None) -> int:
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
     from pemamoe.core import SCALES
 
-    fig.add_argument("--scale", default="small", choices=SCALES, help="the preset scale (default: small)")
+    fig.add_argument("--scale", default="medium", choices=SCALES,
+                     help="the preset scale (default: medium, whose run records are committed)")
     fig.add_argument("--figures-dir", default=None, help="output folder (default: paper_figures/)")
     fig.add_argument("--retrain", action="store_true",
                      help="ignore the committed run records (records/), train every run into results/ and write "

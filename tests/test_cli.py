@@ -299,3 +299,12 @@ def test_train_help_still_lists_the_mechanisms(capsys):
     assert exit_.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
     assert all(m in text for m in MECHANISMS) and all(m in text for m in mappo.METHODS)
+
+
+def test_figures_defaults_to_the_scale_make_figures_runs(capsys):
+    """`python -m pemamoe figures` and `make figures` regenerate the same committed set."""
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    make_default = re.search(r"^SCALE \?= (\w+)$", makefile, re.M).group(1)
+    with pytest.raises(SystemExit):
+        main(["figures", "--help"])
+    assert make_default == "medium" and f"(default: {make_default}," in " ".join(capsys.readouterr().out.split())
