@@ -484,8 +484,8 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
 #
 # Every curve is the mean over seeds with a band from the lowest to the highest seed, phase
 # switches are dashed vertical lines, and the figure says how many seeds and which scale it shows.
-# Curves are smoothed with a short moving average (stated on the axis) because per-iteration values
-# of a few episodes are noisy. A system metric also shows the heuristics' level in each phase
+# Curves are smoothed with a short moving average (stated on the axis, in iterations: a `medium`
+# record's row is a block of iterations) because per-iteration values of a few episodes are noisy. A system metric also shows the heuristics' level in each phase
 # (`reference=`; dotted: random policy, dash-dot: k-means heuristic).
 #
 # **Routers.** Which expert is "expert 0" is an accident of each seed's initialisation, so
@@ -553,7 +553,8 @@ def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=None, win
     plot_reference_levels(ax, metrics, reference, column)
     for t in switch_iterations(metrics):
         ax.axvline(t, color="0.5", ls="--", lw=0.7)
-    ax.set_xlabel(f"training iteration (curves: {window}-iteration moving average)")
+    per_row = int(metrics["iterations"].iloc[0]) if "iterations" in metrics else 1  # rows of a long run: blocks
+    ax.set_xlabel(f"training iteration (curves: {window * per_row}-iteration moving average)")
 
 
 def experts_by_usage(metrics: pd.DataFrame, side: str = "policy") -> pd.DataFrame:

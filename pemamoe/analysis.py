@@ -266,7 +266,8 @@ def plot_over_training(ax, metrics: pd.DataFrame, column: str, methods=None, win
     plot_reference_levels(ax, metrics, reference, column)
     for t in switch_iterations(metrics):
         ax.axvline(t, color="0.5", ls="--", lw=0.7)
-    ax.set_xlabel(f"training iteration (curves: {window}-iteration moving average)")
+    per_row = int(metrics["iterations"].iloc[0]) if "iterations" in metrics else 1  # rows of a long run: blocks
+    ax.set_xlabel(f"training iteration (curves: {window * per_row}-iteration moving average)")
 
 
 def experts_by_usage(metrics: pd.DataFrame, side: str = "policy") -> pd.DataFrame:
