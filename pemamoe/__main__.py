@@ -64,11 +64,15 @@ def main(argv=None) -> int:
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
         if str(args.results_dir).strip() == "":
             parser.error("--results-dir must be a folder path or a URL, got an empty string")
+        try:
+            results_dir = _results_dir(args.results_dir)
+        except ValueError as err:
+            parser.error(f"--results-dir: {err}")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
                               workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
-                              results_dir=_results_dir(args.results_dir))
+                              results_dir=results_dir)
         print(f"[figures] provenance written to {readme}")
         return 0
     if args.command == "train":
@@ -77,9 +81,13 @@ def main(argv=None) -> int:
 
 
 def _results_dir(text: str) -> str:
-    """--results-dir as the notebooks need it: a URL as it is, a folder other than the default
-    relative to where the command runs (the default, results/, is the repository's)."""
-    return text if "://" in text or text == "results" else str(Path(text).resolve())
+    """--results-dir as the notebooks need it: a remote store's URL as it is, a folder (or file://
+    URL) other than the default relative to where the command runs (the default, results/, is the
+    repository's). A URL no installed fsspec protocol serves fails here, before any notebook runs."""
+    from pemamoe.store import open_store
+
+    store = open_store(text)
+    return text if store.remote or text == "results" else str(store.folder.resolve())
 
 
 # -- optional dependencies (pyproject.toml's extras) --------------------------------------------

@@ -308,3 +308,19 @@ def test_figures_defaults_to_the_scale_make_figures_runs(capsys):
     with pytest.raises(SystemExit):
         main(["figures", "--help"])
     assert make_default == "medium" and f"(default: {make_default}," in " ".join(capsys.readouterr().out.split())
+
+
+def test_figures_refuses_a_results_url_no_protocol_serves_before_any_notebook(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["figures", "--scale", "ci", "--figures-dir", str(tmp_path), "--results-dir", "nosuch://bucket/runs"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--results-dir" in err and "'nosuch'" in err and "s3" in err
+    assert list(tmp_path.iterdir()) == []  # nothing ran
+
+
+def test_figures_results_dir_as_a_file_url_is_the_folder_where_the_command_runs(tmp_path, monkeypatch):
+    from pemamoe.__main__ import _results_dir
+
+    monkeypatch.chdir(tmp_path)
+    assert _results_dir("file://runs") == _results_dir("runs") == str(tmp_path / "runs")
+    assert _results_dir("results") == "results" and _results_dir("memory://b/r") == "memory://b/r"

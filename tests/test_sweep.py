@@ -82,7 +82,6 @@ def test_process_pool_runs_two_runs(tmp_path):
 
 def test_two_run_sweep_on_a_real_local_ray(tmp_path):
     ray = pytest.importorskip("ray")
-    start = time.perf_counter()
     folders = run_sweep([RunSpec("mlp", 1, "ci"), RunSpec("pemamoe", 1, "ci")], "ray", workers=2,
                         results_dir=tmp_path, verbose=False)
     assert all((f / "done.json").is_file() for f in folders)
@@ -96,7 +95,6 @@ def test_two_run_sweep_on_a_real_local_ray(tmp_path):
     cols = ["iteration", "episode_return", "served_users", "approx_kl"]
     pd.testing.assert_frame_equal(read_parquet(folders[0] / "metrics.parquet")[cols],
                                   read_parquet(local[0] / "metrics.parquet")[cols])
-    assert time.perf_counter() - start < 300
 
 
 # --- reliability: verified done check, numpy seeds, CLI, progress, interrupts ---------------------
