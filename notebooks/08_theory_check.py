@@ -710,61 +710,83 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # same problem sizes in this notebook. Slopes, intervals and Lipschitz constants come from
 # `paper_figures/theory_noise_fit.md`, `theory_regret_fit.md` and `theory_lipschitz.md`; the rest
 # (twin distances, gate spreads, steady-state and excess regret) were read from the cells' output
-# at `838f9df`. The cells above print the values of whatever scale the notebook was run at.)*
+# of a fresh-clone `make figures` at `57e8a18`. The cells above print the values of whatever scale
+# the notebook was run at.)*
 #
 # **Noise energy.** The identity $\sum_t\gamma_t^2 = \gamma^2KN$ is exact for disjoint windows
 # (bit for bit, tested), and an upper bound otherwise. The shipped controller adds one pulse at the
 # switch itself, so the MLP's realised energy is $\gamma^2K(N+1)$, and the recorded pulses fill the
-# window of $N+1$ slots in every run; the gated actors' epoch pulses are weighted by use and
-# weaker. (The slopes quoted in this paragraph were measured when the tracker still used a
-# single-run copy of the controller that gave every selected expert the full $\gamma$ after each
-# epoch; the PE-MAMoE rows move when the notebook is rerun.) The drift of a noisy run from
-# its same-seed twin grows with the energy but **much more slowly than** $\sqrt{\text{energy}}$:
-# the probe-distance slope against $\sqrt{\sum\gamma^2}$ is 0.48 [0.46, 0.50] in the $\gamma$ sweep
-# (0.51 [0.44, 0.57] for the MLP, so routing is not the cause), and $\sum_t|\Delta J_t|$ has slope
-# 0.49 [0.42, 0.54]. The reason shows in the reference line: at $\gamma = 0.04$ the twin is
-# as far away (0.10) as a run with a *different seed* (0.12). A paired PPO run amplifies any small
-# perturbation until it reaches the learner's own seed-to-seed spread, so this distance saturates
-# and does not isolate the conditional mean that the lemma's martingale sum is centred on. The
-# lemma's own quantity, the signed sum $|\sum_t \Delta J_t|$, is dominated by cancellations
-# ($R^2 = 0.04$, slope 0.23 with an interval from $-0.23$ to $0.66$): these runs cannot pin it
-# down. Read literally, a slope below 1 means the ratio deviation$/\sqrt{\text{energy}}$ grows as
+# window of $N+1$ slots in every run. The gated actor's epoch pulses are weighted by how much each
+# expert is used, so PE-MAMoE's energy is 0.17 of the MLP's on average. The drift of a noisy run
+# from its same-seed twin grows with the energy but **much more slowly than**
+# $\sqrt{\text{energy}}$. In the $\gamma$ sweep the probe-distance slope against
+# $\sqrt{\sum\gamma^2}$ is 0.25 [0.14, 0.34] for PE-MAMoE and 0.62 [0.59, 0.64] for the MLP, and
+# $\sum_t|\Delta J_t|$ has slope 0.26 [0.08, 0.45].
+#
+# The reference line shows why. At $\gamma = 0.04$ the MLP's twin is as far away (0.094) as a run
+# with a *different seed* (0.094), and PE-MAMoE's is at 0.070 against 0.123. A paired PPO run
+# amplifies any small perturbation until it reaches the learner's own seed-to-seed spread, so this
+# distance saturates and does not isolate the conditional mean that the lemma's martingale sum is
+# centred on. The lemma's own quantity, the signed sum $|\sum_t \Delta J_t|$, is dominated by
+# cancellations ($R^2 = 0.02$, slope 0.25 with an interval from $-0.55$ to $1.12$): these runs
+# cannot pin it down.
+#
+# Read literally, a slope below 1 means that the ratio deviation$/\sqrt{\text{energy}}$ grows as
 # $\gamma \to 0$. That conflicts with a uniform $O(\sqrt{\sum\gamma^2})$ constant if one takes the
 # twin distance as the deviation. It does not refute the lemma, which is about a differently
-# centred quantity. The $K$ sweep (slope 1.6) is confounded: more switches also means an
-# earlier first pulse, so the noise acts for longer.
+# centred quantity. The $K$ sweep (slope 1.5) is confounded: more switches also means an earlier
+# first pulse, so the noise acts for longer.
 #
-# **Routing stability (A4).** On a trained PE-MAMoE actor the softmax gate is nearly flat (top-two
-# gap: median 0.045) and the gating noise ($\mathrm{softplus} \approx 0.6$) is larger than the
-# spread of the logits (about 0.14 to 0.24), so in sampling mode the actor draws its expert almost at random. For
-# the A4 mixture and for the sampling marginal, the constants fitted on single-factor perturbations
-# ($L_G = 0.77$ and $1.04$, $L_k \approx 0.78$ to $0.90$ per unit of $w_k\|\Delta\theta_k\|$) bound
-# every held-out joint perturbation (0/3840 violations, median tightness 0.11) and every tie
-# (0/4800). $L_G \le 1$ for the A4 mixture is what the triangle inequality predicts. For
-# **evaluation top-1 the assumption fails**: router-only perturbations already need $L_G \approx
-# 1.6\times10^3$ on random states (some lie close to a boundary), at exact ties the ratio reaches
-# $1.9\times10^4$, and 162 of 4800 tie samples break even that bound. A router change that moves the gate by
-# $\|\Delta g\|_1 \approx 8\times10^{-4}$ flips the chosen expert in about half the tie cases and
-# moves the action distribution by $0.23$ in $L_1$ (median). A4 holds for the smooth mixtures.
-# For the hard top-1 policy that is deployed it holds only piecewise, away from the boundaries,
-# which the paper's phrase "piecewise smooth" concedes but its Lipschitz inequality does not.
+# **Routing stability (A4).** With the gating defaults of notebook 05c the trained actor has no
+# routing noise (its gating-noise scale is 0). Its sampling policy therefore routes top-1 like the
+# evaluation policy, and the "sampling marginal" is the same one-hot choice. The softmax gate is
+# nearly flat: the top-two gap has a median of 0.033, and the logits spread by 0.10 to 0.17 over
+# states.
 #
-# **Dynamic regret.** With $V_T$ fixed ($K = 3$) the regret grows like $T^{0.21}$ [0.17, 0.25]
-# for PE-MAMoE (SMoE 0.21, MLP 0.28), far below $T^{3/4}$. The implied constant
-# $R_T/(T^{3/4}V_T^{1/4})$ falls from 0.29 to 0.09 between $T = 100$ and $800$: in $T$ the bound
-# is loose and increasingly so. With a fixed phase length the regret is linear ($0.95$
-# [0.83, 1.06]), as the shape allows. In $V_T$ at fixed $T$ the measured growth is **steeper than
-# $V_T^{1/4}$**: 0.84 [0.67, 0.99] over all $(K, \text{shift})$ and 0.53 to 0.59 when only $K$ varies
-# at shift 0.6 or 1.2. The joint fit gives $(\alpha, \beta) = (0.15\;[-0.02, 0.26],\; 0.79\;[0.63,
-# 0.93])$ against $(3/4, 1/4)$. This does not break the bound, since every run sits under
-# $0.3\,T^{3/4}V_T^{1/4}$. It does mean the shape misdescribes how this learner's regret depends
-# on drift. Each switch costs a transient roughly proportional to the size of the jump
-# (steady-state regret is only 0.002 to 0.03 per step), so regret is close to additive in the
-# switches. The $T^{3/4}$ slack absorbs the steeper $V_T$ dependence. The noise term is not
-# detectable in the regret. The excess regret of the noisy runs is +1.1 % of the clean regret
-# (median, range −3 % to +7 %; MLP +3.0 %), and its slope against $\sqrt{\text{energy}}$ is 0.12
-# with an interval from $-0.46$ to $0.58$. In this toy, noise neither helps (no plasticity has
-# been lost in a few hundred iterations) nor measurably hurts.
+# For the A4 mixture, the constants fitted on single-factor perturbations bound every held-out
+# joint perturbation (0/3840 violations, median tightness 0.11) and every tie (0/4800). The
+# constants are $L_G = 1.04$ and $L_k \approx 0.74$ to $1.07$ per unit of $w_k\|\Delta\theta_k\|$.
+# $L_G \approx 1$ is what the triangle inequality predicts.
+#
+# For the **top-1 policies the assumption fails**, in sampling and in evaluation alike:
+# * Router-only perturbations already need $L_G \approx 3\times10^3$ on random states, some of
+#   which lie close to a boundary.
+# * At exact ties the ratio reaches $1.1\times10^5$, and 131 (sampling) and 147 (evaluation) of
+#   4800 tie samples break even the envelope bound.
+# * A router change that moves the gate by $\|\Delta g\|_1 \approx 6\times10^{-4}$ flips the
+#   chosen expert in half the tie cases (479 of 960), and moves the action distribution by 0.25
+#   in $L_1$ (median).
+#
+# A4 holds for the smooth mixture. For the hard top-1 policy that is trained and deployed it holds
+# only piecewise, away from the boundaries. The paper's phrase "piecewise smooth" concedes this;
+# its Lipschitz inequality does not.
+#
+# **Dynamic regret.** With $V_T$ fixed ($K = 3$) the regret grows like $T^{0.24}$ [0.22, 0.27]
+# for PE-MAMoE (SMoE and MLP 0.24), far below $T^{3/4}$. The implied constant
+# $R_T/(T^{3/4}V_T^{1/4})$ falls from 0.25 to 0.09 between $T = 100$ and $800$, so in $T$ the
+# bound is loose, and more so as $T$ grows. With a fixed phase length the regret is linear (1.02
+# [0.93, 1.12]), as the shape allows.
+#
+# In $V_T$ at fixed $T$, the measured growth is **steeper than $V_T^{1/4}$**:
+# * 0.89 [0.72, 1.03] over all $(K, \text{shift})$;
+# * 0.59 to 0.62 when only $K$ varies, at shift 0.6 or 1.2 (0.32 at shift 0.3);
+# * the joint fit gives $(\alpha, \beta) = (0.17\;[0.00, 0.28],\; 0.83\;[0.69, 0.96])$ against
+#   $(3/4, 1/4)$.
+#
+# This does not break the bound, since every run sits under $0.3\,T^{3/4}V_T^{1/4}$. It does mean
+# the shape misdescribes how this learner's regret depends on drift. Each switch costs a transient
+# roughly proportional to the size of the jump, while steady-state regret is only 0.002 to 0.02 per
+# step. So regret is close to additive in the switches, and the $T^{3/4}$ slack absorbs the steeper
+# $V_T$ dependence.
+#
+# The noise term is not detectable in the regret:
+# * The excess regret of PE-MAMoE's noisy runs is +0.01 % of the clean regret (median, range
+#   −5 % to +6 %, positive in 17 of 33 pairs), and its slope against $\sqrt{\text{energy}}$ is
+#   −0.04, with an interval from −1.19 to 1.77.
+# * The MLP's noisy runs are at −2.4 % (median, range −13 % to +10 %).
+#
+# In this toy, noise neither helps (no plasticity has been lost in a few hundred iterations) nor
+# measurably hurts.
 #
 # **What this cannot show.** A fitted slope over one decade of $T$ or $\gamma$ is not an
 # asymptotic rate, and an upper bound with hidden constants can only be *falsified* by a
