@@ -254,10 +254,11 @@ print(f"\nscale={scale}: of {len(headline)} claims, " + ", ".join(f"{n} {v}" for
 #
 # A result at a reduced scale says how the methods compare *after that much training*, not after
 # the paper's. The cell below puts the budget of one run at this scale beside the paper's, and the
-# learned policies beside the k-means heuristic, which does not learn at all. When the learned
-# policies still serve fewer users than k-means, none of them has learned good placement yet, and
-# differences between them mostly reflect how fast each starts to learn rather than the plasticity
-# under repeated switches that the paper studies; only the `paper` scale can settle the claims.
+# learned policies beside the k-means heuristic, which does not learn at all. Learned policies
+# that serve fewer users than k-means have either not learned yet, in which case differences
+# between them mostly say how fast each starts, or they have levelled off below the heuristic.
+# The phase visits against the single-phase plateaus, in the next section, tell which: at `small`
+# it is the first, at `medium` the second. Only the `paper` scale tests the paper's own budget.
 
 # %%
 run_cfg = TrainConfig.for_scale(scale, proposed, 0)
