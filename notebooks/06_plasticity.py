@@ -56,6 +56,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from pemamoe.core import require_field
+from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
 
 # %% [markdown]
 # ## What the paper fixes, and what it leaves open
@@ -174,7 +175,7 @@ from pemamoe.core import require_field
 #| export
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
-GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
+GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
 
 
 @dataclass(frozen=True)

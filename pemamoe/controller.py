@@ -3,7 +3,7 @@
 
 __all__ = ['PhaseController']
 
-# %% notebooks/06_plasticity.py, cell 16 (line 492)
+# %% notebooks/06_plasticity.py, cell 16 (line 493)
 from dataclasses import asdict
 
 import torch

@@ -10,12 +10,13 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from pemamoe.core import require_field
+from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 173)
+# %% notebooks/06_plasticity.py, cell 8 (line 174)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
-GROUP_NAMES = ("router", "experts", "head", "log_std", "critic")
+GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
 
 
 @dataclass(frozen=True)
@@ -130,7 +131,7 @@ class BaseSchedule:
         require_field(self, "temperature", "real", gt=0)
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 314)
+# %% notebooks/06_plasticity.py, cell 10 (line 315)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -178,7 +179,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 378)
+# %% notebooks/06_plasticity.py, cell 12 (line 379)
 def n_experts_of(actor) -> int:
     """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
     return len({0 if e is None else e for _, e in actor.trunk_parameters()})
@@ -196,7 +197,7 @@ def expert_parameters(actor, expert: int) -> list:
             for name, e in actor.trunk_parameters() if e is None or e == expert]
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 472)
+# %% notebooks/06_plasticity.py, cell 15 (line 473)
 @dataclass(frozen=True)
 class IterationSettings:
     """What one member trains with in one iteration (one per member in Schedules.members)."""
