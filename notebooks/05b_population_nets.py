@@ -245,8 +245,9 @@ def check_param_groups(module, allowed: tuple):
 # minibatch) and 2048 (a rollout). On our 2-core CPU the batched products win up to a few hundred
 # rows, where kernel-call overhead dominates the tiny matrices, and `masked` wins from roughly 512
 # rows on, where doing a third of the arithmetic pays for the indexing (forward and backward of the
-# top-1 actor at 2048 rows, one thread: 4.6 to 6.7 ms masked against 6.0 to 8.8 ms batched and
-# 7.0 to 10.3 ms loop over our runs at `469129f`, before the batched path became `run_experts`).
+# top-1 actor at 2048 rows, one thread, both observation sizes: 2.6 to 2.9 ms masked against 3.3 to
+# 3.7 ms batched through `run_experts` and 3.8 to 4.6 ms loop, over three runs of
+# `benchmarks/bench_nets.py` at `43ae5c1`; `benchmarks/RESULTS.md` holds the latest `make bench`).
 # So `"auto"` takes `masked` for sparse mixing at batches of at least `NetConfig.masked_min_batch`
 # rows and the batched products otherwise; dense mixing always runs every expert, batched.
 # `selected_mixer` hands `run_gate` the strategy as its `mix_selected`. `all_experts` also returns
