@@ -822,15 +822,13 @@ plt.show()
 # starts from a network trained on other phases, which can help or hurt.
 
 # %%
-from pemamoe.budget import (PLATEAU_FRACTION, block_steps, budget_curves, load_budget, phase_learning,
-                            plateau_table)
+from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
 from pemamoe.sweep import budget_specs
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
 study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
                       workers, results_dir, ray_address, records_dir, retrain)
-plateaus = plateau_table(budget_curves(load_budget(study), block_steps=block_steps(scale)))
-learned = phase_learning(metrics, plateaus[plateaus.settings == "small"])
+learned = phase_learning(metrics, study_plateaus(study, scale))
 mlp_rows = learned[learned.method == "mlp"]
 mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()
               and (mlp_rows[mlp_rows.phase == 0].coverage_last_10pct >= 0.65).all())

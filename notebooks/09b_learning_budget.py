@@ -186,6 +186,13 @@ def phase_learning(metrics: pd.DataFrame, plateaus: pd.DataFrame, column: str = 
     return pd.DataFrame(rows)
 
 
+def study_plateaus(study_records, scale: str, settings: str = "small") -> pd.DataFrame:
+    """The yardstick phase_learning reads: plateau_table rows of one update setting, from the
+    study's records (sweep_records of budget_specs) at `scale`."""
+    table = plateau_table(budget_curves(load_budget(study_records), block_steps=block_steps(scale)))
+    return table[table.settings == settings]
+
+
 # %% [markdown]
 # ## The runs
 #

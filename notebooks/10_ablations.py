@@ -288,7 +288,7 @@ print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuris
 # runs, byte for byte in their records: one plateau serves both.)
 
 # %%
-from pemamoe.budget import PLATEAU_FRACTION, block_steps, budget_curves, load_budget, phase_learning, plateau_table
+from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.sweep import budget_specs
 
@@ -296,8 +296,7 @@ main_metrics = metrics[metrics.run.isin(runs_of["main"])]
 study_methods = tuple(m for m in method_order(main_metrics.method) if m in METHOD_REGISTRY)
 study = sweep_records(budget_specs(scale, seed_list, study_methods), backend, workers, results_dir, ray_address,
                       records_dir, retrain)
-plateaus = plateau_table(budget_curves(load_budget(study), block_steps=block_steps(scale)))
-plateaus = plateaus[plateaus.settings == "small"]
+plateaus = study_plateaus(study, scale)
 visits = phase_learning(main_metrics, plateaus)
 # The proposed method's own base: the compared method with its network and no plasticity mechanism.
 sparse_base = next(name for name, spec in METHOD_REGISTRY.items() if spec.compared and spec.plasticity == "none"

@@ -568,9 +568,9 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
                      "hours_left": (total - reached) * seconds / 3600})
     table = pd.DataFrame(rows, columns=["group", "methods", "members", "iteration", "of", "s_per_iteration",
                                         "hours_left"])
-    pending = {spec.run_dir(results_dir) for spec in todo}
-    timed = [] if records_dir is None else [  # each run once, however many experiments share it
-        t["member_compute_s"] for folder, spec in by_folder.items() if folder not in pending
+    pending = set(todo)  # by_folder's own specs: one per run, however many experiments share it
+    timed = [] if records_dir is None else [
+        t["member_compute_s"] for spec in by_folder.values() if spec not in pending
         if "member_compute_s" in (t := record_timing(record_marker(spec, records_dir)))]
     table.attrs.update(finished=len(by_folder) - len(todo), runs=len(by_folder), timed=len(timed),
                        spent_hours=sum(timed) / 3600 if timed else float("nan"))
