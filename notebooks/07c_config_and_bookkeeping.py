@@ -67,7 +67,7 @@ import torch
 
 from pemamoe.core import by_scale, check_scale, config_error, require_field
 from pemamoe.env import EnvConfig
-from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods
+from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
 from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerConfig
 
@@ -141,6 +141,16 @@ TRAINING_NUMERICS = 2  # 2: the controller is inert before the first switch; gat
 # Columns that describe how a run was executed (speed, population size), not what it computed:
 # they differ between two executions of the same run and are left out of every comparison.
 TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
+
+
+# An MLP reads only these NetConfig fields. Every other one (the gating settings) is written into
+# an MLP run's identity at the value it had when MLP runs were first recorded, so a later change of
+# a gating default (or a new gating field) leaves the MLP runs, and their records, where they are.
+MLP_NET_FIELDS = ("hidden", "init_log_std", "gain_hidden", "gain_policy", "gain_value")
+MLP_INERT_NET_IDENTITY = {"n_experts": 3, "top_k": 1, "load_balance_coef": 0.01, "top1_weight": "straight_through",
+                          "routing_noise": "off", "noise_std": 1.0, "noise_anneal_portion": 1.0,
+                          "critic_gating": "dense", "expert_impl": "auto", "masked_min_batch": 512,
+                          "gain_router": 0.01}
 
 
 def resolve_device(name: str) -> torch.device:
@@ -337,6 +347,8 @@ class TrainConfig:
         d = self.to_dict()
         if not self.controller_enabled:
             d.pop("controller")
+        if network_kind(self.method) == "mlp":  # the gating fields are inert for an MLP: pinned, see below
+            d["net"] = {**{k: v for k, v in d["net"].items() if k in MLP_NET_FIELDS}, **MLP_INERT_NET_IDENTITY}
         d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged

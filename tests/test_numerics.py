@@ -22,6 +22,7 @@ from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.train_config import TRAINING_NUMERICS
 
 FINGERPRINT = Path(__file__).with_name("numerics_fingerprint.json")
+ROOT = Path(__file__).resolve().parents[1]
 # Sums over iterations and members of logged statistics: the rollout (environment and sampling), the
 # episode log the figures read, the update (losses, gradients, policy) and the plasticity
 # diagnostics. Dormant-unit fractions are left out: they count units against a threshold, so an
@@ -105,6 +106,28 @@ def test_a_numerics_bump_renames_every_run(monkeypatch):
     assert cfg.identity()["numerics"] == tc.TRAINING_NUMERICS and cfg.config_hash() != now
     monkeypatch.setattr(tc, "TRAINING_NUMERICS", 1)  # version 1 leaves the key out (runs made before it existed)
     assert "numerics" not in cfg.identity() and cfg.config_hash() != now
+
+
+def test_gating_settings_leave_an_mlp_run_where_it_is():
+    """A gating default or field is inert for an MLP: changing it must not rename MLP runs (their
+    records would be orphaned), while it does rename every gated run. The pinned values are the
+    ones the committed MLP records were made under."""
+    import dataclasses
+    from pemamoe.train_config import MLP_INERT_NET_IDENTITY
+    for method in ("mlp", "mlp_redo", "mlp_snp"):
+        cfg = TrainConfig.for_scale("medium", method=method)
+        assert cfg.identity()["net"] == {**{k: v for k, v in cfg.to_dict()["net"].items()
+                                            if k not in MLP_INERT_NET_IDENTITY}, **MLP_INERT_NET_IDENTITY}
+        for field, value in (("load_balance_coef", 0.0), ("top_k", 2), ("routing_noise", "fixed"), ("n_experts", 5)):
+            changed = cfg.replace(net=dataclasses.replace(cfg.net, **{field: value}))
+            assert changed.config_hash() == cfg.config_hash(), field
+        wider = cfg.replace(net=dataclasses.replace(cfg.net, hidden=64))
+        assert wider.config_hash() != cfg.config_hash()  # a field the MLP reads still counts
+    gated = TrainConfig.for_scale("medium", method="smoe")
+    assert gated.replace(net=dataclasses.replace(gated.net, load_balance_coef=0.0)).config_hash() != gated.config_hash()
+    # the medium MLP records on disk were made under these values: their names still resolve
+    recorded = {p.name.split(".")[0] for p in (ROOT / "records" / "medium").glob("mlp-*.json")}
+    assert {TrainConfig.for_scale("medium", method="mlp", seed=s).run_name() for s in range(3)} <= recorded
 
 
 def write(force: bool = False) -> None:
