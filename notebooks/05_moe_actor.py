@@ -120,6 +120,12 @@ from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationAc
 # * Three gating choices the paper leaves open ("Top-1 gating" below): `top1_weight`,
 #   `routing_noise` (`learned`, `fixed`, `annealed` or `off`, with `noise_std` and
 #   `noise_anneal_portion`) and `critic_gating` (`dense`, `gated` or `mlp`).
+# * Two readings of the sparse actor (appendix 05d compares them): `expert_heads` (`shared`: one
+#   mean head after the mixed trunk, as the parameter counts say; `per_expert`: each expert its
+#   own head and the experts' means mixed, as the equations say) and `update_routing` (`replay`:
+#   the update reuses the experts chosen in the rollout; `current`: it routes each row again with
+#   the current router and the stored noise, so a change of route moves the PPO ratio and is
+#   clipped like any other change of the policy).
 # * `expert_impl = "auto"` and `masked_min_batch = 512`: how a single network executes its expert
 #   bank (next section); speed only.
 # * Orthogonal initialisation gains (the usual PPO choices): $\sqrt2$ for hidden layers, 0.01 for
@@ -132,6 +138,8 @@ from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationAc
 TOP1_WEIGHTS = ("straight_through", "switch", "paper")
 ROUTING_NOISES = ("learned", "fixed", "annealed", "off")
 CRITIC_GATINGS = ("dense", "gated", "mlp")
+EXPERT_HEADS = ("shared", "per_expert")
+UPDATE_ROUTINGS = ("replay", "current")
 
 # The paper's Table "Computational cost" at observation dimension 177 (hidden 32, 3 experts, 2-D
 # action), from the method registry: for comparison with the modules' own counts only.
@@ -155,6 +163,9 @@ class NetConfig:
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
+    # the sparse actor as the paper's equations write it (appendix 05d measures each reading)
+    expert_heads: str = "shared"  # "per_expert": each expert its own mean head, the experts' means mixed
+    update_routing: str = "replay"  # "current": PPO's update routes each row with the current router
     expert_impl: str = "auto"
     masked_min_batch: int = 512
     gain_hidden: float = math.sqrt(2.0)
@@ -173,6 +184,8 @@ class NetConfig:
         require_field(self, "noise_std", "real", ge=0)
         require_field(self, "noise_anneal_portion", "real", gt=0, le=1)
         require_field(self, "critic_gating", "choice", CRITIC_GATINGS)
+        require_field(self, "expert_heads", "choice", EXPERT_HEADS)
+        require_field(self, "update_routing", "choice", UPDATE_ROUTINGS)
         require_field(self, "expert_impl", "choice", EXPERT_IMPLS)
         require_field(self, "masked_min_batch", "int", ge=1)
         for name in ("gain_hidden", "gain_policy", "gain_value", "gain_router"):
@@ -181,7 +194,7 @@ class NetConfig:
 
 # The paper's counts include a noise gate (its SMoE has 534 = 3 x (177 + 1) parameters more than its
 # MoE): its network had learned routing noise. Its cost table is reproduced with this configuration.
-PAPER_NET = NetConfig(routing_noise="learned")
+PAPER_NET = NetConfig(routing_noise="learned", expert_heads="shared")
 
 
 # %% [markdown]
@@ -262,21 +275,27 @@ def topk_weights(kept, top1_weight: str):
     return weights.detach()
 
 
-def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None):
+def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=None):
     """Gated trunk of every member: x (R, n, in), tau (R, n), noise (R, n, E) or None
     (noiseless), experts (R, n, k) to replay or None -> (features (R, n, hidden),
     (probs (R, n, E), experts (R, n, k) or None for dense mixing, weights)).
     mix_selected(experts, weights) -> features: how a single network runs only the selected
-    experts of a sparse gate (None: every expert, batched)."""
+    experts of a sparse gate (None: every expert, batched). heads (weight (R, E, out, hidden),
+    bias (R, E, out)): each expert's own output layer, applied before the mixing, so that the
+    first result is the mixed output (R, n, out) instead of the mixed features."""
     sparse, k = gate.sparse, gate.k
     logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
     if gate.noisy and noise is not None:
         logits = logits + noise * run_noise_scale(p, prefix, x, gate)
     probs = torch.softmax(logits, dim=-1)
     h = None
-    if not (sparse and mix_selected is not None):
+    if heads is not None or not (sparse and mix_selected is not None):
         h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
                         p[prefix + "experts.b2"])  # (R, E, n, hidden)
+    if heads is not None:  # every expert's own output: (R, E, n, out), mixed below like the features
+        (hw, hb), (R, E, n, hid) = heads, h.shape
+        h = torch.baddbmm(hb.reshape(R * E, 1, -1), h.reshape(R * E, n, hid),
+                          hw.transpose(-1, -2).reshape(R * E, hid, -1)).reshape(R, E, n, -1)
     if not sparse:
         features = torch.einsum("rne,renh->rnh", probs, h)
         return features, (probs, None, probs)
@@ -478,10 +497,20 @@ class GaussianActor(nn.Module):
         (probs, experts, weights) or None); tau (R, n), noise (R, n, E), experts (R, n, k): gated kinds."""
         raise NotImplementedError
 
+    def run_mean(self, p, x, tau=None, noise=None, experts=None):
+        """R members at once: (policy mean (R, n, act_dim), gate as run_features); the features
+        through the shared head, unless a kind gives each expert its own head."""
+        feat, gate = self.run_features(p, x, tau, noise, experts)
+        return run_linear(feat, p["head.weight"], p["head.bias"]), gate
+
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         """x (B, obs_dim) -> ((B, hidden), GateOutput | None): run_features at R = 1 (gated kinds: their gate)."""
         feat, _ = self.run_features(single_member_params(self), x.unsqueeze(0))
         return feat[0], None
+
+    def mean_of(self, x, feat, gate):
+        """The policy mean (B, act_dim) of rows x given their features and gate (from `features`)."""
+        return self.head(feat)
 
     def trunk_parameters(self) -> list:
         """[(parameter name, expert index or None)]: the trunk parameters the plasticity methods
@@ -500,14 +529,14 @@ class GaussianActor(nn.Module):
         feat, gate = self.features(x, temperature, None, deterministic_gate=True, with_aux=False)
         pre, act = self.probe_layers(x, feat)
         return {"preact": pre, "act": act, "router_probs": None if gate is None else gate.probs,
-                "selected": None if gate is None else gate.experts, "features": feat, "mean": self.head(feat)}
+                "selected": None if gate is None else gate.experts, "features": feat, "mean": self.mean_of(x, feat, gate)}
 
     def _forward(self, obs, temperature=None, routing=None, deterministic_gate=False, with_aux=False):
         lead = obs.shape[:-1]
         x = obs.reshape(-1, self.obs_dim)
         routing = _flatten_routing(routing, x.shape[0])
         feat, gate = self.features(x, temperature, routing, deterministic_gate, with_aux)
-        mean = self.head(feat).reshape(*lead, self.act_dim)
+        mean = self.mean_of(x, feat, gate).reshape(*lead, self.act_dim)
         # validate_args=False: the argument checks cost more than the network at batch 1
         dist = Independent(Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False), 1, validate_args=False)
         return dist, gate, lead
@@ -581,8 +610,25 @@ class MLPActor(GaussianActor):
                 "head": linear_cost(self.head), "log_std": (self.log_std.numel(), 0)}
 
 
+class ExpertHeads(nn.Module):
+    """E linear output layers hidden -> out, stacked like the expert bank: weight (E, out, hidden),
+    bias (E, out); each initialised as the shared head would be (orthogonal, `gain`; zero bias)."""
+
+    def __init__(self, n_experts: int, hidden: int, out: int, gain: float):
+        super().__init__()
+        self.in_features, self.out_features = hidden, out  # one expert's head, for linear_cost
+        self.weight = nn.Parameter(torch.stack([nn.init.orthogonal_(torch.empty(out, hidden), gain)
+                                                for _ in range(n_experts)]))
+        self.bias = nn.Parameter(torch.zeros(n_experts, out))
+
+    def forward(self, h):
+        """h (E, B, hidden), every expert's features -> (E, B, out), each through its own head."""
+        return torch.baddbmm(self.bias.unsqueeze(1), h, self.weight.transpose(1, 2))
+
+
 class MoEActor(GaussianActor):
-    """Dense mixture: softmax router over E expert trunks, one shared head (the MoE baseline)."""
+    """Dense mixture: softmax router over E expert trunks, one shared head (the MoE baseline), or
+    each expert its own head (`expert_heads="per_expert"`)."""
 
     kind = "moe"
     sparse = False
@@ -590,6 +636,8 @@ class MoEActor(GaussianActor):
     def __init__(self, obs_dim: int, act_dim: int, cfg: NetConfig):
         super().__init__(obs_dim, act_dim, cfg)
         self.gate = GatedExperts(obs_dim, cfg, sparse=self.sparse)
+        if cfg.expert_heads == "per_expert":  # built last: the shared reading draws its initial values as before
+            self.head = ExpertHeads(cfg.n_experts, cfg.hidden, act_dim, cfg.gain_policy)
 
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
         out = self.gate(x, temperature, routing, deterministic_gate, with_aux)
@@ -597,6 +645,20 @@ class MoEActor(GaussianActor):
 
     def run_features(self, p, x, tau=None, noise=None, experts=None):
         return run_gate(p, "gate.", x, tau, noise, experts, self.gate)
+
+    def run_mean(self, p, x, tau=None, noise=None, experts=None):
+        if self.cfg.expert_heads == "shared":
+            return super().run_mean(p, x, tau, noise, experts)
+        return run_gate(p, "gate.", x, tau, noise, experts, self.gate, heads=(p["head.weight"], p["head.bias"]))
+
+    def mean_of(self, x, feat, gate):
+        if self.cfg.expert_heads == "shared":
+            return self.head(feat)
+        # the experts' own means, mixed under the routing that made `feat` (replayed at R = 1)
+        routing = gate.routing
+        mean, _ = self.run_mean(single_member_params(self), x.unsqueeze(0), routing.temperature.unsqueeze(0),
+                                routing.noise.unsqueeze(0), gate.experts.unsqueeze(0) if self.sparse else None)
+        return mean[0]
 
     def trunk_parameters(self) -> list:
         return [(f"gate.experts.{n}", e) for e in range(self.gate.n_experts) for n in ("w1", "b1", "w2", "b2")]

@@ -647,8 +647,8 @@ class PopulationActor(_Population):
     def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None):
         """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None)."""
         p = self.params(flat)
-        feat, gate = self.template.run_features(p, obs, tau, noise, experts)
-        return run_linear(feat, p["head.weight"], p["head.bias"]), p["log_std"], gate
+        mean, gate = self.template.run_mean(p, obs, tau, noise, experts)
+        return mean, p["log_std"], gate
 
     @torch.no_grad()
     def act(self, obs, tau, generators, deterministic: bool = False, noise_std=None):
@@ -709,15 +709,34 @@ class PopulationActor(_Population):
                 "rollout/override_rate": override.cpu().numpy(),
                 "rollout/noise_scale": noise_scale.double().cpu().numpy()}
 
+    @torch.no_grad()
+    def reroute_readings(self, obs, routing) -> dict:
+        """{"update/reroute_rate": per member, the share of rows whose experts under the current
+        parameters (same noise and temperature) differ from those that acted} for a sparse actor
+        that routes again in the update (update_routing="current"); {} otherwise. Read after the
+        update: how much of the batch PPO moved to another expert. obs (R, ..., obs_dim), routing
+        with the same leading axes."""
+        if routing is None or not (self.gated and self.k < self.n_experts) \
+                or self.template.cfg.update_routing != "current":
+            return {}
+        R = obs.shape[0]
+        rows, stored = obs.reshape(R, -1, obs.shape[-1]), routing.reshape(R, -1)
+        _, _, (_, chosen, _) = self.mean_and_gate(rows, stored.temperature, stored.noise if self.noisy else None)
+        moved = (chosen.sort(-1).values != stored.experts.sort(-1).values).any(-1).double().mean(1)
+        return {"update/reroute_rate": moved.cpu().numpy()}
+
     def evaluate(self, obs, action, routing=None, flat=None):
-        """PPO update pass with the stored routing replayed: (log_prob (R, n), entropy (R,),
-        load-balance loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None)."""
+        """PPO update pass with the stored routing: (log_prob (R, n), entropy (R,), load-balance
+        loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None). The stored noise and
+        temperature are always replayed; the stored experts only under update_routing="replay"
+        (under "current" the router chooses again, so a changed route shows in the ratio)."""
         R, n, _ = obs.shape
         if routing is None:
             tau, noise, experts = obs.new_ones(R, n), None, None
         else:
             tau, noise = routing.temperature, (routing.noise if self.noisy else None)
-            experts = routing.experts if self.k and self.k < self.n_experts else None
+            replay = self.template.cfg.update_routing == "replay"
+            experts = routing.experts if replay and self.k and self.k < self.n_experts else None
         mean, log_std, gate = self.mean_and_gate(obs, tau, noise, experts, flat)
         logp = gaussian_log_prob(action, mean, log_std)
         entropy = gaussian_entropy(log_std)

@@ -135,10 +135,12 @@ def recycling_layers(actor) -> list:
     if gate is not None:
         bank = "gate.experts."
         w1, b1, w2, b2 = (ix(bank + n) for n in ("w1", "b1", "w2", "b2"))
+        head = ix("head.weight")  # (A, H) shared by the experts, or (E, A, H): each expert its own
+        per_expert = head.ndim == 3
         return [
             {"incoming": torch.cat([w1.transpose(1, 2), b1.unsqueeze(-1)], -1), "outgoing": w2, "shared": False},
             {"incoming": torch.cat([w2.transpose(1, 2), b2.unsqueeze(-1)], -1),
-             "outgoing": ix("head.weight").T.unsqueeze(0), "shared": True},
+             "outgoing": head.transpose(-1, -2) if per_expert else head.T.unsqueeze(0), "shared": not per_expert},
         ]
     if all(hasattr(template, n) for n in ("fc1", "fc2", "head")):
         w1, b1, w2, b2 = (ix(n) for n in ("fc1.weight", "fc1.bias", "fc2.weight", "fc2.bias"))

@@ -151,6 +151,9 @@ MLP_INERT_NET_IDENTITY = {"n_experts": 3, "top_k": 1, "load_balance_coef": 0.01,
                           "routing_noise": "off", "noise_std": 1.0, "noise_anneal_portion": 1.0,
                           "critic_gating": "dense", "expert_impl": "auto", "masked_min_batch": 512,
                           "gain_router": 0.01}
+# NetConfig fields added after runs were first recorded, with the value those runs computed under:
+# a run that keeps it has the identity it had before the field existed.
+NET_FIELDS_ADDED = {"expert_heads": "shared", "update_routing": "replay"}
 
 
 def resolve_device(name: str) -> torch.device:
@@ -349,6 +352,9 @@ class TrainConfig:
             d.pop("controller")
         if network_kind(self.method) == "mlp":  # the gating fields are inert for an MLP: pinned, see below
             d["net"] = {**{k: v for k, v in d["net"].items() if k in MLP_NET_FIELDS}, **MLP_INERT_NET_IDENTITY}
+        for name, value in NET_FIELDS_ADDED.items():  # at the value every earlier run had: absent, as then
+            if d["net"].get(name) == value:
+                d["net"].pop(name)
         d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged

@@ -209,7 +209,48 @@ def gating_specs(scale: str, seeds=None, readings=None, phases=(0, 1), steps: in
     return specs
 
 
-EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating")
+# The sparse-actor comparison (appendix 05d): why top-1 SMoE plateaus below MLP and MoE on a fixed
+# phase. Each reading changes one part of the sparse actor (or all the paper's at once), in fixed
+# phase 0 for SPARSE_STEPS environment steps with the small update settings, 2 seeds. Every reading
+# names every field it is about, so a later change of a NetConfig default leaves its identity alone.
+SPARSE_STEPS = 1_500_000
+_OURS = {"load_balance_coef": 0.01, "expert_heads": "shared", "update_routing": "replay", "top_k": 1}
+_PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routing": "current", "top_k": 1}
+SPARSE_READINGS = {  # name -> (method, NetConfig overrides)
+    "mlp": ("mlp", {}),
+    "moe": ("moe", dict(_OURS)),
+    "moe/paper": ("moe", {**_PAPERS}),
+    "smoe": ("smoe", dict(_OURS)),  # the sparse actor the committed study ran
+    "smoe/1 expert": ("smoe", {**_OURS, "n_experts": 1}),  # routing removed: the sanity check
+    "smoe/no balance": ("smoe", {**_OURS, "load_balance_coef": 0.0}),
+    "smoe/expert heads": ("smoe", {**_OURS, "expert_heads": "per_expert"}),
+    "smoe/re-routed ratio": ("smoe", {**_OURS, "update_routing": "current"}),
+    "smoe/paper": ("smoe", dict(_PAPERS)),  # all three of the paper's readings
+    "smoe/paper top-2": ("smoe", {**_PAPERS, "top_k": 2}),
+}
+
+
+def sparse_specs(scale: str, seeds=None, readings=None, phase: int = 0, steps: int | None = None) -> list:
+    """The sparse-actor comparison's runs: every reading x seed in one fixed phase, small update
+    settings (a few iterations at ci). Each spec's tag is "sparse/<reading>"."""
+    check_scale(scale)
+    preset = "ci" if scale == "ci" else "small"
+    seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
+    readings = tuple(SPARSE_READINGS) if readings is None else tuple(readings)
+    for name in readings:
+        if name not in SPARSE_READINGS:
+            raise ValueError(f"sparse reading must be one of {', '.join(SPARSE_READINGS)}, got {name!r}")
+    steps = (64 * 4 if scale == "ci" else SPARSE_STEPS) if steps is None else steps
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"sparse_specs: steps must be an integer >= 1, got {steps!r}")
+    iterations = -(-steps // TrainConfig.for_scale(preset).batch_env_steps)
+    extra = {"iterations": iterations, "phase_length_iters": iterations, "fixed_phase": phase,
+             "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
+    return [RunSpec(method, seed, preset, overrides=tuple({**extra, **net}.items()), tag=f"sparse/{name}")
+            for name in readings for method, net in [SPARSE_READINGS[name]] for seed in seeds]
+
+
+EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse")
 
 
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
@@ -224,6 +265,8 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
         return budget_specs(scale, seeds, methods)
     if experiment == "gating":
         return gating_specs(scale, seeds)
+    if experiment == "sparse":
+        return sparse_specs(scale, seeds)
     if experiment not in makers:
         raise ValueError(f"experiment must be one of {', '.join(EXPERIMENTS)}, got {experiment!r}")
     return makers[experiment]()

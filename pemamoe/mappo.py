@@ -471,6 +471,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         # --- 4. PPO update of every member ------------------------------------------------------
         upd = ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data, norms, c0, rngs, frozen)
         update_time = time.perf_counter() - t0
+        step_stats.update(actor.reroute_readings(data["obs"], data["actor_routing"]))  # {} unless routes are re-chosen
 
         # --- 5. logging, diagnostics and checkpoints, per member ---------------------------------
         diag = it % c0.diag_every == 0 or switch or it == c0.iterations - 1

@@ -49,10 +49,12 @@ def recycling_layers(actor) -> list:
     if gate is not None:
         bank = "gate.experts."
         w1, b1, w2, b2 = (ix(bank + n) for n in ("w1", "b1", "w2", "b2"))
+        head = ix("head.weight")  # (A, H) shared by the experts, or (E, A, H): each expert its own
+        per_expert = head.ndim == 3
         return [
             {"incoming": torch.cat([w1.transpose(1, 2), b1.unsqueeze(-1)], -1), "outgoing": w2, "shared": False},
             {"incoming": torch.cat([w2.transpose(1, 2), b2.unsqueeze(-1)], -1),
-             "outgoing": ix("head.weight").T.unsqueeze(0), "shared": True},
+             "outgoing": head.transpose(-1, -2) if per_expert else head.T.unsqueeze(0), "shared": not per_expert},
         ]
     if all(hasattr(template, n) for n in ("fc1", "fc2", "head")):
         w1, b1, w2, b2 = (ix(n) for n in ("fc1.weight", "fc1.bias", "fc2.weight", "fc2.bias"))
@@ -72,7 +74,7 @@ def dormant_units(act: torch.Tensor, tau: float) -> torch.Tensor:
     return (layer_mean == 0) | (m / layer_mean <= tau)
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 10 (line 173)
+# %% notebooks/06c_plasticity_baselines.py, cell 10 (line 175)
 @register_plasticity
 class ReDo(NoPlasticity):
     """ReDo (Sokar et al., 2023) at each switch, per member: recycle the tau-dormant hidden units."""
@@ -125,7 +127,7 @@ class ReDo(NoPlasticity):
         return count
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 12 (line 236)
+# %% notebooks/06c_plasticity_baselines.py, cell 12 (line 238)
 @register_plasticity
 class ShrinkAndPerturb(NoPlasticity):
     """Shrink-and-perturb (Ash & Adams, 2020) at each switch, per member: theta <- shrink * theta +

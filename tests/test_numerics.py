@@ -113,18 +113,24 @@ def test_gating_settings_leave_an_mlp_run_where_it_is():
     records would be orphaned), while it does rename every gated run. The pinned values are the
     ones the committed MLP records were made under."""
     import dataclasses
-    from pemamoe.train_config import MLP_INERT_NET_IDENTITY
+    from pemamoe.train_config import MLP_INERT_NET_IDENTITY, MLP_NET_FIELDS
     for method in ("mlp", "mlp_redo", "mlp_snp"):
         cfg = TrainConfig.for_scale("medium", method=method)
-        assert cfg.identity()["net"] == {**{k: v for k, v in cfg.to_dict()["net"].items()
-                                            if k not in MLP_INERT_NET_IDENTITY}, **MLP_INERT_NET_IDENTITY}
-        for field, value in (("load_balance_coef", 0.0), ("top_k", 2), ("routing_noise", "fixed"), ("n_experts", 5)):
+        assert cfg.identity()["net"] == {**{k: getattr(cfg.net, k) for k in MLP_NET_FIELDS}, **MLP_INERT_NET_IDENTITY}
+        for field, value in (("load_balance_coef", 0.0), ("top_k", 2), ("routing_noise", "fixed"), ("n_experts", 5),
+                             ("expert_heads", "per_expert"), ("update_routing", "current")):
             changed = cfg.replace(net=dataclasses.replace(cfg.net, **{field: value}))
             assert changed.config_hash() == cfg.config_hash(), field
         wider = cfg.replace(net=dataclasses.replace(cfg.net, hidden=64))
         assert wider.config_hash() != cfg.config_hash()  # a field the MLP reads still counts
     gated = TrainConfig.for_scale("medium", method="smoe")
-    assert gated.replace(net=dataclasses.replace(gated.net, load_balance_coef=0.0)).config_hash() != gated.config_hash()
+    for field, value in (("load_balance_coef", 0.0), ("expert_heads", "per_expert"), ("update_routing", "current")):
+        assert gated.replace(net=dataclasses.replace(gated.net, **{field: value})).config_hash() != gated.config_hash()
+    # fields added later are absent from the identity at the value the earlier runs had
+    from pemamoe.train_config import NET_FIELDS_ADDED
+    assert all(getattr(gated.net, k) == v and k not in gated.identity()["net"] for k, v in NET_FIELDS_ADDED.items())
+    recorded = {p.name.split(".")[0] for p in (ROOT / "records" / "medium").glob("smoe-*.json")}
+    assert {TrainConfig.for_scale("medium", method="smoe", seed=s).run_name() for s in range(3)} <= recorded
     # the medium MLP records on disk were made under these values: their names still resolve
     recorded = {p.name.split(".")[0] for p in (ROOT / "records" / "medium").glob("mlp-*.json")}
     assert {TrainConfig.for_scale("medium", method="mlp", seed=s).run_name() for s in range(3)} <= recorded
