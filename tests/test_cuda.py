@@ -2,11 +2,10 @@
 GPU, the environment on the CPU.
 
 These tests need a CUDA GPU and are skipped without one; CI has none. They run in one prepared
-call on a lent GPU machine through `benchmarks/device_check.sh`. At the commit that added them no
-session had been lent a GPU, so they had never run: benchmarks/HISTORY.md's CUDA paragraph says
-when that changes.
+call on a lent GPU machine through `benchmarks/device_check.sh`; benchmarks/HISTORY.md says what
+they found when they ran (first on an H200, 2026-12-04).
 
-Here: a CUDA run trains, is a different run from a CPU one, makes the first PPO ratio exactly 1
+Here: a CUDA run trains, is a different run from a CPU one, makes the first PPO ratio 1 up to rounding
 (routing replay) and reads back on the CPU. Member independence and resume on the GPU are the
 `cuda` cases of tests/test_population.py.
 """
@@ -32,7 +31,9 @@ def test_cuda_run_trains_is_its_own_run_and_reads_back_on_the_cpu(tmp_path):
     res = train(cfg, tmp_path / "run")
     assert res.finished and len(res.metrics) == 4
     assert all(math.isfinite(x) for x in res.metrics["policy_loss"].dropna())
-    assert (res.metrics["first_ratio_dev"] == 0.0).all()  # routing replay: ratio exactly 1 per member
+    # routing replay: the first ratio is 1 up to float rounding, as on the CPU (tests/test_population.py):
+    # the rollout's pass and the minibatch's see different row counts (2.4e-7 seen on an H200)
+    assert (res.metrics["first_ratio_dev"] <= 1e-5).all()
     back = load_run(tmp_path / "run")  # networks come back as CPU modules
     for (name, a), (_, b) in zip(res.actor.state_dict().items(), back.actor.state_dict().items()):
         assert a.device.type == "cpu" and torch.equal(a, b), name

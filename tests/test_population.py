@@ -77,9 +77,15 @@ def _assert_same_run(a, b, dir_a=None, dir_b=None):
 # benchmarks/device_check.sh runs them on a lent GPU machine.
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                  reason="needs a CUDA GPU (CI has none)"))]
+# Measured on an H200 (torch 2.11, 2026-12-04): a member's numbers on the GPU depend on its population's
+# size from the first update on (policy_loss -0.0016776349 alone, -0.0016776308 in a population of 3),
+# for MLP and PE-MAMoE alike. Strict: the day it holds, this test fails and the claim can be made.
+GPU_POPULATION_DEPENDENT = pytest.mark.xfail(
+    torch.cuda.is_available(), strict=True,
+    reason="on a GPU a member's last bits depend on the population size (benchmarks/HISTORY.md)")
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[DEVICES[1].marks[0], GPU_POPULATION_DEPENDENT])])
 @pytest.mark.parametrize("method", ["pemamoe", "mlp"])
 def test_member_is_bit_identical_alone_and_in_any_population(method, device, tmp_path):
     # members differ in seed, ablation switch, noise gamma and force_controller; orders differ
