@@ -519,6 +519,7 @@ PAPER_COUNTERPARTS = {
     "results_routing_ran": "(ours) selected-expert shares and switch rate in the rollouts",
     "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
     "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
+    "sparse_actor": "(ours) the sparse actor's readings in fixed phase 0: why top-1 plateaus lower",
     "results_collisions": "Fig. 'Collisions per episode over training'",
     "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
     "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",

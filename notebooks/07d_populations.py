@@ -448,6 +448,45 @@ def _evaluation_step(venv, tracker, action, action_abs, rows):
         rows.append(r)
     return obs
 
+
+@torch.no_grad()
+def action_switch_readings(actor, env_cfg: EnvConfig | None = None, steps: int = 200, num_envs: int = 16,
+                           seed: int = 0, phase: int = 0, temperature: float = 1.0) -> dict:
+    """How the deterministic policy (mean action, noiseless routing) moves, over `steps` steps of
+    `num_envs` environments in `phase`: "jump_at_switch" and "jump_otherwise", the mean distance
+    between an agent's mean actions on consecutive steps of an episode when its selected expert
+    changed and when it did not (nan where no such step); "switch_rate", the share of those steps
+    on which the expert changed; "outside_box", the share of mean actions with a coordinate
+    outside the action box [-1, 1] (the environment clips them). An actor without experts (MLP)
+    has no switches: all its steps count as "otherwise"."""
+    env_cfg = dataclasses.replace(env_cfg or EnvConfig(), phase_clock="external")
+    venv = UAVVectorEnv(num_envs, seed, cfg=env_cfg)
+    venv.set_phase(phase)
+    obs, _, _ = venv.reset()
+    B, U = num_envs, venv.n_agents
+    previous = None  # (mean (B, U, A), experts (B, U, k) or None, alive (B,))
+    at_switch, otherwise, outside, rows = [], [], 0, 0
+    for _ in range(steps):
+        dist, routing = actor(torch.from_numpy(obs).reshape(B * U, -1), temperature, None, deterministic_gate=True)
+        mean = dist.mean.reshape(B, U, -1).numpy()
+        experts = None if routing is None else routing.experts.reshape(B, U, -1).sort(-1).values.numpy()
+        outside += int((np.abs(mean) > 1).any(-1).sum())
+        rows += B * U
+        if previous is not None:
+            jump = np.linalg.norm(mean - previous[0], axis=-1)[previous[2]]  # (alive agents,)
+            switched = (np.zeros(jump.shape, bool) if experts is None
+                        else (experts != previous[1]).any(-1)[previous[2]])
+            at_switch.append(jump[switched])
+            otherwise.append(jump[~switched])
+        obs, _, _, term, trunc, _ = venv.step(mean)
+        done = (np.asarray(term, bool) | np.asarray(trunc, bool)).reshape(B, -1).any(1)
+        previous = (mean, experts, ~done)  # a finished episode's next observation starts a new one
+    at_switch, otherwise = np.concatenate(at_switch), np.concatenate(otherwise)
+    pairs = len(at_switch) + len(otherwise)
+    return {"jump_at_switch": float(at_switch.mean()) if len(at_switch) else float("nan"),
+            "jump_otherwise": float(otherwise.mean()) if len(otherwise) else float("nan"),
+            "switch_rate": len(at_switch) / max(pairs, 1), "outside_box": outside / max(rows, 1)}
+
 # %% [markdown]
 # ## Demonstration
 #

@@ -139,7 +139,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     figures_dir: default paper_figures/ (a relative path is under the repository root).
     stream:      print progress lines and the notebooks' own output (False: silent).
     precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
-                 09 and 10, the learning-budget study of 09b, the gating comparison of 05c) as one sweep, so that compatible
+                 09 and 10, the learning-budget study of 09b, the gating comparison of 05c, the sparse-actor readings of 05d) as one sweep, so that compatible
                  runs of different experiments share populations, no notebook trains for hours
                  under its timeout, and the notebooks only read results (None: when all notebooks run).
     extra:       further parameters (e.g. backend="ray", workers=2, retrain=True), given to the
@@ -155,7 +155,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     records, t0 = {}, time.perf_counter()
     if precompute if precompute is not None else notebooks is None:
         say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
-        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale),
+        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale)
+                  + experiment_specs("sparse", scale),
                   extra.get("backend", "local"), extra.get("workers", 2),
                   _results_store(extra.get("results_dir", "results")), extra.get("ray_address"),
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
@@ -186,7 +187,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 254)
+# %% notebooks/09e_commands.py, cell 11 (line 255)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -1,0 +1,176 @@
+# ---
+# jupyter:
+#   jupytext:
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # 05d · The sparse actor, measured: why top-1 SMoE plateaus below MLP and MoE
+#
+# In the learning-budget study (notebook 09b) the top-1 sparse actor levels off clearly below the
+# MLP and the dense MoE in every fixed phase, with no phase switch and no plasticity mechanism
+# involved. Every verdict about PE-MAMoE, which is that sparse actor plus a phase controller,
+# inherits this gap, so it has to be explained before it is blamed on sparse routing itself.
+#
+# The sparse actor of notebook 05 differs from what the paper's equations write in three places,
+# each a choice we made where the paper is silent or contradicts itself:
+#
+# * **One shared mean head.** The paper's parameter counts say one head after the mixed trunk; its
+#   equations give every expert its own mean and mix the means (`expert_heads`).
+# * **A load-balancing loss (coefficient 0.01).** The paper's prose names a Switch-style balance
+#   term, but its loss equations (the actor objective and the total loss) have no such term and
+#   it gives no coefficient (`load_balance_coef`).
+# * **Replayed routes in PPO's ratio.** The update recomputes each row's action probability with
+#   the expert that acted in the rollout, so when the router would now pick another expert, the
+#   ratio never sees it and the clip never holds it (`update_routing`: `replay`, or `current`,
+#   which routes each row again with the current router and the stored noise).
+#
+# Each reading below changes one of these, or all three at once (`smoe/paper`), beside the
+# sanity checks: one expert (routing removed: the network is an MLP with a router that cannot
+# matter) and the paper's readings with the two best experts kept (`top-2`). MLP and MoE, with
+# and without the paper's readings, are the references. Every run learns a single fixed phase 0
+# for 1.5 million environment steps (2,930 iterations of the small update settings), 2 seeds.
+# Besides the coverage (the study's yardstick) we read, from each run's final actor, how its
+# deterministic policy moves: the mean distance between an agent's consecutive mean actions when
+# its expert changed and when it did not, and the share of mean actions outside the action box
+# (the environment clips them), with `action_switch_readings` (appendix 07d).
+#
+# The runs are a sweep, `python -m pemamoe sweep --experiment sparse` (small preset; the records
+# are committed); this notebook reads their records and trains only runs that have none (at `ci`,
+# a few iterations, so that CI executes it).
+
+# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+seeds = None  # None: 2 (1 at the ci scale)
+backend = "local"
+workers = 2
+ray_address = None
+results_dir = "results"
+records_dir = "records"  # the published records (appendix 09d); runs without one are trained
+retrain = False  # True: ignore the records, train into results_dir and write the records again
+
+# %%
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from pemamoe.budget import PLATEAU_TAIL, block_steps, budget_curves, load_budget, plateau_table
+from pemamoe.core import save_figure, write_table
+from pemamoe.populations import action_switch_readings
+from pemamoe.records import read_record_actor
+from pemamoe.sweep import SPARSE_READINGS, sparse_specs, sweep_records
+
+specs = sparse_specs(scale, seeds)
+records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
+metrics = load_budget(records)
+metrics["method"] = metrics.run.map({Path(r).stem: spec.tag.split("/", 1)[1] for spec, r in zip(specs, records)})
+readings = list(SPARSE_READINGS)
+print(f"{len(records)} runs of {metrics.env_steps.max():,} environment steps, {len(readings)} readings")
+
+# %% [markdown]
+# ## The table
+#
+# Per reading: coverage over the last 10 % of the steps (seed mean, lowest and highest seed); the
+# share of the gap between the sparse actor as it was (`smoe`) and MLP that the reading closes;
+# over the same window, the switch rate of the selected expert in the rollouts and, for the
+# readings that route again in the update, the share of the batch the update moved to another
+# expert (`reroute_rate`); and from the final actors (200 steps of 16 environments in phase 0,
+# noiseless routing, mean action) the action jumps and the share of mean actions outside the box.
+
+# %%
+def tail_mean(frame: pd.DataFrame, column: str) -> pd.Series:
+    """Per reading: seed mean of each run's mean of `column` over its last PLATEAU_TAIL of iterations."""
+    if column not in frame:
+        return pd.Series(dtype=float)
+    last = frame.groupby("run").iteration.transform("max")
+    window = frame[frame.iteration > last - np.maximum(1, np.round(PLATEAU_TAIL * (last + 1)))]
+    return window.groupby(["method", "seed"])[column].mean().groupby("method").mean()
+
+
+curves = budget_curves(metrics, block_steps=block_steps(scale))
+table = plateau_table(curves).rename(columns={"method": "reading", "plateau": "coverage"})
+table = table[["reading", "seeds", "steps", "coverage"]].set_index("reading")
+per_seed = curves[curves.env_steps > (1 - PLATEAU_TAIL) * curves.groupby("run").env_steps.transform("max")]
+per_seed = per_seed.groupby(["method", "seed"]).coverage.mean()
+table["seed_min"] = per_seed.groupby("method").min()
+table["seed_max"] = per_seed.groupby("method").max()
+gap = table.coverage["mlp"] - table.coverage["smoe"]
+table["gap_closed"] = (table.coverage - table.coverage["smoe"]) / gap if abs(gap) > 1e-9 else np.nan
+table["switch_rate"] = tail_mean(metrics, "rollout/switch_rate")
+table["reroute_rate"] = tail_mean(metrics, "update/reroute_rate")
+
+rows = []
+for spec, record in zip(specs, records):
+    config = spec.to_config()
+    readings_of_actor = action_switch_readings(read_record_actor(record), config.env_config(),
+                                               steps=20 if scale == "ci" else 200, seed=1000 + spec.seed, phase=0)
+    rows.append({"reading": spec.tag.split("/", 1)[1], "seed": spec.seed, **readings_of_actor})
+behaviour = pd.DataFrame(rows).groupby("reading")[["jump_at_switch", "jump_otherwise", "outside_box"]].mean()
+table = table.join(behaviour).reindex(readings).reset_index()
+write_table(table.round(4), "sparse_actor", figures_dir)
+table.round(3)
+
+# %% [markdown]
+# ## Over training
+#
+# Coverage per 100k-step block (seed mean; MLP in grey, MoE in black), and the final actors'
+# action jumps at an expert switch against the other steps.
+
+# %%
+colours = dict(zip(readings, ["#7f7f7f", "#000000", "#444444", *plt.cm.tab10(np.arange(len(readings) - 3))]))
+fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [1.4, 1]})
+for reading in readings:
+    g = curves[curves.method == reading].groupby("env_steps").coverage.mean()
+    ax.plot(g.index / 1e6, g.to_numpy(), color=colours[reading], lw=2.2 if reading in ("mlp", "moe") else 1.2,
+            ls="--" if reading == "moe/paper" else "-", label=reading)
+ax.set(title="coverage, phase 0 only", xlabel="environment steps (millions)", ylabel="coverage")
+ax.legend(fontsize=7, loc="lower right")
+t = table.set_index("reading")
+x = np.arange(len(readings))
+bx.bar(x - 0.2, t.jump_otherwise.reindex(readings), 0.4, color="#bbbbbb", label="expert unchanged")
+bx.bar(x + 0.2, t.jump_at_switch.reindex(readings).fillna(0), 0.4, color="#d62728", label="expert changed")
+bx.set_xticks(x, readings, rotation=60, ha="right", fontsize=7)
+bx.set(title="mean-action jump between consecutive steps", ylabel="distance in the action box")
+bx.legend(fontsize=7)
+fig.suptitle(f"The sparse actor's readings in fixed phase 0 ({t.seeds.max():.0f} seed(s), "
+             f"{metrics.env_steps.max():,} steps per run)", fontsize=9)
+fig.tight_layout()
+save_figure(fig, "sparse_actor", figures_dir)
+
+# %% [markdown]
+# ## What the numbers say
+#
+# The cell below states the comparison from the table of this run.
+
+# %%
+def _describe(t: pd.DataFrame) -> str:
+    t = t.set_index("reading")
+    c = t.coverage
+    lines = [f"* Coverage over the last 10 % of the steps: MLP {c['mlp']:.3f}, MoE {c['moe']:.3f}, "
+             f"the sparse actor as it was (`smoe`) {c['smoe']:.3f}: a gap of {c['mlp'] - c['smoe']:.3f} to MLP."]
+    lines.append(f"* One expert (no routing): {c['smoe/1 expert']:.3f} "
+                 f"({t.gap_closed['smoe/1 expert']:.0%} of the gap closed).")
+    for reading in ("smoe/no balance", "smoe/expert heads", "smoe/re-routed ratio", "smoe/paper", "smoe/paper top-2"):
+        lines.append(f"* `{reading}`: {c[reading]:.3f} ({t.gap_closed[reading]:.0%} of the gap closed; "
+                     f"seeds {t.seed_min[reading]:.3f}-{t.seed_max[reading]:.3f}; switch rate {t.switch_rate[reading]:.2f}).")
+    lines.append(f"* MoE with the paper's readings: {c['moe/paper']:.3f} (MoE as it was: {c['moe']:.3f}).")
+    lines.append(f"* Mean-action jump at an expert switch against other steps: `smoe` {t.jump_at_switch['smoe']:.2f} "
+                 f"vs {t.jump_otherwise['smoe']:.2f}; `smoe/paper` {t.jump_at_switch['smoe/paper']:.2f} vs "
+                 f"{t.jump_otherwise['smoe/paper']:.2f}; MLP {t.jump_otherwise['mlp']:.2f}. Mean actions outside "
+                 f"the box: `smoe` {t.outside_box['smoe']:.0%}, `smoe/paper` {t.outside_box['smoe/paper']:.0%}, "
+                 f"MLP {t.outside_box['mlp']:.0%}.")
+    return "\n".join(lines)
+
+
+from IPython.display import Markdown  # noqa: E402
+
+Markdown(_describe(table))
