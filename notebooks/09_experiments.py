@@ -881,6 +881,86 @@ write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction_of_plateau").round(2)
 
 # %% [markdown]
+# ### Is a revisited phase learned worse? Plasticity loss, measured
+#
+# The fraction of the plateau says whether a visit learned, not whether the network had lost
+# some of its ability to learn: the plateau comes from runs scheduled differently (2 million steps
+# in one phase), and a visit's end level mixes what the network carried over with what it learned
+# in the visit. The paper's premise is sharper: a network that has trained on other phases
+# relearns a phase worse than it first learned it. So for every later visit of a phase we compare
+# the learning curve **within the visit** with two references over the same number of environment
+# steps: the same runs' first visit of that phase, and a fresh network (the study's run of the
+# method in that phase, the same update settings, started from scratch). Per visit: the mean
+# coverage over the visit (the area under the curve per step), the level at its end, and the steps
+# to 85 % of the study's plateau; and, at the switch that opens the visit, the dormant-unit fraction
+# and the effective feature rank (the diagnostics run at every switch). A negative
+# revisit-minus-first or revisit-minus-fresh difference is what plasticity loss looks like. One
+# caveat: the entropy coefficient of a cycling run anneals over the whole run, so a revisit also
+# explores less than a first visit or a fresh run.
+
+# %%
+from pemamoe.budget import block_steps, load_budget, revisit_learning, visit_curve
+from pemamoe.analysis import phase_visits
+
+fresh = load_budget(study)
+fresh = fresh[fresh.settings == "small"]
+revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
+write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
+
+methods_here = [m for m in method_order(metrics.method) if m in set(revisits.method)]
+phases_here = sorted(revisits.phase.unique())
+fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
+                         squeeze=False, sharey="row")
+for j, method in enumerate(methods_here):
+    runs = metrics[metrics.method == method]
+    visits = phase_visits(runs)
+    for i, phase in enumerate(phases_here):
+        ax = axes[i][j]
+        own = fresh[(fresh.method == method) & (fresh.phase == phase)]
+        horizon = None
+        for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
+            curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
+            horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
+            ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
+                    lw=1.4, label=f"visit {k + 1}")
+        if len(own) and horizon is not None:
+            curve = visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps").value.mean()
+            curve = curve[curve.index <= horizon]
+            ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
+        ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
+        if i == len(phases_here) - 1:
+            ax.set_xlabel("environment steps into the visit (millions)")
+    axes[0][0].legend(fontsize=7)
+    axes[0][0].set_ylabel("coverage")
+fig.tight_layout()
+save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
+revisits[["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
+          "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]].round(3)
+
+# %%
+def _plasticity_words(r: pd.DataFrame) -> str:
+    """The plasticity-loss table in sentences (computed, not typed)."""
+    if r.empty:
+        return "* No phase is visited twice at this scale."
+    lines = []
+    for method, g in r.groupby("method", sort=False):
+        worse_first = int((g.revisit_minus_first_mean < 0).sum())
+        worse_fresh = int((g.revisit_minus_fresh_mean < 0).sum())
+        lines.append(f"* {method_label(method)}: {worse_first} of {len(g)} revisits learn below the first visit "
+                     f"(mean coverage over the visit, differences {g.revisit_minus_first_mean.min():+.3f} to "
+                     f"{g.revisit_minus_first_mean.max():+.3f}); {worse_fresh} of {len(g)} below a fresh network "
+                     f"({g.revisit_minus_fresh_mean.min():+.3f} to {g.revisit_minus_fresh_mean.max():+.3f}); dormant "
+                     f"fraction at the switch {g.first_dormant_at_switch.mean():.3f} before the first visit, "
+                     f"{g.revisit_dormant_at_switch.mean():.3f} before the revisits; effective rank "
+                     f"{g.first_rank_at_switch.mean():.1f} and {g.revisit_rank_at_switch.mean():.1f}.")
+    return "\n".join(lines)
+
+
+from IPython.display import Markdown  # noqa: E402
+
+Markdown(_plasticity_words(revisits))
+
+# %% [markdown]
 # ## The parameter table, generated from the configuration objects
 #
 # Every number of the simulation and of training, read from `EnvConfig` and the `paper` preset of

@@ -186,6 +186,70 @@ def phase_learning(metrics: pd.DataFrame, plateaus: pd.DataFrame, column: str = 
     return pd.DataFrame(rows)
 
 
+def visit_curve(runs: pd.DataFrame, first: int, last: int, column: str, bin_steps: int) -> pd.DataFrame:
+    """Per seed and bin of `bin_steps` environment steps into the visit [first, last] (iterations):
+    the mean of `column` over the episodes that ended there. Columns seed, steps (bin end), value."""
+    frames = []
+    for seed, run in runs.groupby("seed"):
+        before = run[run.iteration < first].env_steps
+        start = float(before.max()) if len(before) else 0.0
+        v = run[(run.iteration >= first) & (run.iteration <= last) & (run.episodes > 0)]
+        into = v.env_steps - start
+        b = ((into - 1) // bin_steps + 1) * bin_steps
+        g = (v[column] * v.episodes).groupby(b).sum() / v.episodes.groupby(b).sum()
+        frames.append(pd.DataFrame({"seed": seed, "steps": g.index.astype(int), "value": g.to_numpy()}))
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=["seed", "steps", "value"])
+
+
+def _curve_summary(curve: pd.DataFrame, horizon: int, target: float) -> dict:
+    """Seed-mean curve up to `horizon` steps: its mean (the area under it per step), its last bin,
+    and the first bin at or above `target` (NaN if never)."""
+    mean = curve[curve.steps <= horizon].groupby("steps").value.mean().sort_index()
+    hit = mean[mean >= target]
+    return {"mean": float(mean.mean()) if len(mean) else np.nan, "end": float(mean.iloc[-1]) if len(mean) else np.nan,
+            "steps_to_target": float(hit.index.min()) if len(hit) else np.nan}
+
+
+def revisit_learning(metrics: pd.DataFrame, fresh: pd.DataFrame, plateaus: pd.DataFrame, column: str = "coverage",
+                     bin_steps: int = BLOCK_STEPS, fraction: float = PLATEAU_FRACTION) -> pd.DataFrame:
+    """Plasticity loss, measured: for each method and each later visit of a phase in cycling runs
+    (`metrics`), the learning curve within the visit against the same phase's first visit of the
+    same runs and against a fresh network over the same number of environment steps (`fresh`: the
+    study's fixed-phase runs, load_budget rows of one update setting). Per row, for revisit, first
+    visit and fresh: the mean of `column` over the visit's steps (area under the curve per step),
+    its level in the last bin, and the steps to `fraction` of the study's plateau; the differences
+    revisit - first and revisit - fresh; and, at the visit's first iteration (a switch, where the
+    diagnostics run), the mean tau-dormant fraction and effective feature rank of the revisit and
+    of the first visit. Negative differences are what plasticity loss looks like."""
+    rows = []
+    for method, runs in metrics.groupby("method", sort=False):
+        visits = phase_visits(runs)
+        plateau = plateaus[plateaus.method == method].set_index("phase").plateau
+        for visit, (first, last, phase) in enumerate(visits):
+            earlier = [i for i, (_, _, p) in enumerate(visits[:visit]) if p == phase]
+            if not earlier:
+                continue
+            f0, l0, _ = visits[earlier[0]]
+            revisit, first_visit = (visit_curve(runs, a, b, column, bin_steps) for a, b in ((first, last), (f0, l0)))
+            horizon = int(min(revisit.steps.max(), first_visit.steps.max()))
+            own = fresh[(fresh.method == method) & (fresh.phase == phase)]
+            fresh_curve = visit_curve(own, 0, int(own.iteration.max()), column, bin_steps) if len(own) else revisit.iloc[:0]
+            target = fraction * float(plateau.get(phase, np.nan))
+            row = {"method": method, "phase": phase, "visit": visit, "first_visit": earlier[0], "steps": horizon}
+            for name, curve in (("revisit", revisit), ("first", first_visit), ("fresh", fresh_curve)):
+                summary = _curve_summary(curve, horizon, target)
+                row.update({f"{name}_{k}": v for k, v in summary.items()})
+            for k in ("mean", "end"):
+                row[f"revisit_minus_first_{k}"] = row[f"revisit_{k}"] - row[f"first_{k}"]
+                row[f"revisit_minus_fresh_{k}"] = row[f"revisit_{k}"] - row[f"fresh_{k}"]
+            for name, start in (("revisit", first), ("first", f0)):
+                at = runs[runs.iteration == start]
+                for diag, short in (("dormant/tau/mean", "dormant"), ("rank/effective/mean", "rank")):
+                    row[f"{name}_{short}_at_switch"] = float(at[diag].mean()) if diag in at else np.nan
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def study_plateaus(study_records, scale: str, settings: str = "small") -> pd.DataFrame:
     """The yardstick phase_learning reads: plateau_table rows of one update setting, from the
     study's records (sweep_records of budget_specs) at `scale`."""
