@@ -147,6 +147,31 @@ fig.tight_layout()
 save_figure(fig, "sparse_actor", figures_dir)
 
 # %% [markdown]
+# ## The study's actors, read the same way
+#
+# The same behaviour readings for the final actors of the committed learning-budget study
+# (notebook 09b: 2 million steps in phase 0, 3 seeds, the networks as they were), so the jumps at
+# expert switches are seen where the plateau gap was measured, not only in the shorter runs above.
+# (PE-MAMoE in a fixed phase is SMoE: the controller never acts, so it is left out.)
+
+# %%
+from pemamoe.sweep import budget_specs
+
+study_specs = [s for s in budget_specs(scale, None, ("mlp", "moe", "smoe"))
+               if s.tag == "budget/small" and dict(s.overrides)["fixed_phase"] == 0]
+study_records = sweep_records(study_specs, backend, workers, results_dir, ray_address, records_dir, retrain)
+rows = [{"method": spec.method, "seed": spec.seed,
+         **action_switch_readings(read_record_actor(record), spec.to_config().env_config(),
+                                  steps=20 if scale == "ci" else 200, seed=1000 + spec.seed, phase=0)}
+        for spec, record in zip(study_specs, study_records)]
+study_behaviour = (pd.DataFrame(rows).groupby("method", sort=False)
+                   [["jump_at_switch", "jump_otherwise", "switch_rate", "outside_box"]].agg(["mean", "min", "max"]))
+study_behaviour.columns = [f"{a}_{b}" for a, b in study_behaviour.columns]
+study_behaviour = study_behaviour.reset_index()
+write_table(study_behaviour.round(4), "sparse_actor_study", figures_dir)
+study_behaviour.round(3)
+
+# %% [markdown]
 # ## What the numbers say
 #
 # The cell below states the comparison from the table of this run.

@@ -369,6 +369,7 @@ PAPER_COUNTERPARTS = {
     "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
     "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
     "sparse_actor": "(ours) the sparse actor's readings in fixed phase 0: why top-1 plateaus lower",
+    "sparse_actor_study": "(ours) the study's final actors: action jumps at expert switches, actions outside the box",
     "results_collisions": "Fig. 'Collisions per episode over training'",
     "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
     "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
@@ -434,7 +435,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 21 (line 588)
+# %% notebooks/00b_core.py, cell 21 (line 589)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}
