@@ -126,6 +126,10 @@ def record_frame(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
 
 # %% [markdown]
 # ## Writing and checking a record
+#
+# A marker is trusted only when it checks against itself: its `run` is its file's name, its `config`
+# hashes to its `config_hash`, and no key is missing. A marker edited by hand (a run renamed, a seed
+# changed) is refused, naming the field, rather than read as something it is not.
 
 # %%
 #| export
@@ -188,23 +192,56 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     return atomic_write_json(files["marker"], marker)
 
 
-def verify_record(marker_path, config: TrainConfig | None = None) -> dict | None:
-    """The record's marker after checking it and its files; None when there is no marker.
-    RecordError when it is of another format, of another config, or a file differs."""
+MARKER_KEYS = ("format", "run", "scale", "config", "config_hash", "numerics", "iterations", "block", "rows",
+               "env_steps", "sha256")
+
+
+def read_marker(marker_path) -> dict:
+    """A record's marker, checked against itself (every read of a marker goes through here).
+    RecordError, naming the field, when it is of another format, lacks a key, names another run
+    than its file, or its config does not hash to its config_hash (an edited config)."""
     path = Path(marker_path)
-    if not path.exists():
-        return None
     try:
         marker = read_json(path)
     except Exception as err:  # noqa: BLE001 - any unreadable marker is named
         raise RecordError(path, f"cannot be read ({err})") from None
+    if not isinstance(marker, dict):
+        raise RecordError(path, f"holds a {type(marker).__name__}, not a JSON object")
     if marker.get("format") != RECORD_FORMAT:
         raise RecordError(path, f"has format {marker.get('format')!r}, this code reads {RECORD_FORMAT}")
-    if config is not None and marker.get("config_hash") != config.config_hash():
-        raise RecordError(path, f"belongs to config hash {marker.get('config_hash')!r}, not the requested "
+    missing = [key for key in MARKER_KEYS if key not in marker]
+    if missing:
+        raise RecordError(path, f"lacks the field(s) {', '.join(missing)}")
+    seals = marker["sha256"]
+    if not (isinstance(seals, dict) and all(isinstance(seals.get(k), str) for k in ("data", "actor"))):
+        raise RecordError(path, f"has sha256 {seals!r}, not {{'data': <hex>, 'actor': <hex>}}")
+    if marker["run"] != path.stem:  # else the figures would read another run's files under this label
+        raise RecordError(path, f"has run {marker['run']!r}, not its file's name {path.stem!r}")
+    try:
+        config = TrainConfig.from_dict(marker["config"])
+        config_hash = config.config_hash()
+    except (TypeError, ValueError, AttributeError) as err:
+        raise RecordError(path, f"has a config that is not a TrainConfig ({err})") from None
+    if config_hash != marker["config_hash"]:
+        raise RecordError(path, f"has config_hash {marker['config_hash']!r}, but its config hashes to "
+                          f"{config_hash!r} (config edited?)")
+    if config.run_name() != marker["run"]:  # a record renamed as a whole
+        raise RecordError(path, f"has run {marker['run']!r}, but its config is run {config.run_name()!r}")
+    return marker
+
+
+def verify_record(marker_path, config: TrainConfig | None = None) -> dict | None:
+    """The record's marker after checking it (`read_marker`) and its files; None when there is no
+    marker. RecordError when it is damaged, of another config, or a file differs."""
+    path = Path(marker_path)
+    if not path.exists():
+        return None
+    marker = read_marker(path)
+    if config is not None and marker["config_hash"] != config.config_hash():
+        raise RecordError(path, f"belongs to config hash {marker['config_hash']!r}, not the requested "
                           f"{config.config_hash()!r}")
     for kind, suffix in (("data", ".parquet"), ("actor", ".actor.parquet")):
-        file = path.with_name(path.name[: -len(".json")] + suffix)
+        file = path.with_name(path.stem + suffix)
         if not file.is_file():
             raise RecordError(path, f"seals {file.name}, which is missing")
         if hashlib.sha256(file.read_bytes()).hexdigest() != marker["sha256"][kind]:
@@ -222,7 +259,7 @@ def _existing_record(marker_path) -> dict:
 def read_record(marker_path) -> tuple:
     """(config dict, per-row frame) of a verified record."""
     marker = _existing_record(marker_path)
-    return marker["config"], read_parquet(Path(marker_path).with_name(marker["run"] + ".parquet"))
+    return marker["config"], read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".parquet"))
 
 
 def read_record_actor(marker_path):

@@ -32,8 +32,8 @@ seed = 0
 import time
 from pathlib import Path
 
-from pemamoe.core import (REPO_ROOT, SCALES, check_scale, figure_notebooks, notebook_parameters, repo_path, run_notebook,
-                          write_figures_readme)
+from pemamoe.core import (REPO_ROOT, SCALES, check_scale, current_umask, figure_notebooks, notebook_parameters,
+                          repo_path, run_notebook, write_figures_readme)
 from pemamoe.execution import status_summary, sweep_status
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.records import portable_state_path
@@ -194,6 +194,10 @@ except SystemExit as stop:
 # notebook *i* of *N* starts and one when it ends, with the time spent on it and in total, and in
 # between the notebook's own output, streamed. These are plain lines rather than a progress bar,
 # because the streamed output would tear a bar apart, and plain lines read the same in a log file.
+#
+# It is all or nothing. The notebooks write into a copy of the folder made beside it, which replaces
+# the folder only once every notebook has succeeded; when one fails, the error propagates, the copy
+# is deleted, and `paper_figures/` is left byte for byte as it was, its README still true of it.
 
 # %%
 #| export
@@ -211,11 +215,11 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                  notebooks that declare them. retrain=True: ignore the committed records (appendix
                  09d), train every run into the cache and write the records again.
     """
-    import subprocess
+    import shutil
 
     check_scale(scale)
     figures_dir = repo_path(figures_dir or "paper_figures")
-    figures_dir.mkdir(parents=True, exist_ok=True)
+    figures_dir.parent.mkdir(parents=True, exist_ok=True)
     say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
     records, t0 = {}, time.perf_counter()
     if precompute if precompute is not None else notebooks is None:
@@ -227,18 +231,33 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
-    for i, nb in enumerate(notebooks, start=1):
-        before = {p: p.stat().st_mtime_ns for p in figures_dir.iterdir() if p.is_file()}
-        start = time.perf_counter()
-        say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
-        declared = notebook_parameters(nb)
-        params = {"scale": scale, "figures_dir": str(figures_dir), **{k: v for k, v in extra.items() if k in declared}}
-        run_notebook(nb, params, timeout=timeout, stream=stream)
-        now = time.perf_counter()
-        say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
-        for p in figures_dir.iterdir():
-            if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
-                records[p.name] = nb.name
+    # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
+    # that a failure never leaves new files under a README that names the old scale and commit.
+    staging = _staging_copy(figures_dir)
+    try:
+        for i, nb in enumerate(notebooks, start=1):
+            before = {p: p.stat().st_mtime_ns for p in staging.iterdir() if p.is_file()}
+            start = time.perf_counter()
+            say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
+            declared = notebook_parameters(nb)
+            params = {"scale": scale, "figures_dir": str(staging), **{k: v for k, v in extra.items() if k in declared}}
+            run_notebook(nb, params, timeout=timeout, stream=stream)
+            now = time.perf_counter()
+            say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
+            for p in staging.iterdir():
+                if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
+                    records[p.name] = nb.name
+        write_figures_readme(staging, records, scale=scale, commit=_code_commit())
+        _swap_in(staging, figures_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # gone already after a swap
+    return figures_dir / "README.md"
+
+
+def _code_commit() -> str:
+    """The short commit of the code, "+dirty" when notebooks/ or pemamoe/ have uncommitted changes."""
+    import subprocess
+
     try:
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
@@ -246,10 +265,47 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
         # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
         dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
                                capture_output=True, text=True).stdout.strip()
-        commit += "+dirty" if dirty else ""
+        return commit + ("+dirty" if dirty else "")
     except OSError:
-        commit = "unknown"
-    return write_figures_readme(figures_dir, records, scale=scale, commit=commit)
+        return "unknown"
+
+
+def _staging_copy(folder: Path) -> Path:
+    """A new folder beside `folder` (the same file system, so that a rename can swap it in) holding
+    a copy of its contents, modification times kept."""
+    import shutil
+    import tempfile
+
+    staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.partial-"))
+    try:
+        if folder.is_dir():
+            shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True)  # folder's mode too
+        else:
+            staging.chmod(0o777 & ~current_umask())  # what mkdir would give, not mkdtemp's 0o700
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return staging
+
+
+def _swap_in(staging: Path, folder: Path) -> None:
+    """Put `staging` in place of `folder`: the old folder renamed aside, the new one renamed in,
+    the old one removed (on a failed rename the old one is put back)."""
+    import shutil
+    import tempfile
+
+    if not folder.exists():
+        staging.rename(folder)
+        return
+    aside = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.old-"))
+    folder.rename(aside / folder.name)
+    try:
+        staging.rename(folder)
+    except BaseException:
+        (aside / folder.name).rename(folder)
+        aside.rmdir()
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 # %%

@@ -1,0 +1,91 @@
+"""`make_figures` is all or nothing (issue 41): the notebooks write into a copy of the figures
+folder, swapped in only when every notebook succeeded; a failure leaves the folder as it was."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+from pemamoe.commands import make_figures
+from pemamoe.core import current_umask
+
+pytestmark = pytest.mark.notebook
+
+PARAMETERS = '''# %% tags=["parameters"]
+scale = "small"
+figures_dir = "paper_figures"
+
+'''
+WRITES = PARAMETERS + '''# %%
+import pandas as pd
+from pemamoe.core import write_table
+
+write_table(pd.DataFrame({"scale": [scale]}), "atomic_table", figures_dir)
+'''
+FAILS = PARAMETERS + '''# %%
+raise RuntimeError("this notebook fails")
+'''
+
+
+def _notebooks(tmp_path: Path, *sources) -> list:
+    folder = tmp_path / "notebooks"
+    folder.mkdir(exist_ok=True)
+    paths = []
+    for name, text in sources:
+        (folder / name).write_text(text)
+        paths.append(folder / name)
+    return paths
+
+
+def _snapshot(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.rglob("*"))
+            if p.is_file()}
+
+
+def _figures(tmp_path: Path) -> Path:
+    """A figures folder as an earlier `make figures` left it: a README, a table a notebook rewrites, a
+    file no notebook writes."""
+    figs = tmp_path / "figs"
+    figs.mkdir()
+    (figs / "README.md").write_text("# paper_figures\n\n| file | paper counterpart | notebook | scale | command | "
+                                    "commit |\n|---|---|---|---|---|---|\n| kept.txt | x | notebooks/old.py | small "
+                                    "| `make figures SCALE=small` | abc1234 |\n")
+    (figs / "atomic_table.csv").write_text("scale\nsmall\n")
+    (figs / "kept.txt").write_text("from an earlier run\n")
+    return figs
+
+
+def _beside(tmp_path: Path) -> list:
+    return sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("figs"))
+
+
+def test_a_failing_notebook_leaves_the_figures_folder_byte_for_byte_as_it_was(tmp_path):
+    figs = _figures(tmp_path)
+    before = _snapshot(figs)
+    notebooks = _notebooks(tmp_path, ("98_atomic_writes.py", WRITES), ("98_atomic_fails.py", FAILS))
+    with pytest.raises(Exception, match="this notebook fails"):
+        make_figures(scale="ci", figures_dir=figs, notebooks=notebooks, precompute=False, stream=False)
+    assert _snapshot(figs) == before  # the first notebook's rewritten table never reached it
+    assert _beside(tmp_path) == ["figs"]  # no staging folder left
+
+
+def test_when_every_notebook_succeeds_the_new_files_replace_the_folder(tmp_path):
+    figs = _figures(tmp_path)
+    notebooks = _notebooks(tmp_path, ("98_atomic_writes.py", WRITES))
+    readme = make_figures(scale="ci", figures_dir=figs, notebooks=notebooks, precompute=False, stream=False)
+    assert readme == figs / "README.md"
+    assert (figs / "atomic_table.csv").read_text() == "scale\nci\n" and (figs / "atomic_table.md").is_file()
+    assert (figs / "kept.txt").read_text() == "from an earlier run\n"  # a file no notebook wrote is kept
+    text = readme.read_text()
+    assert "| atomic_table.csv |" in text and "notebooks/98_atomic_writes.py | ci |" in text
+    assert "| kept.txt | x | notebooks/old.py | small |" in text  # the provenance merge saw the old README
+    assert _beside(tmp_path) == ["figs"]
+
+
+def test_a_new_figures_folder_gets_the_mode_mkdir_gives(tmp_path):
+    figs = tmp_path / "figs"
+    make_figures(scale="ci", figures_dir=figs, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                 precompute=False, stream=False)
+    assert (figs / "atomic_table.csv").read_text() == "scale\nci\n"
+    assert os.stat(figs).st_mode & 0o777 == 0o777 & ~current_umask()
+    assert _beside(tmp_path) == ["figs"]
