@@ -907,35 +907,38 @@ fresh = fresh[fresh.settings == "small"]
 revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
 write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
 
-methods_here = [m for m in method_order(metrics.method) if m in set(revisits.method)]
-phases_here = sorted(revisits.phase.unique())
-fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
-                         squeeze=False, sharey="row")
-for j, method in enumerate(methods_here):
-    runs = metrics[metrics.method == method]
-    visits = phase_visits(runs)
-    for i, phase in enumerate(phases_here):
-        ax = axes[i][j]
-        own = fresh[(fresh.method == method) & (fresh.phase == phase)]
-        horizon = None
-        for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
-            curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
-            horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
-            ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
-                    lw=1.4, label=f"visit {k + 1}")
-        if len(own) and horizon is not None:
-            curve = visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps").value.mean()
-            curve = curve[curve.index <= horizon]
-            ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
-        ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
-        if i == len(phases_here) - 1:
-            ax.set_xlabel("environment steps into the visit (millions)")
-    axes[0][0].legend(fontsize=7)
-    axes[0][0].set_ylabel("coverage")
-fig.tight_layout()
-save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
-revisits[["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
-          "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]].round(3)
+if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
+    print("no revisits at this scale")
+else:
+    methods_here = [m for m in method_order(metrics.method) if m in set(revisits.method)]
+    phases_here = sorted(revisits.phase.unique())
+    fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
+                             squeeze=False, sharey="row")
+    for j, method in enumerate(methods_here):
+        runs = metrics[metrics.method == method]
+        visits = phase_visits(runs)
+        for i, phase in enumerate(phases_here):
+            ax = axes[i][j]
+            own = fresh[(fresh.method == method) & (fresh.phase == phase)]
+            horizon = None
+            for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
+                curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
+                horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
+                ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
+                        lw=1.4, label=f"visit {k + 1}")
+            if len(own) and horizon is not None:
+                curve = visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps").value.mean()
+                curve = curve[curve.index <= horizon]
+                ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
+            ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
+            if i == len(phases_here) - 1:
+                ax.set_xlabel("environment steps into the visit (millions)")
+        axes[0][0].legend(fontsize=7)
+        axes[0][0].set_ylabel("coverage")
+    fig.tight_layout()
+    save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
+revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
+                 "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)
 
 # %%
 def _plasticity_words(r: pd.DataFrame) -> str:
