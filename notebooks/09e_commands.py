@@ -47,8 +47,9 @@ from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, exper
 # `python -m pemamoe sweep --experiment main --scale small --backend ray` runs one of the
 # experiments of notebook 09; `--address` joins a Ray cluster. It calls the same `run_sweep` as the
 # notebooks, so a sweep started from the shell is reused by the notebooks. Counts and method
-# names are checked while the arguments are parsed, so a typo fails with a usage message before
-# anything trains. `--status` prints `sweep_status` (appendix 09c) and trains nothing.
+# names are checked while the arguments are parsed, and so is `--results-dir` (a URL fsspec serves,
+# or a folder that may be new but whose parent folder exists), so a typo fails with a usage message
+# before anything trains. `--status` prints `sweep_status` (appendix 09c) and trains nothing.
 
 # %%
 #| export
@@ -97,6 +98,7 @@ def sweep_cli(argv=None) -> int:
         parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
+    _check_store_arg(parser, "--results-dir", args.results_dir)
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:
@@ -126,6 +128,20 @@ def sweep_cli(argv=None) -> int:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
+
+
+def _check_store_arg(parser, flag: str, text: str) -> None:
+    """A store flag names a URL fsspec serves, or a local folder that may be new but whose parent
+    folder exists: a typo in the path is a usage error, not a tree of new folders."""
+    try:
+        store = open_store(text)
+    except ValueError as err:
+        parser.error(f"{flag}: {err}")
+    if not store.remote:
+        parent = store.folder.absolute().parent
+        if not parent.is_dir():
+            parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
+                         "folder (the folder itself is created if missing) or a URL such as s3://bucket/prefix")
 
 
 def _hours(text: str) -> float:
@@ -175,10 +191,13 @@ for _parse, _text in ((_count(1), "0"), (_count(0), "two"), (_method, "nope")):
         _parse(_text)
     except argparse.ArgumentTypeError as err:
         print(f"{_text!r}: {err}")
-try:
-    sweep_cli(["--scale", "huge"])
-except SystemExit as stop:
-    assert stop.code == 2
+for _argv in (["--scale", "huge"], ["--results-dir", "/nonexistent/x", "--status"]):
+    try:
+        sweep_cli(_argv)
+    except SystemExit as stop:
+        assert stop.code == 2
+    else:
+        raise AssertionError(f"sweep_cli({_argv}) was accepted")
 
 # %% [markdown]
 # ## Regenerating every figure

@@ -22,9 +22,12 @@ def main(argv=None) -> int:
     fig.add_argument("--retrain", action="store_true",
                      help="ignore the committed run records (records/), train every run into results/ and write "
                           "the records again")
-    fig.add_argument("--notebook", action="append", help="run only these notebooks (repeatable)")
-    fig.add_argument("--backend", default="local", help="sweep backend: local | ray")
-    fig.add_argument("--workers", type=int, default=2, help="parallel training runs")
+    fig.add_argument("--notebook", action="append", type=_figure_notebook, metavar="NOTEBOOK",
+                     help="run only these notebooks (repeatable): a notebook of notebooks/ by file name or stem "
+                          "(08_theory_check.py, 08_theory_check), or a path to one")
+    fig.add_argument("--backend", default="local", choices=FIGURES_BACKENDS,
+                     help="sweep backend: local | ray (default: local)")
+    fig.add_argument("--workers", type=_int_at_least(1), default=2, help="parallel training runs (default: 2)")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
     fig.add_argument("--results-dir", default="results",
                      help="the results store the runs without a record train into: a folder or a URL such as "
@@ -68,6 +71,7 @@ def main(argv=None) -> int:
             results_dir = _results_dir(args.results_dir)
         except ValueError as err:
             parser.error(f"--results-dir: {err}")
+        _check_parent_folder("--results-dir", args.results_dir, parser)
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
@@ -88,6 +92,43 @@ def _results_dir(text: str) -> str:
 
     store = open_store(text)
     return text if store.remote or text == "results" else str(store.folder.resolve())
+
+
+def _check_parent_folder(flag: str, text: str, parser) -> None:
+    """A local store folder may be new, but its parent folder must exist (a typo in the path is
+    refused here, before anything trains, rather than creating a tree of folders); URLs pass."""
+    from pemamoe.store import open_store
+
+    store = open_store(text)
+    if store.remote:
+        return
+    parent = store.folder.absolute().parent
+    if not parent.is_dir():
+        parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
+                     "folder (the folder itself is created if missing) or a URL such as s3://bucket/prefix")
+
+
+# -- figures -----------------------------------------------------------------------------------
+FIGURES_BACKENDS = ("local", "ray")  # pemamoe.execution.BACKENDS, which imports the trainer
+
+
+def _figure_notebook(text: str) -> str:
+    """--notebook: a notebook of notebooks/ named by its file name (08_theory_check.py), its stem
+    (08_theory_check) or its path in the repository (notebooks/08_theory_check.py); or a path to an
+    existing notebook file. Anything else fails here, naming the notebooks allowed."""
+    from pemamoe.core import REPO_ROOT, figure_notebooks
+
+    path = Path(text).expanduser()
+    if path.suffix == ".py" and path.is_file():
+        return str(path.resolve())
+    notebooks = figure_notebooks()
+    if path.parent in (Path("."), Path("notebooks")):
+        for nb in notebooks:
+            if path.name in (nb.name, nb.stem):
+                return str(nb)
+    allowed = ", ".join(nb.stem for nb in notebooks) or "none found"
+    raise argparse.ArgumentTypeError(f"no notebook {text!r}; name one of {REPO_ROOT / 'notebooks'} by file name or "
+                                     f"stem ({allowed}) or give a path to a notebook file")
 
 
 # -- optional dependencies (pyproject.toml's extras) --------------------------------------------

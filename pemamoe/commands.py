@@ -17,7 +17,7 @@ from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, exper
                            run_sweep)
 
 
-# %% notebooks/09e_commands.py, cell 6 (line 53)
+# %% notebooks/09e_commands.py, cell 6 (line 54)
 def sweep_cli(argv=None) -> int:
     import argparse
 
@@ -63,6 +63,7 @@ def sweep_cli(argv=None) -> int:
         parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
+    _check_store_arg(parser, "--results-dir", args.results_dir)
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:
@@ -92,6 +93,20 @@ def sweep_cli(argv=None) -> int:
         print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
         return 128 + stop.signum
     return 0
+
+
+def _check_store_arg(parser, flag: str, text: str) -> None:
+    """A store flag names a URL fsspec serves, or a local folder that may be new but whose parent
+    folder exists: a typo in the path is a usage error, not a tree of new folders."""
+    try:
+        store = open_store(text)
+    except ValueError as err:
+        parser.error(f"{flag}: {err}")
+    if not store.remote:
+        parent = store.folder.absolute().parent
+        if not parent.is_dir():
+            parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
+                         "folder (the folder itself is created if missing) or a URL such as s3://bucket/prefix")
 
 
 def _hours(text: str) -> float:
@@ -131,7 +146,7 @@ def _count(low: int):
     return parse
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 202)
+# %% notebooks/09e_commands.py, cell 10 (line 221)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -239,7 +254,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 311)
+# %% notebooks/09e_commands.py, cell 11 (line 330)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)
