@@ -81,9 +81,11 @@ print(f"{len(records)} runs of {metrics.env_steps.max():,} environment steps, {l
 #
 # Per reading: coverage over the last 10 % of the steps (seed mean, lowest and highest seed); the
 # share of the gap between the sparse actor as it was (`smoe`) and MLP that the reading closes;
-# over the same window, the switch rate of the selected expert in the rollouts and, for the
-# readings that route again in the update, the share of the batch the update moved to another
-# expert (`reroute_rate`); and from the final actors (200 steps of 16 environments in phase 0,
+# over the same window, the switch rate of the selected expert in the rollouts, the share of the
+# rollouts' routing slots that the busiest expert takes (`top_expert_share`: 1 when one expert
+# does everything, 1/3 when the three share alike) and, for the readings that route again in the
+# update, the share of the batch the update moved to another expert (`reroute_rate`); and from the
+# final actors (200 steps of 16 environments in phase 0,
 # noiseless routing, mean action) the action jumps and the share of mean actions outside the box.
 
 # %%
@@ -107,6 +109,8 @@ gap = table.coverage["mlp"] - table.coverage["smoe"]
 table["gap_closed"] = (table.coverage - table.coverage["smoe"]) / gap if abs(gap) > 1e-9 else np.nan
 table["switch_rate"] = tail_mean(metrics, "rollout/switch_rate")
 table["reroute_rate"] = tail_mean(metrics, "update/reroute_rate")
+shares = [tail_mean(metrics, c) for c in metrics.columns if c.startswith("rollout/expert_frac")]
+table["top_expert_share"] = pd.concat(shares, axis=1).max(axis=1) if shares else np.nan  # 1: one expert does all
 
 rows = []
 for spec, record in zip(specs, records):
@@ -181,12 +185,14 @@ def _describe(t: pd.DataFrame) -> str:
     t = t.set_index("reading")
     c = t.coverage
     lines = [f"* Coverage over the last 10 % of the steps: MLP {c['mlp']:.3f}, MoE {c['moe']:.3f}, "
-             f"the sparse actor as it was (`smoe`) {c['smoe']:.3f}: a gap of {c['mlp'] - c['smoe']:.3f} to MLP."]
+             f"the sparse actor as it was (`smoe`) {c['smoe']:.3f}: a gap of {c['mlp'] - c['smoe']:.3f} to MLP "
+             f"(busiest expert's share {t.top_expert_share['smoe']:.2f})."]
     lines.append(f"* One expert (no routing): {c['smoe/1 expert']:.3f} "
                  f"({t.gap_closed['smoe/1 expert']:.0%} of the gap closed).")
     for reading in ("smoe/no balance", "smoe/expert heads", "smoe/re-routed ratio", "smoe/paper", "smoe/paper top-2"):
         lines.append(f"* `{reading}`: {c[reading]:.3f} ({t.gap_closed[reading]:.0%} of the gap closed; "
-                     f"seeds {t.seed_min[reading]:.3f}-{t.seed_max[reading]:.3f}; switch rate {t.switch_rate[reading]:.2f}).")
+                     f"seeds {t.seed_min[reading]:.3f}-{t.seed_max[reading]:.3f}; switch rate {t.switch_rate[reading]:.2f}; "
+                     f"busiest expert's share {t.top_expert_share[reading]:.2f}).")
     lines.append(f"* MoE with the paper's readings: {c['moe/paper']:.3f} (MoE as it was: {c['moe']:.3f}).")
     lines.append(f"* Mean-action jump at an expert switch against other steps: `smoe` {t.jump_at_switch['smoe']:.2f} "
                  f"vs {t.jump_otherwise['smoe']:.2f}; `smoe/paper` {t.jump_at_switch['smoe/paper']:.2f} vs "
@@ -199,3 +205,39 @@ def _describe(t: pd.DataFrame) -> str:
 from IPython.display import Markdown  # noqa: E402
 
 Markdown(_describe(table))
+
+# %% [markdown]
+# ## The cause, in plain words, and what the defaults become
+#
+# The numbers below are those of `paper_figures/sparse_actor.md` and `sparse_actor_study.md`
+# (1.5 million steps, 2 seeds; the study's actors 2 million steps, 3 seeds).
+#
+# * **The gating code is sound; splitting an agent's states between experts is what costs.** With
+#   a single expert the sparse actor learns as well as the MLP (0.765 against 0.760); with three it
+#   ends 0.059 below. Its final policy is a patchwork: where the selected expert changes from one
+#   step to the next, the mean action moves 1.59 on average (0.64 elsewhere; the study's actors
+#   1.56 against 0.71), and 26 % of its mean actions fall outside the action box (MLP 7 %). Expert
+#   means that disagree by that much give neighbouring states inconsistent actions.
+# * **The balance loss keeps that split in place.** It holds the three experts near equal traffic
+#   (the busiest takes 0.37). Without it the router gives one expert 99 % of the traffic and the
+#   actor learns almost like an MLP (0.753), which closes the gap by ceasing to be a mixture.
+# * **Per-expert heads alone, or re-routing alone, do not help** (0.693 and 0.668).
+# * **The paper's three readings together close two thirds of the gap to MLP** (0.740, both
+#   seeds at 0.740): each expert's own head, no balance term, and the ratio of the policy as it
+#   now routes. Two experts stay in use (the busiest takes 0.50), and the jump at a switch falls to
+#   0.62 against 0.53 elsewhere, with 9 % of mean actions outside the box: the experts' means now
+#   agree where their regions meet.
+# * **What is left is top-1 routing itself.** The same readings help the dense MoE just as much
+#   (0.772 to 0.811), so against the dense mixture the sparse actor still trails by 0.07 under
+#   either reading. Keeping the two best experts (`top-2`) recovers almost all of it (0.792).
+#
+# So the readings that follow the paper's equations (`expert_heads="per_expert"`,
+# `load_balance_coef=0`, `update_routing="current"`) close more than half of the gap and become
+# the defaults of every gated actor, the dense MoE included so that the methods stay alike; top-2
+# is published beside top-1 as an arm of its own, since the paper's actor is top-1. A default
+# changes the identity of every gated run, so the switch lands together with the reruns it
+# requires (the learning-budget study and the medium runs of MoE, SMoE and PE-MAMoE; the plan and
+# its cost are in `benchmarks/HISTORY.md`). Until then the code's defaults, the committed study
+# and the medium verdicts describe the sparse actor as it was, and the medium verdict that
+# PE-MAMoE trails MoE rests mostly on this gap: on the paper's readings it narrows against MLP
+# but not against the dense MoE.
