@@ -19,6 +19,14 @@
 # importable package `pemamoe/`. Nothing in `pemamoe/` is written by hand except the exporter and
 # the command line: the notebooks are the source.
 #
+# **What we found.** At the `medium` scale PE-MAMoE does not reproduce the paper's headline claims
+# and does no better than its own sparse network without the phase controller (notebook 10). Most
+# of that gap comes from the top-1 sparse actor, which learns even a single fixed phase worse than
+# the MLP and the dense MoE because its routing splits states between experts whose actions
+# disagree; the paper's own readings of the actor close two thirds of the gap to the MLP but not
+# the gap to the dense MoE (appendix 05d). Revisited phases are relearned about as well as the
+# first time at this scale (notebook 09), and the paper's own, longer regime is being run.
+#
 # ## Map from the paper to the code
 #
 # Section numbers are the paper's: III problem statement, IV method, V theory, VI results
