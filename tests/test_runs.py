@@ -255,6 +255,7 @@ def _error_samples():
     samples = {"RunFolderError": (ROOT / "results" / "run" / "done.json", "is broken", "a hint"),
                "RunLockedError": (ROOT / "results" / "run", 4321),
                "ExportError": ("notebooks/x.py: unknown directive",),
+               "NoNotebooksError": ("no notebooks/ beside the package at /site-packages",),
                "SweepInterrupted": (signal.SIGTERM,),
                "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed"),
                "StoreLeaseError": ("bucket/results/ci/run/.lease.json", {"host": "node-2", "pid": 77, "heartbeat": 0.0})}
