@@ -27,6 +27,8 @@
 # the gap to the dense MoE (appendix 05d). Revisited phases are relearned about as well as the
 # first time at this scale (notebook 09), and the paper's own, longer regime is being run.
 #
+# ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
+#
 # ## Map from the paper to the code
 #
 # Section numbers are the paper's: III problem statement, IV method, V theory, VI results

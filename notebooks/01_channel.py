@@ -598,6 +598,9 @@ ax.legend()
 save_figure(fig, "channel_los_probability", figures_dir)
 
 # %% [markdown]
+# ![LoS probability against horizontal distance, four UAV altitudes](../paper_figures/channel_los_probability.png)
+
+# %% [markdown]
 # ### Path loss
 #
 # LoS and NLoS losses against 3-D distance, the expected gain the scheduler plans with (as an
@@ -620,6 +623,9 @@ ax.set(xlabel="3-D distance [m]", ylabel="path loss [dB]", xscale="log")
 ax.grid(alpha=0.3, which="both")
 ax.legend()
 save_figure(fig, "channel_path_loss", figures_dir)
+
+# %% [markdown]
+# ![Path loss against 3-D distance: LoS, NLoS, the expected loss and one realisation](../paper_figures/channel_path_loss.png)
 
 # %% [markdown]
 # ### Fading and shadowing sanity check
@@ -682,6 +688,9 @@ for ax, (F, rates) in zip(axes, maps.items()):
 axes[0].set_ylabel("y [m]")
 fig.colorbar(im, ax=axes, label="rate of a user with B/(5F), P_max/5 [Mbps]")
 save_figure(fig, "channel_rate_map", figures_dir)
+
+# %% [markdown]
+# ![Rate map for three UAVs at 100 m, reuse 1 (left) and reuse 3 (right)](../paper_figures/channel_rate_map.png)
 
 # %% [markdown]
 # ### Link budget: does the 0.1 W budget bind?

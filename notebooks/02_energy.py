@@ -317,6 +317,9 @@ save_figure(fig, "energy_power_vs_speed", figures_dir)
 plt.close(fig)
 
 # %% [markdown]
+# ![Rotary-wing propulsion power against horizontal speed](../paper_figures/energy_power_vs_speed.png)
+
+# %% [markdown]
 # Slot energy for a few commanded displacements. A 100 m horizontal move (the largest action)
 # costs about 0.42 kJ *less* than hovering in place for the whole slot, because forward flight at
 # 10 m/s draws less power than hover: in this model moving is never penalised by energy, only

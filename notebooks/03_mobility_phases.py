@@ -452,6 +452,9 @@ fig.suptitle(f"User trajectories over {steps} slots of {mob_cfg.slot_s:.0f} s (c
 save_figure(fig, "mobility_trajectories", figures_dir)
 plt.show()
 
+# %% [markdown]
+# ![User trajectories under each regime's mobility](../paper_figures/mobility_trajectories.png)
+
 # %%
 fig, ax = plt.subplots(figsize=(5, 5))
 for regime, centres in drift.items():
@@ -466,6 +469,9 @@ ax.legend(fontsize=8)
 ax.set_title("Hotspot-centre drift (dots: start)")
 save_figure(fig, "mobility_hotspot_drift", figures_dir)
 plt.show()
+
+# %% [markdown]
+# ![Hotspot-centre drift in each regime](../paper_figures/mobility_hotspot_drift.png)
 
 # %% [markdown]
 # And the schedule variants over 30 ticks: the paper's fixed cycle, random durations, a random
@@ -487,3 +493,6 @@ ax.set_xlabel("tick (training iteration or environment step)")
 ax.set_title("Phase schedules (each trace: phase 0-2, 3 = held-out)")
 save_figure(fig, "phases_schedules", figures_dir)
 plt.show()
+
+# %% [markdown]
+# ![Phase schedule variants: fixed cycle, random durations, random order, held-out inserted](../paper_figures/phases_schedules.png)

@@ -730,6 +730,9 @@ save_figure(fig, "env_render", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![One rendered frame of the environment at the end of a random-policy episode](../paper_figures/env_render.png)
+
+# %% [markdown]
 # ## Reward anatomy
 #
 # Before any learning, check that every term of the objective is alive and that none swamps the

@@ -856,6 +856,9 @@ save_figure(fig, "architecture_actors", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![The four actor architectures at the paper's observation dimension](../paper_figures/architecture_actors.png)
+
+# %% [markdown]
 # ### The paper's four numbers, reproduced
 
 # %%
@@ -931,6 +934,9 @@ ax.legend(fontsize=8)
 fig.tight_layout()
 save_figure(fig, "architecture_router_temperature", figures_dir)
 plt.show()
+
+# %% [markdown]
+# ![Noisy top-1 routing spreads as the router temperature rises](../paper_figures/architecture_router_temperature.png)
 
 # %% [markdown]
 # ### The cost table

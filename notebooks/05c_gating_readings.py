@@ -154,6 +154,9 @@ fig.tight_layout()
 save_figure(fig, "gating_readings", figures_dir)
 
 # %% [markdown]
+# ![Top-1 gating readings in fixed phases](../paper_figures/gating_readings.png)
+
+# %% [markdown]
 # ## The trained policies, evaluated both ways
 #
 # A policy that learned to rely on its routing noise behaves differently when it is evaluated with

@@ -151,6 +151,9 @@ fig.tight_layout()
 save_figure(fig, "sparse_actor", figures_dir)
 
 # %% [markdown]
+# ![The sparse actor's readings in fixed phase 0: coverage and mean-action jumps](../paper_figures/sparse_actor.png)
+
+# %% [markdown]
 # ## The study's actors, read the same way
 #
 # The same behaviour readings for the final actors of the committed learning-budget study

@@ -671,8 +671,8 @@ class PhaseController(NoPlasticity):
 #   actor, but with its log-std set to the reset value. Anchored on the narrowed pre-switch sigma,
 #   the KL term's pull on log sigma (for sigma_ref = 0.2 about 0.125 per dimension at weight 0.1)
 #   is about 12 times the entropy bonus's push, and it undid the reset within tens of iterations
-#   (observed with the code before `4233dde`, the commit that fixed it), well inside the anchor
-#   window.
+#   (an earlier version of the controller, which anchored on that narrowed sigma, did exactly
+#   this; `benchmarks/HISTORY.md` records when it was fixed), well inside the anchor window.
 # * **"Noise only on the selected experts" is weighted by use.** After each update epoch, expert
 #   e of a member receives noise with standard deviation gamma x (its share of the epoch's routing
 #   slots). With top-1 routing over thousands of rows, the union of the experts selected in an
@@ -779,6 +779,9 @@ for ax in (axes[1, 0], axes[1, 2]):
     ax.set_xlabel("training iteration")
 fig.tight_layout()
 save_figure(fig, "plasticity_schedules", figures_dir)
+
+# %% [markdown]
+# ![Algorithm 1's schedules over three phases, PE-MAMoE against a run with the controller off](../paper_figures/plasticity_schedules.png)
 
 # %% [markdown]
 # Hand checks against the formulas above: the LR multiplier is 0.3 at a switch, 0.65 a hundred

@@ -871,6 +871,9 @@ save_figure(fig, "mappo_training_curves", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![MAPPO training curves, one seed per method, medium scale](../paper_figures/mappo_training_curves.png)
+
+# %% [markdown]
 # The logged columns of one row (PE-MAMoE, the last iteration, or the last block of them when
 # read from a long run's record):
 

@@ -377,6 +377,9 @@ save_figure(fig, "theory_noise_energy", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![Noisy run against its noise-free twin, PE-MAMoE actor](../paper_figures/theory_noise_energy.png)
+
+# %% [markdown]
 # ## 2 · Routing stability (assumption A4)
 #
 # ### Which action distribution?
@@ -548,6 +551,9 @@ save_figure(fig, "theory_routing_stability", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![Assumption A4 on a trained PE-MAMoE actor: measured distance against the bound](../paper_figures/theory_routing_stability.png)
+
+# %% [markdown]
 # ## 3 · Dynamic regret
 #
 # Three sweeps on the tracking task, each over several seeds:
@@ -700,6 +706,9 @@ fig.tight_layout()
 save_figure(fig, "theory_dynamic_regret", figures_dir)
 plt.show()
 
+# %% [markdown]
+# ![Dynamic regret sweeps on the tracking task](../paper_figures/theory_dynamic_regret.png)
+
 # %%
 print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 
@@ -710,8 +719,8 @@ print(f"notebook ran in {time.perf_counter() - T0:.1f} s at scale {scale!r}")
 # same problem sizes in this notebook. Slopes, intervals and Lipschitz constants come from
 # `paper_figures/theory_noise_fit.md`, `theory_regret_fit.md` and `theory_lipschitz.md`; the rest
 # (twin distances, gate spreads, steady-state and excess regret) were read from the cells' output
-# of a fresh-clone `make figures` at `57e8a18`. The cells above print the values of whatever scale
-# the notebook was run at.)*
+# of a `make figures SCALE=medium` on a fresh clone; `benchmarks/HISTORY.md` records which run. The
+# cells above print the values of whatever scale the notebook was run at.)*
 #
 # **Noise energy.** The identity $\sum_t\gamma_t^2 = \gamma^2KN$ is exact for disjoint windows
 # (bit for bit, tested), and an upper bound otherwise. The shipped controller adds one pulse at the

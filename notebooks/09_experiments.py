@@ -706,11 +706,21 @@ save_figure(fig, "results_dormant_fraction", figures_dir)
 plt.show()
 
 # %% [markdown]
+# ![Average expert feature rank over training, medium scale](../paper_figures/results_feature_rank.png)
+#
+# ![Dormant neuron fraction over training, two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
+
+# %% [markdown]
 # ## Task performance
 
 # %%
 figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training", reference=levels)
 figure("coverage", "coverage (fraction of users served)", "results_coverage", "Coverage over training", reference=levels)
+
+# %% [markdown]
+# ![Mean return over training, medium scale](../paper_figures/results_mean_return.png)
+#
+# ![Coverage over training, medium scale](../paper_figures/results_coverage.png)
 
 # %%
 scores = run_scores(episodes)
@@ -741,6 +751,9 @@ write_table(iqm_table.round(3), "results_normalised_iqm", figures_dir)
 raw = scores.groupby("method")[list(SUMMARY_METRICS)].mean().reindex(present)
 print("per-episode IQM of each metric, mean over seeds (raw units):")
 raw.round(3)
+
+# %% [markdown]
+# ![Normalised IQM across five system metrics, medium scale](../paper_figures/results_normalised_iqm.png)
 
 # %%
 proposed = proposed_method()
@@ -787,6 +800,11 @@ for side in ("policy", "value"):
     plt.show()
 
 # %% [markdown]
+# ![Policy-side expert routing probability, medium scale](../paper_figures/results_router_policy.png)
+#
+# ![Value-side expert routing probability, medium scale](../paper_figures/results_router_value.png)
+
+# %% [markdown]
 # ## The routing that ran
 #
 # The router figures above show the noiseless preference of each router on a fixed probe batch.
@@ -821,6 +839,9 @@ if routed:
     plt.show()
 
 # %% [markdown]
+# ![Selected-expert shares and switch rate in the rollouts, medium scale](../paper_figures/results_routing_ran.png)
+
+# %% [markdown]
 # ## System performance and internal state
 
 # %%
@@ -828,6 +849,11 @@ figure("collisions_per_episode", "collisions per episode", "results_collisions",
        reference=levels)
 figure("energy_rate_kj", "energy per UAV per slot [kJ]", "results_energy_rate", "Mean UAV energy rate over training",
        reference=levels)
+
+# %% [markdown]
+# ![Collisions per episode over training, medium scale](../paper_figures/results_collisions.png)
+#
+# ![Mean UAV energy rate over training, medium scale](../paper_figures/results_energy_rate.png)
 
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
@@ -841,6 +867,9 @@ axes[0].legend(fontsize=8, ncol=3)
 save_figure(fig, "results_service", figures_dir)
 plt.show()
 
+# %% [markdown]
+# ![Served users and UAV using rate over training, medium scale](../paper_figures/results_service.png)
+
 # %%
 fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), sharex=True)
 for ax, comp in zip(axes, ("x", "y")):
@@ -850,6 +879,9 @@ axes[0].set_title(f"Mean action response to phase switches (probe batch, determi
 axes[0].legend(fontsize=8, ncol=4)
 save_figure(fig, "results_mean_action", figures_dir)
 plt.show()
+
+# %% [markdown]
+# ![Mean action response to phase switches, medium scale](../paper_figures/results_mean_action.png)
 
 # %% [markdown]
 # ## Did each phase learn?
@@ -939,6 +971,12 @@ else:
     save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
 revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
                  "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)
+
+# %% [markdown]
+# ![Coverage within each phase visit against the first visit and a fresh network, medium scale](../paper_figures/plasticity_loss_medium.png)
+#
+# *The file name carries the scale (`plasticity_loss_<scale>.png`); the one shown is the `medium`
+# one, which `make figures` writes.*
 
 # %%
 def _plasticity_words(r: pd.DataFrame) -> str:

@@ -330,6 +330,9 @@ fig.tight_layout()
 save_figure(fig, "learning_budget", figures_dir)
 
 # %% [markdown]
+# ![Learning curves in each fixed phase, and MLP's two update settings per compute time](../paper_figures/learning_budget.png)
+
+# %% [markdown]
 # ## What the curves say
 #
 # The table lists, per method and phase, the plateau, the first block at 85 % of it and the coverage

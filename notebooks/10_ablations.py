@@ -138,6 +138,9 @@ noise_table[noise_table.metric == "served_users"].pivot_table(index=["method", "
                                                               values="mean").round(2)
 
 # %% [markdown]
+# ![Effect of the expert-noise scale on the converged metrics, medium scale](../paper_figures/ablation_noise_sensitivity.png)
+
+# %% [markdown]
 # ## Tricks: what removing one mechanism costs
 #
 # For each ablated mechanism, the change in the IQM of the per-episode return relative to the full
@@ -170,6 +173,9 @@ ax.legend(fontsize=8)
 save_figure(fig, "ablation_tricks", figures_dir)
 plt.show()
 tricks.round(2)
+
+# %% [markdown]
+# ![IQM return change when removing each component, ours against the paper, medium scale](../paper_figures/ablation_tricks.png)
 
 # %% [markdown]
 # ## The paper's headline claims next to ours
@@ -375,9 +381,9 @@ Markdown(verdict_in_words(headline, learned, heuristic, visits, plateaus, contro
 # %% [markdown]
 # ### What the medium campaign says
 #
-# Read at `medium` from the records committed at `6f87d82` (39 runs, 3 seeds each; the numbers
-# are the ones computed above), the paper's picture does not reproduce, and the reason can be
-# located:
+# Read at `medium` from the campaign's committed records (`records/medium/`, 39 runs, 3 seeds
+# each; the numbers are the ones computed above; `benchmarks/HISTORY.md` records which records
+# they were), the paper's picture does not reproduce, and the reason can be located:
 #
 # * **The runs learned.** Every method ends every phase visit at 0.84–1.27 of its own plateau in
 #   the single-phase study. So these are comparisons of trained policies, not of how fast each
