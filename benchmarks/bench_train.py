@@ -77,6 +77,73 @@ def matmul_ceiling(method: str, R: int) -> dict:
     return {"matmul_s": mm, "iteration_s": total, "share": mm / total, "ceiling": R * steps / mm}
 
 
+TARGET_OPS_PER_MINIBATCH = 200  # torch operations dispatched per PPO minibatch step (issue 43)
+
+
+def ops_per_minibatch(method: str, scale: str = "paper") -> float:
+    """Torch operations dispatched (forward, backward, optimizer, statistics; views included) per
+    minibatch step of PPO's update, counted with a dispatch mode around ppo_update in one iteration
+    (one epoch of 8 minibatches of the preset's size: the count per step does not depend on how many)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    import pemamoe.mappo as mappo
+
+    class Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    update, steps = mappo.ppo_update, []
+
+    def counted(*args, **kwargs):
+        with Count():
+            out = update(*args, **kwargs)
+        steps.append(sum(out["gradient_steps"]))
+        return out
+
+    cfg = TrainConfig.for_scale(scale, method=method, seed=0, diag_every=10**9, update_epochs=1, num_minibatches=8)
+    cfg = cfg.replace(num_envs=cfg.num_envs // 4)  # minibatches of a quarter: the same ops, less waiting
+    mappo.ppo_update = counted
+    try:
+        train_population([cfg], max_iterations=1, threads=1, progress=False)
+    finally:
+        mappo.ppo_update = update
+    return Count.n / sum(steps)
+
+
+def fill_ratio(method: str, R: int, rounds: int = 3) -> dict:
+    """Seconds per paper-preset iteration with deterministic mode's NaN fill of new tensors on (as
+    before) and off (the trainer's setting), in interleaved rounds: (median on, median off, ratio)."""
+    import pemamoe.bookkeeping as bk
+
+    times = {True: [], False: []}
+    try:
+        for _ in range(rounds):
+            for fill in (True, False):
+                bk.FILL_UNINITIALIZED_MEMORY = fill
+                times[fill].append(measure(method, R)["iteration_s"])
+    finally:
+        bk.FILL_UNINITIALIZED_MEMORY = False
+    on, off = statistics.median(times[True]), statistics.median(times[False])
+    return {"on": on, "off": off, "ratio": on / off, "ratios": [a / b for a, b in zip(times[True], times[False])]}
+
+
+def report_update_ops() -> None:
+    """The update's cost in operations and the fill's share, measured in this invocation."""
+    for method in ("mlp", "pemamoe"):
+        ops = ops_per_minibatch(method)
+        verdict = "met" if ops <= TARGET_OPS_PER_MINIBATCH else "NOT met"
+        print(f"{method}: {ops:.0f} torch operations per PPO minibatch step (target <= {TARGET_OPS_PER_MINIBATCH}: {verdict})",
+              flush=True)
+    for R in (1, 16):
+        f = fill_ratio("pemamoe", R)
+        print(f"pemamoe R = {R}: paper-preset iteration {f['on']:.3f} s with the NaN fill of new tensors, "
+              f"{f['off']:.3f} s without ({f['ratio']:.2f}x; rounds {', '.join(f'{r:.2f}' for r in f['ratios'])})",
+              flush=True)
+
+
 def diagnostics_cost(method: str) -> float:
     cfg = TrainConfig.for_scale("paper", method=method, seed=0, diag_every=1)
     m = train_population([cfg], max_iterations=2, threads=1, progress=False)[0].metrics
@@ -219,6 +286,8 @@ def main() -> int:
     parser.add_argument("--methods", nargs="+", default=None, choices=METHODS, help="methods (cuda or --rates-only; default all)")
     parser.add_argument("--rates-only", action="store_true",
                         help="only the population rates, as --device cuda does (on the CPU: the device check's rehearsal)")
+    parser.add_argument("--update-ops", action="store_true",
+                        help="only the update's operations per minibatch step and the NaN-fill ratio")
     parser.add_argument("--scale", default="paper", choices=("ci", "small", "medium", "paper"),
                         help="preset of the rates with --device cuda or --rates-only (default paper)")
     args = parser.parse_args()
@@ -227,6 +296,9 @@ def main() -> int:
             parser.error("--device cuda: torch sees no CUDA device on this machine")
         return rates_main(args.sizes or list(SIZES), args.methods or list(METHODS), args.device, args.scale)
     torch.set_num_threads(1)
+    if args.update_ops:
+        report_update_ops()
+        return 0
     print("paper preset: 64 envs x 32 slots = 2048 env steps/iteration, 8 epochs x 32 minibatches, 1 torch thread")
     rates = rate_table(METHODS, SIZES, "cpu")
     print(f"diagnostics (every 50 iterations at the paper preset): {diagnostics_cost('pemamoe'):.2f} s per call (pemamoe, R = 1)")
@@ -287,6 +359,7 @@ def main() -> int:
               f"{(run['lists'] + run['parquet']) / 60:.1f} min per member with lists, "
               f"{(run['packed'] + run['parquet']) / 60:.1f} min packed, {chunked / 60:.1f} min with new rows only", flush=True)
 
+    report_update_ops()
     gib = rss_child(16)
     print(f"peak RSS of a 16-member paper-preset PE-MAMoE population: {gib:.2f} GiB "
           f"(target <= {TARGET_RSS_GIB:.0f} GiB: {'met' if gib <= TARGET_RSS_GIB else 'NOT met'})")

@@ -986,6 +986,12 @@ def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:
         frame.to_parquet(tmp, engine="pyarrow", index=False)
 
 
+# Deterministic mode also NaN-fills every new uninitialised tensor, a debugging aid that costs about
+# 47k fill kernels per paper-preset iteration. The trainer reads no uninitialised memory: a run
+# trains to the same bits with the fill on and off (tests/test_numerics.py), so it is off.
+FILL_UNINITIALIZED_MEMORY = False
+
+
 class _Determinism:
     """Single-threaded, deterministic torch for the duration of a run (restored afterwards)."""
 
@@ -993,17 +999,20 @@ class _Determinism:
         self.threads = threads
 
     def __enter__(self):
-        self.old = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled())
+        fill = torch.utils.deterministic
+        self.old = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(), fill.fill_uninitialized_memory)
         if self.threads is not None:
             torch.set_num_threads(int(self.threads))
         # cuBLAS needs a fixed workspace for deterministic products on a GPU; read when CUDA starts
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True)
+        fill.fill_uninitialized_memory = FILL_UNINITIALIZED_MEMORY
         return self
 
     def __exit__(self, *exc):
         torch.set_num_threads(self.old[0])
         torch.use_deterministic_algorithms(self.old[1])
+        torch.utils.deterministic.fill_uninitialized_memory = self.old[2]
         return False
 
 # %%
