@@ -61,6 +61,7 @@ from pemamoe.execution import (  # re-export: a run's spec, the run cache and th
     BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
     pending_runs, record_marker, run_sweep, sweep_records)
 from pemamoe.mappo import METHODS, TrainConfig
+from pemamoe.methods import method_spec
 
 # %% [markdown]
 # ## A run, and its place in the cache
@@ -250,13 +251,53 @@ def sparse_specs(scale: str, seeds=None, readings=None, phase: int = 0, steps: i
             for name in readings for method, net in [SPARSE_READINGS[name]] for seed in seeds]
 
 
-EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse")
+# The tuning grid (issue 38; its table in appendix 09b): every compared method tuned alike, on the
+# learning-budget study's run (fixed phase 0, BUDGET_STEPS environment steps, small update
+# settings), over one grid of learning rate x entropy coefficient (the start and end of its
+# anneal, scaled together), 2 seeds. The gated methods run the paper's actor readings (appendix
+# 05d), the ones the experiments are to use. The grid's centre is the study's own setting, so those
+# runs are the study's (the same configuration, the same run).
+TUNING_LRS = (1e-4, 3e-4, 1e-3)
+TUNING_ENTROPY = ((0.005, 0.0015), (0.01, 0.003), (0.02, 0.006))  # (ent_start, ent_end): x0.5, x1, x2
+
+
+def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entropy=TUNING_ENTROPY,
+                 phase: int = 0, steps: int | None = None) -> list:
+    """The tuning grid's runs: method x learning rate x entropy x seed, each spec tagged
+    "tuning/lr=<lr>/ent=<ent_start>" (a few iterations at ci)."""
+    check_scale(scale)
+    preset = "ci" if scale == "ci" else "small"
+    seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
+    steps = (64 * 4 if scale == "ci" else BUDGET_STEPS) if steps is None else steps
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"tuning_specs: steps must be an integer >= 1, got {steps!r}")
+    for lr in lrs:
+        if not isinstance(lr, float) or lr <= 0:
+            raise ValueError(f"tuning_specs: every learning rate must be a float > 0, got {lr!r}")
+    for pair in entropy:
+        if len(pair) != 2 or min(pair) < 0:
+            raise ValueError(f"tuning_specs: entropy settings are (ent_start, ent_end) pairs >= 0, got {pair!r}")
+    iterations = -(-steps // TrainConfig.for_scale(preset).batch_env_steps)
+    extra = {"fixed_phase": phase, "iterations": iterations, "phase_length_iters": iterations,
+             "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
+    specs = []
+    for method in methods:
+        net = {} if method_spec(method).network == "mlp" else _PAPERS
+        for lr in lrs:
+            for ent_start, ent_end in entropy:
+                grid = {"lr": lr, "ent_start": ent_start, "ent_end": ent_end}
+                specs += [RunSpec(method, seed, preset, overrides=tuple({**extra, **net, **grid}.items()),
+                                  tag=f"tuning/lr={lr:g}/ent={ent_start:g}") for seed in seeds]
+    return specs
+
+
+EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning")
 
 
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
-    sweep), of the learning-budget study ("budget") or of the gating comparison ("gating"; neither
-    is part of "all")."""
+    sweep), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
+    ("gating", "sparse") or the tuning grid ("tuning"); only the first three are part of "all")."""
     makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":
@@ -267,6 +308,8 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
         return gating_specs(scale, seeds)
     if experiment == "sparse":
         return sparse_specs(scale, seeds)
+    if experiment == "tuning":
+        return tuning_specs(scale, seeds, methods)
     if experiment not in makers:
         raise ValueError(f"experiment must be one of {', '.join(EXPERIMENTS)}, got {experiment!r}")
     return makers[experiment]()

@@ -257,6 +257,27 @@ def study_plateaus(study_records, scale: str, settings: str = "small") -> pd.Dat
     return table[table.settings == settings]
 
 
+
+def tuning_table(metrics: pd.DataFrame, grid: dict, tail: float = PLATEAU_TAIL) -> pd.DataFrame:
+    """The tuning grid's table: per method x learning rate x entropy setting (grid: run name ->
+    (lr, ent_start, ent_end)), each run's plateau (mean coverage over the last `tail` of its steps)
+    as a mean and spread over seeds, the seeds, and the member compute hours the runs cost;
+    `best` marks each method's setting with the highest mean (ties: the first in grid order)."""
+    rows = []
+    for run, group in metrics.groupby("run", sort=False):
+        last = group.env_steps.max()
+        rows.append({"run": run, "method": group.method.iloc[0], "seed": int(group.seed.iloc[0]),
+                     "lr": grid[run][0], "ent_start": grid[run][1], "ent_end": grid[run][2],
+                     "plateau": float(group.loc[group.env_steps > (1 - tail) * last, "coverage"].mean()),
+                     "hours": float(group.member_seconds.sum()) / 3600})
+    runs = pd.DataFrame(rows)
+    table = (runs.groupby(["method", "lr", "ent_start", "ent_end"], sort=False)
+             .agg(plateau=("plateau", "mean"), spread=("plateau", "std"), seeds=("seed", "nunique"),
+                  member_hours=("hours", "sum")).reset_index())
+    table["best"] = False
+    table.loc[table.groupby("method", sort=False).plateau.idxmax(), "best"] = True
+    return table
+
 # %% [markdown]
 # ## The runs
 #
@@ -405,3 +426,32 @@ print(f"medium preset: {medium.phase_length_iters} iterations x {medium.batch_en
 # Notebook 09 ("Did each phase learn?") holds the scale's cycling runs against these plateaus: for
 # every method and phase visit, the coverage over the last 10 % of the visit as a fraction of the
 # plateau, with the bar a scale has to clear (MLP at 85 % or more everywhere, 0.65 in phase 0).
+
+# %% [markdown]
+# ## Tuning every method alike
+#
+# A comparison of methods says little if one of them was tuned and the others were not. The grid
+# below gives every compared method the same chances: learning rate 1e-4, 3e-4 and 1e-3, times the
+# entropy bonus at half, once and twice the preset's (its start and end scaled together), two
+# seeds each, on the study's run (fixed phase 0, 2M environment steps, small update settings).
+# The gated methods run the paper's actor readings (appendix 05d). The centre of the grid is the
+# study's own setting, so those runs are shared with the study.
+#
+# The grid is a sweep of its own, `python -m pemamoe sweep --experiment tuning` (72 runs, 8 of
+# them the study's); this section trains nothing. It tabulates the runs that have a record and
+# says how many are missing. Each method then runs the setting the table marks `best`, which is a
+# change of the experiments' configuration and gets its own numerics bump.
+
+# %%
+from pemamoe.sweep import pending_runs, tuning_specs
+
+tuning = tuning_specs(scale, seeds, tuple(methods) if methods else METHODS)
+missing = set(map(id, pending_runs(tuning, results_dir, records_dir, retrain)[1]))
+have = [spec for spec in tuning if id(spec) not in missing]  # finished or recorded: nothing is trained
+print(f"tuning grid: {len(have)} of {len(tuning)} runs finished")
+if have:
+    grid = {spec.to_config().run_name(): tuple(dict(spec.overrides)[k] for k in ("lr", "ent_start", "ent_end"))
+            for spec in have}
+    tuned = tuning_table(load_budget(sweep_records(have, backend, workers, results_dir, ray_address, records_dir)), grid)
+    write_table(tuned.round(4), "tuning", figures_dir)
+    display(tuned)

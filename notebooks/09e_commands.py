@@ -61,10 +61,11 @@ def sweep_cli(argv=None) -> int:
         description="Train the runs of one experiment (notebook 09) that are neither finished in --results-dir nor "
                     "recorded in --records-dir, compatible runs together as populations, on a local process pool "
                     "or on Ray. Rerun the same command to resume; --status says where it stands.")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating", "sparse"],
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning"],
                         help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
-                             "gating readings (05c); sparse: the sparse-actor readings (05d) (default: main)")
+                             "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
+                             "for every method alike (09b) (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")

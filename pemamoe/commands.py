@@ -26,10 +26,11 @@ def sweep_cli(argv=None) -> int:
         description="Train the runs of one experiment (notebook 09) that are neither finished in --results-dir nor "
                     "recorded in --records-dir, compatible runs together as populations, on a local process pool "
                     "or on Ray. Rerun the same command to resume; --status says where it stands.")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating", "sparse"],
+    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning"],
                         help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
-                             "gating readings (05c); sparse: the sparse-actor readings (05d) (default: main)")
+                             "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
+                             "for every method alike (09b) (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
     parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds (default: the scale's)")
@@ -146,7 +147,7 @@ def _count(low: int):
     return parse
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 221)
+# %% notebooks/09e_commands.py, cell 10 (line 222)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -254,7 +255,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 330)
+# %% notebooks/09e_commands.py, cell 11 (line 331)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -130,3 +130,48 @@ def test_budget_curves_weight_iterations_by_episodes_and_drop_the_last_partial_b
     cov = np.linspace(0.1, 0.6, 11)
     assert c.coverage.iloc[0] == pytest.approx((cov[0] * 1 + cov[1] * 3) / 4)
     assert c.compute_s.tolist() == pytest.approx([4.0, 8.0, 12.0, 16.0, 20.0])
+
+
+# --- the tuning grid (issue 38: every method tuned alike) ------------------------------------------
+def test_tuning_grid_gives_every_method_the_same_settings_and_shares_its_centre_with_the_study():
+    from pemamoe.sweep import TUNING_ENTROPY, TUNING_LRS, _PAPERS, tuning_specs
+
+    specs = tuning_specs("small")
+    cfgs = [s.to_config() for s in specs]
+    assert len({c.run_name() for c in cfgs}) == len(specs) == 4 * len(TUNING_LRS) * len(TUNING_ENTROPY) * 2
+    grids = {}
+    for c in cfgs:
+        grids.setdefault(c.method, set()).add((c.lr, c.ent_start, c.ent_end, c.seed))
+    assert len(grids) == 4 and all(g == grids["mlp"] for g in grids.values())  # the same grid, the same seeds
+    assert all(c.fixed_phase == 0 and c.total_env_steps >= 2_000_000 and c.num_envs == 16 for c in cfgs)
+    for c in cfgs:
+        if c.method != "mlp":  # the gated methods run the paper's actor readings
+            assert all(getattr(c.net, k) == v for k, v in _PAPERS.items()), c.run_name()
+    centre = {c.run_name() for c in cfgs if c.method == "mlp" and c.lr == 3e-4 and c.ent_start == 0.01}
+    study = {s.to_config().run_name() for s in budget_specs("small", seeds=(0, 1), methods=("mlp",))
+             if dict(s.overrides)["fixed_phase"] == 0 and "num_envs" not in dict(s.overrides)}
+    assert centre == study and len(centre) == 2  # the study's MLP runs, not new ones
+    with pytest.raises(ValueError, match="learning rate must be a float > 0, got 0"):
+        tuning_specs("small", lrs=(0,))
+    with pytest.raises(ValueError, match=r"\(ent_start, ent_end\) pairs >= 0, got \(0.01, -1\)"):
+        tuning_specs("small", entropy=((0.01, -1),))
+
+
+def test_tuning_table_reads_each_runs_last_tenth_and_marks_each_methods_best_setting():
+    from pemamoe.budget import tuning_table
+
+    steps = np.arange(1, 11) * 100
+    rows, grid = [], {}
+    for method, lr, seed, level in (("mlp", 1e-4, 0, 0.5), ("mlp", 1e-4, 1, 0.7), ("mlp", 3e-4, 0, 0.65),
+                                    ("mlp", 3e-4, 1, 0.65), ("smoe", 1e-4, 0, 0.4)):
+        run = f"{method}-{lr}-{seed}"
+        grid[run] = (lr, 0.01, 0.003)
+        for x in steps:  # the level only in the last block: the plateau reads the last tenth alone
+            rows.append({"run": run, "method": method, "seed": seed, "env_steps": x,
+                         "coverage": level if x == 1000 else 0.0, "member_seconds": 36.0})
+    table = tuning_table(pd.DataFrame(rows), grid).set_index(["method", "lr"])
+    assert table.loc[("mlp", 1e-4), "plateau"] == pytest.approx(0.6)
+    assert table.loc[("mlp", 1e-4), "spread"] == pytest.approx(np.std([0.5, 0.7], ddof=1))
+    assert table.loc[("mlp", 3e-4), "best"] and not table.loc[("mlp", 1e-4), "best"]  # 0.65 > 0.6
+    assert table.loc[("smoe", 1e-4), "best"] and table.loc[("smoe", 1e-4), "seeds"] == 1
+    assert table.loc[("mlp", 1e-4), "member_hours"] == pytest.approx(2 * 10 * 36 / 3600)

@@ -97,8 +97,9 @@ def test_sweep_refuses_a_results_dir_whose_parent_does_not_exist(tmp_path, capsy
 
 def test_sweep_status_accepts_a_new_results_dir_in_an_existing_folder_and_a_url(tmp_path, capsys):
     new = tmp_path / "new-results"
+    # no records either (a checkout that ran `make figures SCALE=ci` holds this run's record in records/ci)
     assert main(["sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--results-dir", str(new),
-                 "--status"]) == 0
+                 "--records-dir", str(tmp_path / "records"), "--status"]) == 0
     assert "mlp" in capsys.readouterr().out
     assert main(["sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--results-dir",
                  "memory://bucket/runs", "--status"]) == 0
