@@ -474,7 +474,7 @@ plt.show()
 # ![Hotspot-centre drift in each regime](../paper_figures/mobility_hotspot_drift.png)
 
 # %% [markdown]
-# And the schedule variants over 30 ticks: the paper's fixed cycle, random durations, a random
+# And the schedule variants over 60 ticks: the paper's fixed cycle, random durations, a random
 # order, and the fixed cycle with the held-out regime inserted after every third segment.
 
 # %%
