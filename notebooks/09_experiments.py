@@ -952,7 +952,6 @@ mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTIO
               and (mlp_rows[mlp_rows.phase == 0].coverage_last_10pct >= 0.65).all())
 print(f"scale {scale}: MLP at >= {PLATEAU_FRACTION:.0%} of its plateau in every visit and >= 0.65 in phase 0: "
       f"{'yes' if mlp_ok else 'NO'}")
-write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction_of_plateau").round(2)
 
 # %% [markdown]
@@ -969,7 +968,10 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # coverage over the visit (the area under the curve per step), the level at its end, and the steps
 # to 85 % of the study's plateau; and, at the switch that opens the visit, the dormant-unit fraction
 # and the effective feature rank (the diagnostics run at every switch). A negative
-# revisit-minus-first or revisit-minus-fresh difference is what plasticity loss looks like. One
+# revisit-minus-first or revisit-minus-fresh difference is what plasticity loss looks like, and
+# those two differences (mean over the visit and level at its end) are also the last columns of the
+# phase-visit table `phase_learning_<scale>` (empty for a first visit). The fraction of the plateau
+# there answers "did the visit learn?"; only these comparisons answer "was it learned worse?". One
 # caveat: the entropy coefficient of a cycling run anneals over the whole run, so a revisit also
 # explores less than a first visit or a fresh run.
 
@@ -981,6 +983,10 @@ fresh = load_budget(study)
 fresh = fresh[fresh.settings == "small"]
 revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
 write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
+# the phase-visit table carries each revisit's two comparisons beside its fraction of the plateau
+against = ["revisit_minus_first_mean", "revisit_minus_first_end", "revisit_minus_fresh_mean", "revisit_minus_fresh_end"]
+learned = learned.merge(revisits.reindex(columns=["method", "visit", *against]), on=["method", "visit"], how="left")
+write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 
 if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
     print("no revisits at this scale")
