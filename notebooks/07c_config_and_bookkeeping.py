@@ -65,7 +65,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import torch
 
-from pemamoe.core import by_scale, check_scale, config_error, require_field
+from pemamoe.core import by_scale, check_scale, config_error, require, require_field
 from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
@@ -434,6 +434,9 @@ MEDIUM_PHASE_ITERS = 2200
 def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, update_epochs: int) -> PhaseControllerConfig:
     """Rescale the controller's windows from the paper's 1200-iteration, 8-epoch phases to
     `phase_length_iters` iterations of `update_epochs` epochs (each window >= 1 if non-zero)."""
+    # checked here too: for_scale rescales before TrainConfig validates its fields
+    phase_length_iters = require("TrainConfig", "phase_length_iters", phase_length_iters, "int", ge=1)
+    update_epochs = require("TrainConfig", "update_epochs", update_epochs, "int", ge=1)
     r = phase_length_iters / PAPER_PHASE_LENGTH
     r_epochs = r * update_epochs / PAPER_UPDATE_EPOCHS
 

@@ -240,3 +240,13 @@ def test_the_largest_seed_allowed_trains(tmp_path):
     config = TrainConfig.for_scale("ci", "mlp", seed=2**63 - 1, iterations=1)
     assert train(config, tmp_path / "run").finished
     assert json.loads((tmp_path / "run" / "config.json").read_text())["seed"] == 2**63 - 1
+
+
+@pytest.mark.parametrize("field, value", [("phase_length_iters", 0), ("update_epochs", 0), ("phase_length_iters", 2.5)])
+def test_for_scale_refuses_a_bad_phase_length_or_epoch_count_before_rescaling_the_controller(field, value):
+    """for_scale rescales the controller's windows by the phase length and epochs before the
+    config validates its fields: a zero must be the validation error, not a ZeroDivisionError."""
+    from pemamoe.mappo import TrainConfig
+
+    with pytest.raises(ValueError, match=rf"^TrainConfig\.{field} must be an integer >= 1, got {value!r}$"):
+        TrainConfig.for_scale("ci", method="pemamoe", **{field: value})
