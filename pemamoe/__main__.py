@@ -46,7 +46,9 @@ def main(argv=None) -> int:
         from pemamoe.commands import sweep_cli
 
         return sweep_cli(argv[1:])
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # named by the command's own usage line, not the top-level one
+        sub.choices[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
 
     if args.command in ("export", "check-export"):
         from pemamoe import literate

@@ -120,3 +120,13 @@ def test_figures_refuses_a_results_dir_whose_parent_does_not_exist(figures_calls
     assert exit_.value.code == 2 and figures_calls == []
     line = _error_line(capsys.readouterr().err)
     assert "--results-dir" in line and str(missing) in line
+
+
+@pytest.mark.parametrize("argv", [["train", "--bogus"], ["figures", "--scale", "ci", "--bogus"], ["export", "--bogus"]])
+def test_an_unknown_option_is_named_by_its_own_commands_usage(argv, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert f"usage: python -m pemamoe {argv[0]}" in err  # the command's usage, not the top-level one
+    assert _error_line(err) == f"python -m pemamoe {argv[0]}: error: unrecognized arguments: --bogus"
