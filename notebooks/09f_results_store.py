@@ -47,22 +47,65 @@
 # was already there at the start of the push: the logs it seals were written before it, so the
 # store never holds a seal over older logs. One object is one PUT, so a reader sees a whole old
 # file or a whole new one. A push cut off half way leaves a checkpoint newer than the logs at
-# worst, which resumes exactly like a local folder that was killed between the two writes.
+# worst, which resumes exactly like a local folder that was killed between the two writes. The
+# files keep the bytes they have in a local folder; what the store adds lives beside them, in the
+# run's lease objects (below).
 #
-# ### Who may write a run: the lease
+# ### Who may write a run: the lease and its generation
 #
 # Two workers must never train one run. On a local disk the folder's `fcntl` lock says so; an
-# object store has no locks. Here each run has a **lease**, an object `<run>/.lease.json` created
-# with a conditional put (`If-None-Match: *` on S3; fsspec's exclusive-create mode `"xb"`): of two
-# workers that create it at once, exactly one succeeds, on every store that implements
-# conditional writes (AWS S3 since 2024, MinIO, moto; `tests/test_store.py` checks it on a moto
-# server). The holder rewrites its heartbeat at every sync. A lease whose heartbeat is older than
-# `LEASE_STALE_SECONDS` belongs to a worker that died (a killed machine cannot release it); the
-# next worker deletes it and creates its own. The guarantee is therefore: **one writer per run while
-# the holder is alive and syncing**; two workers that find the same stale lease in the same
-# instant may both delete it, but only one of them then wins the conditional put. What it cannot
-# exclude is a holder that stalls for longer than the stale time and then writes again; the stale
-# time (10 minutes by default) is many times the sync interval for that reason.
+# object store has no locks. Here each run has **leases**, numbered by a **generation**: the worker
+# that checks a run out creates `<run>/.lease-<g>.json`, g one more than the newest lease there,
+# with a conditional put (`If-None-Match: *` on S3; fsspec's exclusive-create mode `"xb"`). Of two
+# workers that create the same generation at once, exactly one succeeds, on every store that
+# implements conditional writes (AWS S3 since 2024, MinIO, moto; `tests/test_store.py` checks it on
+# a moto server). Its holder rewrites the lease (the heartbeat) at every sync and marks it released
+# when it is done with the run. A lease that is released, or whose heartbeat is older than
+# `LEASE_STALE_SECONDS` (its worker died: a killed machine cannot release anything), lets the next
+# worker create generation g + 1. Nobody deletes a lease or writes another worker's: a generation
+# is never used twice, and a worker learns that it lost a run by seeing a newer lease.
+#
+# Each holder also writes into its lease, at every push, the sha256 of every file it has left in
+# the store: its **manifest**, the fencing token of this design. The newest generation that has
+# pushed is the truth about the run's bytes; a file whose bytes only an older generation lists was
+# written by a worker that had lost the lease by then.
+#
+# What this guarantees, and what it does not:
+#
+# * **One writer per run while the holder is alive and syncing.** A lease renewed within the stale
+#   time refuses every other taker.
+# * **Of two takers of one stale lease, only one wins the put.** Both try to create the same
+#   generation g + 1, and the conditional put lets one of them. (A single lease object that a taker
+#   deletes and creates again does not give this: a slow taker's delete can remove the winner's
+#   new lease, and both then hold it.)
+# * **Every push is the holder's.** Before each push, the final one included, the worker renews its
+#   lease and then lists the run: if a newer generation exists, or a done marker appeared that this
+#   worker neither saw at checkout nor wrote, it uploads nothing, stops copying that run for good
+#   (one line on stderr, no retries), and the population's end raises `StoreLeaseError`. The check
+#   runs again after the files and before the done marker. A holder that stalls past the stale time
+#   (a paused process, a frozen VM, a long GC) and then wakes therefore finds the newer lease
+#   and writes nothing.
+# * **What fencing adds: readers ignore late writes.** `pull_run`, `refresh_finished` and
+#   `fetch_run` check every file they copy against the newest manifest: a file listed only by an
+#   older generation is refused with one line naming the run and both generations, and under a done
+#   marker every file must be the one the sealing generation listed. A late write cannot pass for
+#   the sealed run.
+#
+# What it cannot exclude: a check followed by a put is two requests, and S3 has no put that is
+# conditional on another object. A holder that passes its check and then stalls for longer than
+# the stale time before its put lands (or whose put itself takes that long) writes after a
+# takeover. Renewing the heartbeat just before the check shrinks that window to the time between
+# the check and the end of the put, and the stale time (10 minutes by default) is many times the
+# sync interval and any upload. If it happens anyway, the late bytes are in the store. A sealed run
+# is then refused by every reader (visibly broken, never silently the wrong run: delete its folder
+# in the store to train it again); an unsealed one is refused once the late writer's manifest lists
+# them (it writes it right after its files). A late file its writer never got to list cannot be
+# told apart from a push cut off by a crash: a checkout of the unsealed run takes it and resumes
+# from it as after any crash (it is this run's own checkpoint or log, from a worker that trained
+# it); if it lands after the new holder's checkout, that holder's next push of the file replaces
+# it, and if there is none, the run is refused once sealed. Staleness also compares the taker's
+# clock with the holder's: clocks more than a fraction of the stale time apart weaken the first
+# point.
 
 # %%
 #| default_exp store
@@ -77,12 +120,13 @@ seed = 0
 import hashlib
 import json
 import os
+import shutil
 import socket
 import sys
 import threading
 import time
 import uuid
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_path, require
@@ -91,7 +135,8 @@ from pemamoe.runs import _PicklableError
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
 STORE_FILES = ("config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "sweep.json", "done.json")
 SEALED_FILES = ("config.json", "done.json", "metrics.parquet", "episodes.parquet")  # what says a run is finished
-LEASE_NAME = ".lease.json"
+LEASE_PREFIX = ".lease-"  # a run's leases in the store: .lease-<generation>.json, one per holder
+LEGACY_LEASE = ".lease.json"  # the single lease of earlier versions: still respected while it is live
 SYNC_SECONDS = 30.0  # how often a worker copies its runs' changed files to the store and renews its leases
 LEASE_STALE_SECONDS = 600.0  # a lease not renewed for this long belongs to a dead worker
 CACHE_ENV = "PEMAMOE_CACHE"  # the local cache's root (default ~/.cache/pemamoe)
@@ -99,14 +144,26 @@ SYNC_ENV, STALE_ENV = "PEMAMOE_STORE_SYNC_SECONDS", "PEMAMOE_LEASE_STALE_SECONDS
 
 
 class StoreLeaseError(_PicklableError, RuntimeError):
-    """Another live worker holds the lease of this run in the store."""
+    """A run in the store is not this worker's to write or read as it is: another live worker holds
+    its lease; or (`problem`, the message's text) this worker lost the lease, the run was sealed by
+    another, or a reader found a file written by a worker that had lost the lease. One line."""
 
-    def __init__(self, key: str, holder: dict):
-        self.key, self.holder = key, holder
-        age = time.time() - float(holder.get("heartbeat", 0.0))
+    def __init__(self, key: str, holder: dict, problem: str | None = None):
+        self.key, self.holder, self.problem = key, holder, problem
+        if problem is not None:
+            super().__init__(f"results store: {problem}")
+            return
+        age = time.time() - _heartbeat(holder)
         super().__init__(f"results store: {key} is held by {holder.get('host', '?')} (pid {holder.get('pid', '?')}), "
                          f"renewed {age:.0f} s ago; wait for it, or for it to go stale after "
                          f"{holder.get('stale_after', LEASE_STALE_SECONDS):g} s")
+
+
+def _heartbeat(holder: dict) -> float:
+    try:
+        return float(holder.get("heartbeat", 0.0))
+    except (TypeError, ValueError):
+        return 0.0
 
 
 # %% [markdown]
@@ -203,48 +260,83 @@ def open_store(results="results") -> ResultsStore:
 # `pull_run` makes the cache folder a copy of what the store holds for a run: the store is the
 # truth, so a cached file the store lacks is deleted (a done marker left from an earlier try must
 # not seal anything). `names` limits it to some files: the sweep's driver pulls only the sealed
-# files to learn whether a run is finished, never the checkpoint. `push_run` copies back the files
-# that changed since the last push (by size and modification time), in the order above.
+# files to learn whether a run is finished, never the checkpoint. Every file is checked against the
+# run's manifests before any of them replaces a cached one (`_Fence` below): a refused pull leaves
+# the cache as it was.
+#
+# `push_run` is the holder's side: it renews and checks the lease, copies back the files that
+# changed since the last push (by size and modification time), in the order above, writes the
+# manifest into the lease, checks again, and only then uploads the done marker. A file is uploaded
+# from a hard link taken just before (training replaces its files by renaming new ones over them,
+# which leaves the link alone), so the sha256 in the manifest is that of the bytes uploaded.
 
 # %%
 #| export
 def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> dict:
-    """Copy the run's `names` from the store into store.run_dir; return {name: (mtime_ns, size)} of
-    the files now in the cache folder (what push_run need not send back)."""
+    """Copy the run's `names` from the store into store.run_dir; return {name: (mtime_ns, size,
+    sha256)} of those now in the cache folder (what push_run need not send back). Raises
+    StoreLeaseError, and changes nothing here, when a file was written by a worker that had lost the
+    run's lease (see the top of this notebook)."""
     folder = store.run_dir(scale, run)
     folder.mkdir(parents=True, exist_ok=True)
     stored = store.stored_files(scale, run)
-    for name in names:
-        local = folder / name
-        if name in stored:
-            with atomic_path(local) as tmp:
+    fence, digests = _Fence(store, scale, run, stored), {}
+    with ExitStack() as installs:  # every file is checked before any is renamed into place
+        for name in names:
+            if name in stored:
+                tmp = installs.enter_context(atomic_path(folder / name))
                 store.fs.get_file(store.key(scale, run, name), str(tmp))
-        else:
-            local.unlink(missing_ok=True)
-    return _stats(folder)
+                digests[name] = _digest(tmp)
+                fence.check(name, digests[name])
+    for name in names:
+        if name not in stored:
+            (folder / name).unlink(missing_ok=True)
+    return _stats(folder, digests)
 
 
-def push_run(store: ResultsStore, folder, scale: str, run: str, pushed: dict | None = None) -> dict:
-    """Upload the files of the cache `folder` that differ from `pushed` ({name: (mtime_ns, size)}),
-    and delete from the store those `pushed` names that are gone here; return the new `pushed`.
-    done.json goes last, and only if it existed when the push began."""
+def push_run(lease: "StoreLease", folder, pushed: dict | None = None) -> dict:
+    """As the holder of `lease`: upload the files of the cache `folder` that differ from `pushed`
+    ({name: (mtime_ns, size, sha256)}), delete from the store those `pushed` names that are gone
+    here, and record the manifest in the lease; return the new `pushed`. The lease is renewed and
+    checked first: when it was lost, or a done marker of another appeared, StoreLeaseError is raised
+    and nothing is uploaded. done.json goes last, after a second check, and only if it existed when
+    the push began."""
+    store, scale, run = lease.store, lease.scale, lease.run
     folder, pushed = Path(folder), dict(pushed or {})
     sealed = (folder / "done.json").exists()
-    for name in STORE_FILES:
-        if name == "done.json" and not sealed:
-            continue
+    lease.renew(pushed)
+    if not sealed and pushed.pop("done.json", None) is not None:  # started over here: unseal the store first
+        _remove(store, store.key(scale, run, "done.json"))
+    for name in STORE_FILES[:-1]:
         stamp = _stamp(folder / name)
         if stamp is None:
             if pushed.pop(name, None) is not None:  # deleted here since (a run started over): there too
-                try:
-                    store.fs.rm_file(store.key(scale, run, name))
-                except FileNotFoundError:
-                    pass
+                _remove(store, store.key(scale, run, name))
             continue
-        if pushed.get(name) != stamp:
-            store.fs.put_file(str(folder / name), store.key(scale, run, name))
-            pushed[name] = stamp
+        if pushed.get(name, ())[:2] == stamp:
+            continue
+        with _snapshot(folder / name) as snap:
+            if snap is None:  # replaced or removed meanwhile: the next push sees it
+                continue
+            state = (*_stamp(snap), _digest(snap))
+            store.fs.put_file(str(snap), store.key(scale, run, name))
+        pushed[name] = state
+    seal = folder / "done.json" if sealed and pushed.get("done.json", ())[:2] != _stamp(folder / "done.json") else None
+    with _snapshot(seal) as snap:
+        state = None if snap is None else (*_stamp(snap), _digest(snap))
+        lease.files = {name: entry[2] for name, entry in pushed.items()} | ({"done.json": state[2]} if state else {})
+        lease.renew(pushed)  # the manifest, then: still the holder, and still no seal of another's?
+        if state is not None:
+            store.fs.put_file(str(snap), store.key(scale, run, "done.json"))
+            pushed["done.json"] = state
     return pushed
+
+
+def _remove(store: ResultsStore, key: str) -> None:
+    try:
+        store.fs.rm_file(key)
+    except FileNotFoundError:
+        pass
 
 
 def _stamp(path: Path) -> tuple | None:
@@ -256,13 +348,43 @@ def _stamp(path: Path) -> tuple | None:
     return st.st_mtime_ns, st.st_size
 
 
-def _stats(folder: Path) -> dict:
-    return {name: stamp for name in STORE_FILES if (stamp := _stamp(folder / name)) is not None}
+def _digest(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _stats(folder: Path, digests: dict) -> dict:
+    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := _stamp(folder / name)) is not None}
+
+
+@contextmanager
+def _snapshot(path):
+    """A hard link to `path` (a copy where links fail) that an atomic replace of `path` leaves alone;
+    None when `path` is None or missing. Named like a torn atomic write (.*.tmp): a killed push's
+    link is removed with those when the run's folder is next locked."""
+    snap = None
+    if path is not None:
+        snap = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.push.tmp")
+        try:
+            os.link(path, snap)
+        except FileNotFoundError:
+            snap = None
+        except OSError:
+            try:
+                shutil.copy2(path, snap)
+            except FileNotFoundError:
+                snap = None
+    try:
+        yield snap
+    finally:
+        if snap is not None:
+            snap.unlink(missing_ok=True)
 
 
 def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
     """For a remote store: bring the cache folder's sealed files up to date with the store, so that
-    pemamoe.runs.verify_done on store.run_dir answers for the store (a no-op for a local store)."""
+    pemamoe.runs.verify_done on store.run_dir answers for the store (a no-op for a local store).
+    Raises StoreLeaseError when a sealed file is not the one its sealer wrote."""
     if not store.remote:
         return
     folder = store.run_dir(scale, run)
@@ -274,90 +396,194 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
 
 # %% [markdown]
 # ## The lease
+#
+# `acquire` reads the newest lease of the run (and the single lease of earlier versions, if one is
+# there) and creates the next generation; `renew` writes the heartbeat and the manifest, then
+# `check`s; `check` lists the run once, which answers both questions: is there a newer lease, and
+# is there a done marker that this worker does not know of? `release` marks the lease released,
+# only while it is still the newest.
 
 # %%
 #| export
+def _lease_name(generation: int) -> str:
+    return f"{LEASE_PREFIX}{generation}.json"
+
+
+def lease_generations(names) -> list:
+    """The generations of the lease objects among a run's stored file `names`, oldest first."""
+    found = []
+    for name in names:
+        middle = name[len(LEASE_PREFIX):-len(".json")] if name.startswith(LEASE_PREFIX) and name.endswith(".json") else ""
+        if middle.isdigit():
+            found.append(int(middle))
+    return sorted(found)
+
+
+def _read_lease(store: ResultsStore, key: str) -> dict | None:
+    try:
+        body = json.loads(store.fs.cat_file(key))
+    except FileNotFoundError:
+        return None
+    except (ValueError, UnicodeDecodeError):
+        return {"heartbeat": 0.0}  # unreadable: treated as stale
+    return body if isinstance(body, dict) else {"heartbeat": 0.0}
+
+
 class StoreLease:
-    """The lease of one run in a remote store (see the top of this notebook)."""
+    """This worker's lease of one run in a remote store (see the top of this notebook): generation
+    is its number once acquired, files the manifest it last wrote."""
 
     def __init__(self, store: ResultsStore, scale: str, run: str, stale_after: float | None = None):
-        self.store, self.key = store, store.key(scale, run, LEASE_NAME)
+        self.store, self.scale, self.run = store, scale, run
         self.stale_after = stale_after if stale_after is not None else _env_seconds(STALE_ENV, LEASE_STALE_SECONDS)
         self.owner = uuid.uuid4().hex
+        self.generation, self.files, self.released = None, None, False
+
+    @property
+    def label(self) -> str:
+        return f"{self.scale}/{self.run}"
+
+    @property
+    def key(self) -> str:
+        return self._key(self.generation if self.generation is not None else "?")
+
+    def _key(self, generation) -> str:
+        return self.store.key(self.scale, self.run, _lease_name(generation))
 
     def _body(self) -> bytes:
         return json.dumps({"owner": self.owner, "host": socket.gethostname(), "pid": os.getpid(),
-                           "heartbeat": time.time(), "stale_after": self.stale_after}).encode()
+                           "heartbeat": time.time(), "stale_after": self.stale_after, "generation": self.generation,
+                           "released": self.released, "files": self.files}).encode()
 
-    def _create(self) -> bool:
-        try:
-            with self.store.fs.open(self.key, "xb") as f:  # conditional put: fails if the object exists
-                f.write(self._body())
-            return True
-        except FileExistsError:
-            return False
-
-    def holder(self) -> dict | None:
-        try:
-            return json.loads(self.store.fs.cat_file(self.key))
-        except FileNotFoundError:
-            return None
-        except (ValueError, UnicodeDecodeError):
-            return {"heartbeat": 0.0}  # unreadable: treated as stale
+    def _live(self, holder: dict) -> bool:
+        return not holder.get("released") and time.time() - _heartbeat(holder) <= self.stale_after
 
     def acquire(self) -> "StoreLease":
-        if self._create():
-            return self
-        holder = self.holder()
-        if holder is not None and time.time() - float(holder.get("heartbeat", 0.0)) <= self.stale_after:
-            raise StoreLeaseError(self.key, holder)
-        try:  # stale (or released meanwhile): take it over; of several takers, one wins the put
-            self.store.fs.rm_file(self.key)
-        except FileNotFoundError:
-            pass
-        if not self._create():
-            raise StoreLeaseError(self.key, self.holder() or {})
+        stored = self.store.stored_files(self.scale, self.run)
+        generations = lease_generations(stored)
+        newest = generations[-1] if generations else 0
+        for key in ([self._key(newest)] if generations else []) + \
+                   ([self.store.key(self.scale, self.run, LEGACY_LEASE)] if LEGACY_LEASE in stored else []):
+            holder = _read_lease(self.store, key)
+            if holder is not None and self._live(holder):
+                raise StoreLeaseError(key, holder)
+        self.generation = newest + 1  # released, stale or none yet: the next generation
+        try:
+            with self.store.fs.open(self.key, "xb") as f:  # conditional put: of all takers of it, one wins
+                f.write(self._body())
+        except FileExistsError:
+            key, self.generation = self.key, None
+            raise StoreLeaseError(key, _read_lease(self.store, key) or {}) from None
         return self
 
-    def renew(self) -> None:
-        holder = self.holder()
-        if holder is None or holder.get("owner") != self.owner:
-            raise StoreLeaseError(self.key, holder or {"host": "nobody (the lease is gone)"})
+    def check(self, pushed: dict | None = None) -> set:
+        """The run's stored file names, once sure that this worker may still write the run: no newer
+        lease exists and (with `pushed`, the files it knows the store holds) no done marker it did not
+        see or write. Raises StoreLeaseError, one line, otherwise."""
+        stored = self.store.stored_files(self.scale, self.run)
+        newer = [g for g in lease_generations(stored) if g > self.generation]
+        if newer:
+            holder = _read_lease(self.store, self._key(newer[-1])) or {}
+            raise StoreLeaseError(self._key(newer[-1]), holder,
+                                  f"{self.label}: this worker lost its lease (generation {self.generation}) to generation "
+                                  f"{newer[-1]} ({holder.get('host', '?')}, pid {holder.get('pid', '?')}); it writes "
+                                  "nothing more to this run, and what it trains of it from now on is discarded")
+        if pushed is not None and "done.json" in stored and "done.json" not in pushed:
+            raise StoreLeaseError(self.key, {}, f"{self.label}: the run was sealed in the store by another worker "
+                                                f"since generation {self.generation} checked it out; nothing goes "
+                                                "over its done marker, and this worker writes nothing more to it")
+        return stored
+
+    def renew(self, pushed: dict | None = None) -> set:
+        """Write the heartbeat (and the manifest), then check (above)."""
         self.store.fs.pipe_file(self.key, self._body())
+        return self.check(pushed)
 
     def release(self) -> None:
-        holder = self.holder()
-        if holder is not None and holder.get("owner") == self.owner:
-            self.store.fs.rm_file(self.key)
+        """Mark the lease released, if it is still the run's newest (else it is not ours to touch)."""
+        if self.generation is None or self.released:
+            return
+        try:
+            self.check()
+        except StoreLeaseError:
+            return
+        self.released = True
+        self.store.fs.pipe_file(self.key, self._body())
+
+
+class _Fence:
+    """What a run's leases say about who wrote which bytes: the newest generation that has pushed
+    (`last`) lists the truth; see `check`."""
+
+    def __init__(self, store: ResultsStore, scale: str, run: str, stored: set):
+        self.store, self.scale, self.run = store, scale, run
+        self.generations, self.sealed, self._files = lease_generations(stored), "done.json" in stored, {}
+        self.last = next((g for g in reversed(self.generations) if self.files(g) is not None), None)
+
+    def files(self, generation: int) -> dict | None:
+        if generation not in self._files:
+            body = _read_lease(self.store, self.store.key(self.scale, self.run, _lease_name(generation))) or {}
+            self._files[generation] = body.get("files") if isinstance(body.get("files"), dict) else None
+        return self._files[generation]
+
+    def check(self, name: str, digest: str) -> None:
+        """Refuse a file whose bytes only an older generation lists, and, under a done marker, one
+        that the last generation does not list (store without leases of this kind: nothing to check)."""
+        if self.last is None or self.files(self.last).get(name) == digest:
+            return
+        run, lease, did = f"{self.scale}/{self.run}", self.generations[-1], "sealed" if self.sealed else "wrote"
+        key = self.store.key(self.scale, self.run, _lease_name(self.last))
+        older = [g for g in self.generations if g < self.last and (self.files(g) or {}).get(name) == digest]
+        if older:
+            raise StoreLeaseError(key, {}, f"{run}: {name} in the store is from generation {older[-1]}, older than "
+                                           f"generation {self.last}, which {did} the run last (lease generation "
+                                           f"{lease}): a worker that had lost the lease wrote it; refused (delete "
+                                           "the run's folder in the store to train it again)")
+        if self.sealed:
+            raise StoreLeaseError(key, {}, f"{run}: {name} in the store is not the one generation {self.last} sealed "
+                                           f"(no generation lists its bytes; lease generation {lease}): refused "
+                                           "(delete the run's folder in the store to train it again)")
 
 
 # %% [markdown]
 # ## Checking runs out of the store
 #
 # `checked_out` is what one worker wraps around one population: it takes every run's lease, pulls
-# each run into the cache, and, while the population trains, a thread pushes the changed files and
-# renews the leases every `SYNC_SECONDS`. When the population stops (finished, out of time,
-# interrupted or failed), a last push and the release follow. A worker that dies without that
+# each run into the cache, and, while the population trains, a thread pushes the changed files
+# (renewing the leases first) every `SYNC_SECONDS`. When the population stops (finished, out of
+# time, interrupted or failed), a last push and the release follow. A worker that dies without that
 # (SIGKILL, a lost node) leaves the store as it was at its last sync, with stale leases: at most
 # `SYNC_SECONDS` plus one checkpoint interval of training is lost.
+#
+# A push that finds the lease lost, or the run sealed by another, is not retried: the thread stops
+# copying that run for good with one line on stderr (and stops altogether once it has lost every
+# run), and the last push raises that `StoreLeaseError` after pushing the runs still this worker's.
+# Other failures (the network) are retried at the next sync. The population itself trains on to its
+# end (training has no hook to be stopped from outside); only its copies in the store are refused.
 
 # %%
 #| export
 class _Mirror(threading.Thread):
-    """Pushes the checked-out runs and renews their leases every `every` seconds."""
+    """Pushes the checked-out runs every `every` seconds; gives up a run for good when its lease is
+    lost (`lost`: run index -> the StoreLeaseError), and ends when it has lost them all."""
 
-    def __init__(self, store, runs, folders, leases, pushed, every: float):
+    def __init__(self, store, folders, leases, pushed, every: float):
         super().__init__(name="pemamoe-store-mirror", daemon=True)
-        self.store, self.runs, self.folders, self.leases, self.pushed = store, runs, folders, leases, pushed
-        self.every, self.stop_event = every, threading.Event()
+        self.store, self.folders, self.leases, self.pushed = store, folders, leases, pushed
+        self.every, self.stop_event, self.lost = every, threading.Event(), {}
 
     def sync(self) -> None:
-        for i, ((scale, run), folder, lease) in enumerate(zip(self.runs, self.folders, self.leases)):
-            self.pushed[i] = push_run(self.store, folder, scale, run, self.pushed[i])
-            lease.renew()
+        for i, (folder, lease) in enumerate(zip(self.folders, self.leases)):
+            if i in self.lost:
+                continue
+            try:
+                self.pushed[i] = push_run(lease, folder, self.pushed[i])
+            except StoreLeaseError as err:
+                self.lost[i] = err
+                print(f"[store] {err}", file=sys.stderr, flush=True)
 
     def run(self) -> None:
-        while not self.stop_event.wait(self.every):
+        while len(self.lost) < len(self.leases) and not self.stop_event.wait(self.every):
             try:
                 self.sync()
             except Exception as err:  # noqa: BLE001 - training goes on; checked_out's last sync raises if it persists
@@ -368,7 +594,8 @@ class _Mirror(threading.Thread):
 @contextmanager
 def checked_out(store: ResultsStore, runs: list):
     """Yield the local folders of `runs` ([(scale, run name), ...]) to train in. For a remote store:
-    lease, pull, mirror while inside, push and release after (see above)."""
+    lease, pull, mirror while inside, push and release after (see above); StoreLeaseError after, when
+    a run's lease was lost meanwhile."""
     store = open_store(store)
     runs = list(runs)
     if not store.remote:
@@ -380,14 +607,16 @@ def checked_out(store: ResultsStore, runs: list):
             leases.append(StoreLease(store, scale, run).acquire())
         folders = [store.run_dir(scale, run) for scale, run in runs]  # their .lock stays local: never pushed
         pushed = [pull_run(store, scale, run) for scale, run in runs]
-        mirror = _Mirror(store, runs, folders, leases, pushed, _env_seconds(SYNC_ENV, SYNC_SECONDS))
+        mirror = _Mirror(store, folders, leases, pushed, _env_seconds(SYNC_ENV, SYNC_SECONDS))
         mirror.start()
         try:
             yield folders
         finally:
             mirror.stop_event.set()
             mirror.join()
-            mirror.sync()  # the last push: whatever the population left, finished or not
+            mirror.sync()  # the last push of every run still this worker's: finished or not
+            if mirror.lost:
+                raise mirror.lost[min(mirror.lost)]
     finally:
         for lease in leases:
             try:
@@ -421,7 +650,8 @@ def push_paths(store: ResultsStore, paths) -> None:
 
 def fetch_run(store, scale: str, run: str) -> Path:
     """The local folder of a run with every file the store holds for it (for a local store: the
-    folder itself). What a driver calls to read a run back, e.g. with pemamoe.populations.load_run."""
+    folder itself). What a driver calls to read a run back, e.g. with pemamoe.populations.load_run.
+    Raises StoreLeaseError when a file was written by a worker that had lost the run's lease."""
     store = open_store(store)
     if store.remote:
         pull_run(store, scale, run)
@@ -429,17 +659,63 @@ def fetch_run(store, scale: str, run: str) -> Path:
 
 
 # %% [markdown]
-# ## Demonstration: a ci population through an in-memory store
+# ## Demonstration: a worker that stalls past the stale time
 #
-# fsspec's `memory://` filesystem stands in for a bucket here (it lives in this process, and it
-# implements the exclusive create the lease needs); `tests/test_store.py` runs the same code against
-# a real S3 server, with a Ray sweep killed part way and resumed. A second worker asking for a run
-# that is leased is refused; the population trains in the cache and leaves its run folders in the
-# store; the sweep's bookkeeping then finds them finished there.
+# Two workers with caches of their own share one run in an in-memory store (fsspec's `memory://`,
+# which implements the exclusive create). A pushes and stalls; B finds A's lease stale, takes the
+# run over as generation 2, trains it on and seals it. When A wakes, its push is refused before it
+# uploads anything. Then the window no check can close: bytes of A's land anyway, as if its check
+# had passed just before the takeover. The reader refuses them, naming both generations.
 
 # %%
 import tempfile
 
+with tempfile.TemporaryDirectory() as tmp:
+    url = "memory://fence-demo/results"
+    store_a, store_b = ResultsStore(url, cache_dir=Path(tmp) / "a"), ResultsStore(url, cache_dir=Path(tmp) / "b")
+    a = StoreLease(store_a, "ci", "demo-run", stale_after=0.05).acquire()
+    folder_a = store_a.run_dir("ci", "demo-run")
+    folder_a.mkdir(parents=True)
+    (folder_a / "config.json").write_text("{}")
+    (folder_a / "metrics.parquet").write_bytes(b"A's logs")
+    pushed_a = push_run(a, folder_a)
+    time.sleep(0.1)  # A stalls past the stale time
+    b = StoreLease(store_b, "ci", "demo-run", stale_after=0.05).acquire()
+    pushed_b = pull_run(store_b, "ci", "demo-run")
+    folder_b = store_b.run_dir("ci", "demo-run")
+    (folder_b / "metrics.parquet").write_bytes(b"B's logs, all of them")
+    (folder_b / "done.json").write_text("{}")
+    push_run(b, folder_b, pushed_b)
+    b.release()
+    sealed = {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in ("metrics.parquet", "done.json")}
+    print(f"A generation {a.generation}, B generation {b.generation}; sealed by B:", sealed)
+    (folder_a / "metrics.parquet").write_bytes(b"A's later logs")
+    try:
+        push_run(a, folder_a, pushed_a)
+    except StoreLeaseError as err:
+        print("A's push:", err)
+    assert sealed == {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in sealed}
+    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", "metrics.parquet"))
+    a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
+    store_a.fs.pipe_file(a.key, a._body())  # the late write and A's manifest of it
+    try:
+        refresh_finished(store_b, "ci", "demo-run")
+    except StoreLeaseError as err:
+        print("the reader:", err)
+    assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"  # the cache kept B's
+    store_a.fs.rm(store_a.key("ci"), recursive=True)
+
+# %% [markdown]
+# ## Demonstration: a ci population through an in-memory store
+#
+# The same `memory://` filesystem stands in for a bucket here; `tests/test_store.py` runs the same
+# code against a real S3 server, with a Ray sweep killed part way and resumed, and with a worker
+# paused past the stale time while another takes its run over and seals it. A second worker asking
+# for a run that is leased is refused; the population trains in the cache and leaves its run
+# folders in the store, their leases released; the sweep's bookkeeping then finds them finished
+# there.
+
+# %%
 from pemamoe.execution import RunSpec, execute_population, pending_runs
 
 with tempfile.TemporaryDirectory() as tmp:
@@ -459,5 +735,6 @@ with tempfile.TemporaryDirectory() as tmp:
     for path in sorted(store.fs.find(store.root)):
         print("  in the store:", path[len(store.root) + 1:])
     print("still to train:", [s.label() for s in pending_runs(specs, url)[1]] or "nothing")
-    assert not pending_runs(specs, url)[1] and not any(p.endswith(LEASE_NAME) for p in store.fs.find(store.root))
+    leases = [json.loads(store.fs.cat_file(p)) for p in store.fs.find(store.root) if Path(p).name.startswith(LEASE_PREFIX)]
+    assert not pending_runs(specs, url)[1] and leases and all(lease["released"] for lease in leases)
     del os.environ[CACHE_ENV]

@@ -3,6 +3,7 @@ its deadline leaves each unfinished run's state beside the records; a fresh mach
 records folder resumes from it, losing no iteration, and the finished record is byte-identical to
 an uninterrupted run's."""
 
+import json
 import shutil
 import time
 from pathlib import Path
@@ -156,6 +157,21 @@ def test_a_store_url_is_checked_before_anything_trains():
     assert str(open_store("file:///tmp/r").folder) == "/tmp/r"
 
 
+def _newest_lease(store, key):
+    """The body of the newest lease of the run `key` ("scale/run") in the store."""
+    from pemamoe.store import lease_generations
+
+    scale, run = key.split("/")
+    newest = lease_generations(store.stored_files(scale, run))[-1]
+    return json.loads(store.fs.cat_file(store.key(scale, run, f".lease-{newest}.json")))
+
+
+def _run_bytes(store, scale, run):
+    """{name: bytes} of the run's files in the store (its leases left out)."""
+    return {name: store.fs.cat_file(store.key(scale, run, name))
+            for name in store.stored_files(scale, run) if not name.startswith(".lease")}
+
+
 def test_a_lease_is_exclusive_and_a_stale_one_is_taken_over(s3_store):
     from pemamoe.store import StoreLease, StoreLeaseError, open_store
 
@@ -166,12 +182,194 @@ def test_a_lease_is_exclusive_and_a_stale_one_is_taken_over(s3_store):
     first.renew()
     time.sleep(0.2)
     second = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # first looks dead: taken over
-    with pytest.raises(StoreLeaseError):
+    assert (first.generation, second.generation) == (1, 2)
+    with pytest.raises(StoreLeaseError, match=r"lost its lease \(generation 1\) to generation 2"):
         first.renew()  # the old holder learns that it lost the lease
     first.release()  # not its lease any more: a no-op
-    assert store.fs.exists(second.key)
+    assert not _newest_lease(store, "ci/mlp-s0-x")["released"]
     second.release()
-    assert not store.fs.exists(second.key)
+    assert _newest_lease(store, "ci/mlp-s0-x")["released"]
+    third = StoreLease(store, "ci", "mlp-s0-x").acquire()  # a released lease is free at once, as the next generation
+    assert third.generation == 3
+
+
+def test_of_two_takers_of_one_stale_lease_one_wins(s3_store):
+    import threading
+
+    from pemamoe.store import StoreLease, StoreLeaseError, open_store
+
+    store = open_store(s3_store)
+    StoreLease(store, "ci", "run", stale_after=0.1).acquire()
+    time.sleep(0.2)
+    barrier, outcome = threading.Barrier(2), []
+
+    def take():
+        lease = StoreLease(store, "ci", "run", stale_after=0.1)
+        barrier.wait()
+        try:
+            outcome.append(lease.acquire().generation)
+        except StoreLeaseError:
+            outcome.append("refused")
+
+    threads = [threading.Thread(target=take) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(outcome, key=str) == [2, "refused"]
+
+
+def _worker_folder(root, files):
+    root.mkdir(parents=True, exist_ok=True)
+    for name, data in files.items():
+        (root / name).write_bytes(data)
+    return root
+
+
+def test_a_push_is_refused_once_the_lease_is_lost(s3_store, tmp_path):
+    from pemamoe.store import StoreLease, StoreLeaseError, open_store, push_run
+
+    store = open_store(s3_store)
+    a = StoreLease(store, "ci", "run", stale_after=0.2).acquire()
+    folder = _worker_folder(tmp_path / "a", {"config.json": b"{}", "metrics.parquet": b"A's logs"})
+    pushed = push_run(a, folder)
+    assert _run_bytes(store, "ci", "run") == {"config.json": b"{}", "metrics.parquet": b"A's logs"}
+    time.sleep(0.3)  # A stalls past the stale time
+    StoreLease(store, "ci", "run", stale_after=0.2).acquire()
+    (folder / "metrics.parquet").write_bytes(b"A's later logs")
+    (folder / "done.json").write_bytes(b"{}")
+    with pytest.raises(StoreLeaseError, match=r"ci/run: this worker lost its lease \(generation 1\) to generation 2"):
+        push_run(a, folder, pushed)
+    assert _run_bytes(store, "ci", "run") == {"config.json": b"{}", "metrics.parquet": b"A's logs"}  # nothing went up
+
+
+def test_a_push_is_refused_over_a_done_marker_it_did_not_write(s3_store, tmp_path):
+    from pemamoe.store import StoreLease, StoreLeaseError, open_store, push_run
+
+    store = open_store(s3_store)
+    a = StoreLease(store, "ci", "run").acquire()
+    folder = _worker_folder(tmp_path / "a", {"config.json": b"{}", "metrics.parquet": b"A's logs"})
+    pushed = push_run(a, folder)
+    store.fs.pipe_file(store.key("ci", "run", "done.json"), b"another's seal")  # a seal outside the lease
+    (folder / "metrics.parquet").write_bytes(b"A's later logs")
+    with pytest.raises(StoreLeaseError, match="ci/run: the run was sealed in the store by another worker"):
+        push_run(a, folder, pushed)
+    assert _run_bytes(store, "ci", "run")["metrics.parquet"] == b"A's logs"
+    # its own seal, and a push after it, are the holder's to make
+    b_folder = _worker_folder(tmp_path / "b", {"config.json": b"{}", "done.json": b"B's seal"})
+    b = StoreLease(store, "ci", "other").acquire()
+    b_pushed = push_run(b, b_folder)
+    (b_folder / "sweep.json").write_bytes(b"{}")
+    push_run(b, b_folder, b_pushed)
+    assert _run_bytes(store, "ci", "other") == {"config.json": b"{}", "done.json": b"B's seal", "sweep.json": b"{}"}
+
+
+def test_a_reader_refuses_a_file_of_an_older_generation(s3_store, tmp_path):
+    """The window no check closes: A's check passed just before B took over and B sealed; A's bytes
+    (and A's manifest of them) land after. Every reader refuses them, naming both generations, and
+    leaves its cache as it was."""
+    from pemamoe.store import (ResultsStore, StoreLease, StoreLeaseError, _digest, fetch_run, pull_run, push_run,
+                               refresh_finished)
+
+    store_a, store_b = ResultsStore(s3_store, cache_dir=tmp_path / "a"), ResultsStore(s3_store, cache_dir=tmp_path / "b")
+    a = StoreLease(store_a, "ci", "run", stale_after=0.2).acquire()
+    folder_a = _worker_folder(store_a.run_dir("ci", "run"), {"config.json": b"{}", "metrics.parquet": b"A's logs"})
+    push_run(a, folder_a)
+    time.sleep(0.3)
+    b = StoreLease(store_b, "ci", "run", stale_after=0.2).acquire()
+    pushed_b = pull_run(store_b, "ci", "run")
+    folder_b = store_b.run_dir("ci", "run")
+    _worker_folder(folder_b, {"metrics.parquet": b"B's logs", "done.json": b"B's seal"})
+    push_run(b, folder_b, pushed_b)
+    b.release()
+    refresh_finished(store_b, "ci", "run")  # what B sealed reads back
+    sealed = _run_bytes(store_b, "ci", "run")
+
+    (folder_a / "metrics.parquet").write_bytes(b"A's later logs")
+    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "run", "metrics.parquet"))
+    a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
+    store_a.fs.pipe_file(a.key, a._body())
+    refused = r"ci/run: metrics.parquet in the store is from generation 1, older than generation 2, which sealed"
+    with pytest.raises(StoreLeaseError, match=refused):
+        refresh_finished(store_b, "ci", "run")
+    with pytest.raises(StoreLeaseError, match=refused):
+        fetch_run(store_b, "ci", "run")
+    assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs"  # nothing of the refused pull installed
+    fresh = ResultsStore(s3_store, cache_dir=tmp_path / "c")
+    with pytest.raises(StoreLeaseError, match=refused):
+        pull_run(fresh, "ci", "run")
+    assert not (fresh.run_dir("ci", "run") / "done.json").exists()
+
+    # bytes that no generation lists, under a seal: refused too
+    store_a.fs.pipe_file(store_a.key("ci", "run", "metrics.parquet"), b"nobody's")
+    with pytest.raises(StoreLeaseError, match="metrics.parquet in the store is not the one generation 2 sealed"):
+        refresh_finished(store_b, "ci", "run")
+    store_a.fs.pipe_file(store_a.key("ci", "run", "metrics.parquet"), sealed["metrics.parquet"])
+    refresh_finished(store_b, "ci", "run")  # B's bytes back: read as sealed
+
+
+_WORKER_ENV = {"PEMAMOE_LEASE_STALE_SECONDS": "5", "PEMAMOE_STORE_SYNC_SECONDS": "2"}
+
+
+def test_a_worker_paused_past_the_stale_time_writes_nothing_over_the_run_another_sealed(s3_store, tmp_path):
+    """Two `train` workers with caches of their own, one run, lease stale after 5 s: A pushes a
+    checkpoint and is paused (SIGSTOP) past the stale time; B takes the run over, trains it to the
+    end and seals it; A resumed: its mirror stops with one line, no retries, the worker exits with
+    one line, and the run in the bucket is byte for byte what B sealed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from pemamoe.store import ResultsStore, fetch_run, open_store
+
+    store = open_store(s3_store)
+    args = [sys.executable, "-m", "pemamoe", "train", "--method", "mlp", "--scale", "ci", "--iterations", "100",
+            "--results-dir", s3_store]
+    root = Path(__file__).resolve().parents[1]
+
+    def worker(name):
+        env = {**os.environ, **_WORKER_ENV, "PEMAMOE_CACHE": str(tmp_path / name), "PYTHONPATH": str(root)}
+        out = open(tmp_path / f"{name}.log", "w")
+        return subprocess.Popen(args, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+    a = worker("a")
+    b = None
+    try:
+        deadline, run = time.time() + 180, None
+        while True:  # until A has pushed a checkpoint and listed it: A is between two pushes then
+            assert a.poll() is None, (tmp_path / "a.log").read_text()
+            assert time.time() < deadline, "A pushed no checkpoint"
+            store.fs.invalidate_cache()
+            leases = [p for p in store.fs.find(store.key("train")) if p.endswith("/.lease-1.json")]
+            if leases and "checkpoint.pt" in (json.loads(store.fs.cat_file(leases[0])).get("files") or {}):
+                run = leases[0].split("/")[-2]
+                break
+            time.sleep(0.1)
+        os.kill(a.pid, signal.SIGSTOP)
+        time.sleep(float(_WORKER_ENV["PEMAMOE_LEASE_STALE_SECONDS"]) + 0.5)
+        b = worker("b")
+        assert b.wait(timeout=240) == 0, (tmp_path / "b.log").read_text()
+        sealed = _run_bytes(store, "train", run)
+        b_folder = next((tmp_path / "b").glob(f"store/*/train/{run}"))
+        assert "done.json" in sealed and sealed == {n: (b_folder / n).read_bytes() for n in sealed}  # B's files
+        assert _newest_lease(store, f"train/{run}")["generation"] == 2
+
+        os.kill(a.pid, signal.SIGCONT)
+        assert a.wait(timeout=240) == 1
+    finally:
+        for p in (a, b):
+            if p is not None and p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+    assert _run_bytes(store, "train", run) == sealed  # nothing of A's went over B's sealed run
+    log = (tmp_path / "a.log").read_text()
+    lost = f"results store: train/{run}: this worker lost its lease (generation 1) to generation 2"
+    assert "retrying" not in log and log.count(f"[store] {lost}") == 1, log  # the mirror stopped, once
+    last = log.strip().splitlines()[-1]
+    assert "error: " + lost in last, log  # and the worker ended with one line saying so
+    fresh = ResultsStore(s3_store, cache_dir=tmp_path / "reader")
+    folder = fetch_run(fresh, "train", run)  # and a reader takes it as B sealed it
+    assert {n: (folder / n).read_bytes() for n in sealed} == sealed
 
 
 _SWEEP_SCRIPT = """
@@ -218,7 +416,7 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
         if driver.poll() is None:
             os.killpg(driver.pid, signal.SIGKILL)
     left = _bucket_files(s3_store)
-    assert any(f"{k}/.lease.json" in left for k in keys)  # killed tasks release nothing
+    assert any(not _newest_lease(store, k)["released"] for k in keys)  # killed tasks release nothing
     unfinished = [k for k in keys if f"{k}/done.json" not in left]
     assert unfinished, "both runs finished before the kill: nothing was resumed"
     reached = {}
@@ -234,7 +432,7 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     records = f"s3://{bucket}/records"  # the records at a URL too: nothing but caches on local disk
     folders = run_sweep(specs, "ray", workers=2, results_dir=s3_store, records_dir=records, verbose=False)
     done = _bucket_files(s3_store)
-    assert all(f"{k}/done.json" in done and f"{k}/.lease.json" not in done for k in keys)
+    assert all(f"{k}/done.json" in done and _newest_lease(store, k)["released"] for k in keys)
     cache = Path(os.environ["PEMAMOE_CACHE"])
     assert all(cache in f.parents for f in folders)  # the driver's view of the runs is its cache
     assert sorted(p.name for p in work.iterdir()) == []  # nothing written beside the cache
@@ -264,8 +462,12 @@ def test_train_takes_the_store_as_its_results_dir(tmp_path, monkeypatch, capsys)
     store = open_store("memory://train-test/r")
     names = {p.rsplit("/", 1)[1] for p in store.fs.find(store.root)}
     assert {"config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "done.json"} <= names
-    assert ".lease.json" not in names and sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+    assert {".lease-1.json"} == {n for n in names if n.startswith(".lease")} and sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+    leases = [json.loads(store.fs.cat_file(p)) for p in store.fs.find(store.root) if p.endswith(".lease-1.json")]
+    assert len(leases) == 1 and leases[0]["released"]  # released, and kept: it carries the generation
     # started over: the store loses the old seal with the old files, and gets the new ones
     assert main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "memory://train-test/r",
                  "--no-resume"]) == 0
     assert "(trained)" in capsys.readouterr().out
+    run = next(p for p in store.fs.find(store.root) if p.endswith(".lease-1.json")).split("/")[-2]
+    assert _newest_lease(store, f"train/{run}")["generation"] == 2 and _newest_lease(store, f"train/{run}")["released"]
