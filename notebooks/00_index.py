@@ -46,8 +46,8 @@
 # | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | (appendix to IV-A) the sparse actor's readings (per-expert heads, balance loss, re-routed ratio, top-2) and why top-1 plateaus lower | `05d_sparse_actor.py` | | `sparse_actor*` |
-# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py`, `pemamoe/controller.py` | schedule figures |
-# | (appendix) the phase controller for a population of runs, plasticity methods, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/population_plasticity.py`, `pemamoe/diagnostics.py` | |
+# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
+# | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry), AdamW over the run axis, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/plasticity.py`, `pemamoe/optim.py`, `pemamoe/diagnostics.py` | |
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |

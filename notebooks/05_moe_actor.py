@@ -63,8 +63,9 @@ from pemamoe.methods import METHOD_REGISTRY, load_plugins
 from pemamoe.methods import (ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS, NETWORKS, check_param_groups,  # re-export
                              network_kind, register_network)
 from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationActor, PopulationCritic,  # re-export  # noqa: F401
-                             RoutingSample, gaussian_entropy, gaussian_kl, gaussian_log_prob, loop_experts, masked_mixed,
-                             routing_noise_std, run_experts, run_linear, run_load_balance, run_noise_scale)
+                             RoutingSample, draw_routing_noise, gaussian_entropy, gaussian_kl, gaussian_log_prob,
+                             loop_experts, masked_mixed, routing_noise_std, run_experts, run_linear, run_load_balance,
+                             run_noise_scale)
 
 # %% [markdown]
 # ## Reading the architecture off the paper's parameter counts
@@ -382,9 +383,9 @@ class GatedExperts(nn.Module):
             if self.sparse:
                 replay = routing.experts.reshape(1, batch, self.k).long()
         elif self.noisy and not deterministic_gate:
-            noise = torch.randn(batch, n_exp, dtype=x.dtype, device=x.device)
-            if self.noise != "learned":  # stored scaled (the trainer passes the annealed sigma to the population)
-                noise = noise * self.noise_std
+            # the population's routing-noise draw (appendix 05b), from torch's global generator, with the
+            # config's sigma (the trainer passes the annealed sigma to the population)
+            noise = draw_routing_noise(self.noise, batch, n_exp, self.noise_std, dtype=x.dtype, device=x.device)
         else:
             noise = x.new_zeros(batch, n_exp)
         features, (probs, experts, weights) = run_gate(single_member_params(self), "", x.unsqueeze(0), tau.unsqueeze(0),

@@ -68,7 +68,7 @@ class MethodSpec:
 
     name: str
     network: str  # a kind of pemamoe.nets.make_actor / make_critic
-    plasticity: str = "none"  # a name in pemamoe.population_plasticity.PLASTICITY_METHODS
+    plasticity: str = "none"  # a name in pemamoe.plasticity.PLASTICITY_METHODS
     label: str = ""  # display label in figures and tables
     colour: str = "#333333"
     proposed: bool = False  # the paper's method (the headline comparisons are against it)
@@ -420,9 +420,10 @@ class ExpertBank(nn.Module):
 # notebook 05's `GaussianActor.evaluate` does for one network) and the critic's call. The Gaussian
 # helpers at the end compute log-densities, entropies and KL divergences per member from the means
 # and log-standard-deviations. `RoutingSample` is what a gated pass stores to be replayed (its
-# noise, its chosen experts, its temperature), with the indexing a rollout buffer needs, and
-# `routing_noise_std` the per-iteration sigma of `fixed` and `annealed` routing noise that the
-# trainer hands `act`.
+# noise, its chosen experts, its temperature), with the indexing a rollout buffer needs;
+# `routing_noise_std` is the per-iteration sigma of `fixed` and `annealed` routing noise that the
+# trainer hands `act`, and `draw_routing_noise` draws a pass's gate noise as `RoutingSample`
+# stores it: the one routing-noise draw, used by `act` here and by notebook 05's single network.
 
 # %%
 #| export
@@ -469,6 +470,24 @@ def routing_noise_std(cfg, iteration: int, iterations: int) -> float:
     if cfg.routing_noise == "annealed":
         return float(cfg.noise_std * max(0.0, 1.0 - iteration / (cfg.noise_anneal_portion * iterations)))
     return 0.0
+
+
+def draw_routing_noise(mode: str, rows: int, n_experts: int, sigma, generators=None, dtype=None, device=None):
+    """The gate noise of one sampling pass as a RoutingSample stores it, for the single network and the
+    population alike: standard-normal draws (rows, E) from torch's global generator when `generators`
+    is None (one network, in `dtype`), else (R, rows, E), member r's drawn from generators[r]; times
+    sigma for `fixed` and `annealed` routing noise (a number, or one per member (R,)), as drawn for
+    `learned` (run_noise_scale multiplies them by the noise gate in the forward pass). Stored already
+    scaled, so that a replay needs no sigma."""
+    if generators is None:
+        noise = torch.randn(rows, n_experts, dtype=dtype, device=device)
+    else:
+        noise = torch.stack([torch.randn(rows, n_experts, generator=g, device=device) for g in generators])
+    if mode == "learned":
+        return noise
+    if isinstance(sigma, torch.Tensor):
+        sigma = sigma.to(noise).reshape(-1, *(1,) * (noise.ndim - 1))
+    return noise * sigma
 
 
 class ParamLayout:
@@ -660,10 +679,8 @@ class PopulationActor(_Population):
         tau_rows = tau.reshape(R, 1).expand(R, n).contiguous()
         noise = None
         if self.noisy and not deterministic:
-            noise = torch.stack([torch.randn(n, self.n_experts, generator=g, device=obs.device) for g in generators])
-            if self.noise_mode != "learned":  # stored already scaled, so that replay needs no sigma
-                sigma = obs.new_full((R,), self.template.cfg.noise_std) if noise_std is None else noise_std
-                noise = noise * sigma.to(noise).reshape(R, 1, 1)
+            sigma = obs.new_full((R,), self.template.cfg.noise_std) if noise_std is None else noise_std
+            noise = draw_routing_noise(self.noise_mode, n, self.n_experts, sigma, generators, device=obs.device)
         mean, log_std, gate = self.mean_and_gate(obs, tau_rows, noise)
         if deterministic:
             action = mean

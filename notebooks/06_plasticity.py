@@ -34,11 +34,14 @@
 # MLP, MoE and SMoE baselines run) the controller only reports the baselines' plain schedules.
 #
 # This notebook gives the mechanisms, their equations, pictures, and the controller itself,
-# `PhaseController`: the code the trainer of notebook 07 runs, read here for one run. The appendix
-# `06b_population_plasticity.py` holds the bookkeeping around it: the interface every plasticity
-# method implements, AdamW over a population's stacked parameters, the registry of methods, and the
-# **plasticity diagnostics** the paper plots (feature rank, dormant units, router probabilities,
-# mean action; `pemamoe/diagnostics.py`).
+# `PhaseController`: the code the trainer of notebook 07 runs, read here for one run. All of the
+# controller is one module, `pemamoe/phase_controller.py`, exported from this notebook: its config,
+# its schedules, the class and the noise it adds to the experts. The appendix
+# `06b_population_plasticity.py` holds the bookkeeping around it: what every plasticity method
+# shares, the PPO schedule, the interface and the registry of methods (`pemamoe/plasticity.py`),
+# AdamW over a population's stacked parameters (`pemamoe/optim.py`), and the **plasticity
+# diagnostics** the paper plots (feature rank, dormant units, router probabilities, mean action;
+# `pemamoe/diagnostics.py`).
 
 # %%
 #| default_exp phase_controller
@@ -54,9 +57,12 @@ import math
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
+import torch
 
 from pemamoe.core import require_field
-from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
+from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, Schedules, base_entropy_coef,
+                                linear_anneal, register_plasticity)
+from pemamoe.popnets import gaussian_kl
 
 # %% [markdown]
 # ## What the paper fixes, and what it leaves open
@@ -169,13 +175,14 @@ from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
 # Two frozen dataclasses. `PhaseControllerConfig` holds the switches and the switch-time numbers
 # (the PE-MAMoE part). `BaseSchedule` holds what every method shares with PPO (learning rate,
 # clip, target KL, entropy schedule, run and phase lengths, the router temperature); the trainer
-# builds it from its own PPO config so there is one source for each number.
+# builds it from its own PPO config so there is one source for each number. Since every plasticity
+# method reads it, the baselines' too, `BaseSchedule` lives with the methods' interface (appendix
+# 06b, `pemamoe.plasticity`); the controller modifies its values.
 
 # %%
 #| export
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
-GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
 
 
 @dataclass(frozen=True)
@@ -263,33 +270,6 @@ MECHANISMS = (
     "temperature_schedule",
 )
 
-
-@dataclass(frozen=True)
-class BaseSchedule:
-    """The PPO values every method shares (paper training table); the phase controller modifies them."""
-
-    lr: float = 3e-4
-    clip_coef: float = 0.15
-    target_kl: float | None = 0.1  # None: no early stopping
-    ent_start: float = 0.01
-    ent_end: float = 0.003
-    ent_anneal_portion: float = 0.3  # of the whole run (baselines)
-    total_iterations: int = 10800  # 22,118,400 steps / 2048 per iteration
-    phase_length: int = 1200  # iterations per phase (9 phases)
-    temperature: float = 1.0  # router temperature outside the controller's schedule
-
-    def __post_init__(self):
-        require_field(self, "lr", "real", gt=0)
-        require_field(self, "clip_coef", "real", gt=0)
-        require_field(self, "target_kl", "real", gt=0, optional=True)
-        for name in ("ent_start", "ent_end"):
-            require_field(self, name, "real", ge=0)
-        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
-        for name in ("total_iterations", "phase_length"):
-            require_field(self, name, "int", ge=1)
-        require_field(self, "temperature", "real", gt=0)
-
-
 # %% [markdown]
 # ## The schedules as pure functions
 #
@@ -304,7 +284,8 @@ class BaseSchedule:
 #   0 (the reference is released): $0.985^{\Delta} < 0.01$ first holds at $\Delta = 305$.
 # * **Entropy coefficient**: a linear ramp from 0.01 to 0.003 over the first 30 % of the span being
 #   annealed, then flat at 0.003. The span is the whole run for the baselines (the table's
-#   "anneal portion 0.3 of training") and the current phase for PE-MAMoE with the reset
+#   "anneal portion 0.3 of training"; `base_entropy_coef`, appendix 06b, the schedule every method
+#   shares) and the current phase for PE-MAMoE with the reset
 #   (0.3 × 1200 = 360 iterations after each switch; the first phase starts at iteration 0).
 #   The temperature, too, treats iteration 0 as the start of the first phase; the switch-only
 #   mechanisms (KL anchor, LR drop, windows, noise) wait for the first real switch.
@@ -346,19 +327,12 @@ def temperature_formula(since, cfg: PhaseControllerConfig):
     return cfg.tau_min + (cfg.tau_max - cfg.tau_min) * (0.5 * (1.0 + np.tanh(0.5 * z)))
 
 
-def linear_anneal(step, span, start: float, end: float):
-    """start -> end linearly over `span` steps, then flat at `end`."""
-    frac = np.clip(np.asarray(step, dtype=float) / span, 0.0, 1.0)
-    return start + (end - start) * frac
-
-
 def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControllerConfig | None):
     """Entropy coefficient: over the run (cfg None or entropy_reset False), or re-annealed within each phase."""
     if cfg is not None and cfg.entropy_reset:
         span = max(cfg.entropy_phase_portion * base.phase_length, 1e-12)
         return linear_anneal(since_phase, span, base.ent_start, base.ent_end)
-    span = max(base.ent_anneal_portion * base.total_iterations, 1e-12)
-    return linear_anneal(iteration, span, base.ent_start, base.ent_end)
+    return base_entropy_coef(iteration, base)
 
 
 # %% [markdown]
@@ -368,12 +342,12 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
 # `[j]` of `w1`, `b1`, `w2` and `b2`; for the MLP actor, whose trunk is its single "expert" 0,
 # the two hidden layers. The router, the noise gate, the head and the log-std are never touched.
 # The controller works on a run's parameters as one flat row (appendix 05b): `expert_indices()`
-# (appendix 06b) gives, per expert, the positions of its trunk in the row, and `perturb_experts`
-# adds to each of them an independent $\mathcal N(0, \sigma_e^2)$ draw from the run's own
-# `torch.Generator` (so a checkpoint resumes the exact noise sequence, and the noise does not
-# disturb the random streams of the rollouts). The expected squared size of one injection is
-# $\sum_e \sigma_e^2 n_e$ over the $n_e$ scalars of each expert's trunk: the "noise energy" the
-# paper's regret bound accumulates. On a single-run actor, `expert_parameters(actor, j)` gives the
+# (appendix 06b) gives, per expert, the positions of its trunk in the row, and the controller's
+# own `perturb_experts` (below) adds to each of them an independent $\mathcal N(0, \sigma_e^2)$
+# draw from the run's own `torch.Generator` (so a checkpoint resumes the exact noise sequence, and
+# the noise does not disturb the random streams of the rollouts). The expected squared size of one
+# injection is $\sum_e \sigma_e^2 n_e$ over the $n_e$ scalars of each expert's trunk: the "noise
+# energy" the paper's regret bound accumulates. On a single-run actor, `expert_parameters(actor, j)` gives the
 # same trunk as parameter views (the theory check of notebook 08 perturbs trained actors with it).
 
 # %%
@@ -402,10 +376,10 @@ def expert_parameters(actor, expert: int) -> list:
 # not enough at all: Adam keeps applying its momentum for several steps after the gradient
 # vanishes, and AdamW's decoupled weight decay shrinks a parameter every step whether or not it has
 # a gradient. So while the controller reports `router_frozen`, the trainer passes the optimizer a
-# mask of frozen groups (`RunAdamW.step(lr, stepping, frozen)`, appendix 06b): the policy router's
-# group (with its noise gate) gets no moment update, no weight decay and no step count, and its
-# gradient is zeroed before the gradient-norm clip, so that it does not take a share of the
-# other parameters' clipping budget. A frozen router still *routes*: the forward pass is
+# mask of frozen groups (`RunAdamW.step(lr, stepping, frozen)`, `pemamoe.optim`, appendix 06b):
+# the policy router's group (with its noise gate) gets no moment update, no weight decay and no
+# step count, and its gradient is zeroed before the gradient-norm clip, so that it does not take a
+# share of the other parameters' clipping budget. A frozen router still *routes*: the forward pass is
 # unchanged, only its parameters stay put, bit for bit (appendix 06b shows it on a real
 # optimizer step; the tests check it).
 
@@ -415,11 +389,12 @@ def expert_parameters(actor, expert: int) -> list:
 # The trainer of notebook 07 trains R runs at once: each run's parameters are one row of an
 # (R, P) tensor (appendix 05b), and the switch-time work of every run is done by one *plasticity
 # method*, an object with a fixed set of hooks (appendix 06b: the interface, the baselines'
-# `NoPlasticity`, AdamW over the rows, the registry). PE-MAMoE's method is `PhaseController`
-# below, the code the experiments run. **Read it at R = 1**: each `for r in range(self.R)` is one
-# run, `self.actor.flat[r]` is that run's parameter vector, `self.actor_opt.reset(r)` its Adam
-# reset. R > 1 adds only the leading axis: every member has its own config, clock, reference row and
-# noise generator, and no action on member r reads or writes another member's row.
+# `NoPlasticity` and the registry in `pemamoe.plasticity`, AdamW over the rows in `pemamoe.optim`).
+# PE-MAMoE's method is `PhaseController` below, the code the experiments run. **Read it at
+# R = 1**: each `for r in range(self.R)` is one run, `self.actor.flat[r]` is that run's parameter
+# vector, `self.actor_opt.reset(r)` its Adam reset. R > 1 adds only the leading axis: every
+# member has its own config, clock, reference row and noise generator, and no action on member r
+# reads or writes another member's row.
 #
 # ```text
 # actor.flat (R, P)   r = 0: [ router | expert 0 | expert 1 | expert 2 | head | log_std ]   one run (R = 1)
@@ -455,7 +430,8 @@ def expert_parameters(actor, expert: int) -> list:
 # `on_switch` runs the switch-time actions in Algorithm 1's order: snapshot (before any
 # perturbation, so the anchor is the pre-switch policy), Adam reset, noise on every expert, windows
 # start, log-std reset; the entropy, LR, clip and temperature changes follow from the new
-# $\Delta = 0$ in `begin_iteration`, which calls the schedule functions above. Before a member's
+# $\Delta = 0$ in `begin_iteration`, which calls the schedule functions above and hands the trainer
+# each member's `IterationSettings` (appendix 06b) stacked into `Schedules`. Before a member's
 # first switch, and for a member whose config disables the controller (the baselines with
 # `force_controller`, in a shared population), the member trains bit for bit as under
 # `NoPlasticity`. All state a resume needs is in `state_dict(r)`: the switch time, the remaining
@@ -472,35 +448,6 @@ def expert_parameters(actor, expert: int) -> list:
 
 # %%
 #| export
-@dataclass(frozen=True)
-class IterationSettings:
-    """What one member trains with in one iteration (one per member in Schedules.members)."""
-
-    iteration: int
-    since_switch: int | None  # iterations since the last switch (None before the first)
-    lr: dict  # {"head": the actor's rate} and, once the controller acts, "router" (0 while frozen)
-    clip_coef: float
-    target_kl: float | None
-    ent_coef: float
-    kl_coef: float  # 0 when off, before the first switch, or once released
-    policy_temperature: float
-    value_temperature: float
-    router_frozen: bool
-    conservative: bool
-    noise_epochs_left: int
-
-
-# %%
-#| export controller
-from dataclasses import asdict
-
-import torch
-
-from pemamoe.nets import gaussian_kl
-from pemamoe.phase_controller import IterationSettings, entropy_coef, kl_anchor_coef, lr_multiplier, temperature_text
-from pemamoe.population_plasticity import NoPlasticity, Schedules, _schedules, register_plasticity
-
-
 @register_plasticity
 class PhaseController(NoPlasticity):
     """PE-MAMoE's phase controller (Algorithm 1) for each member whose config enables it;
@@ -528,6 +475,18 @@ class PhaseController(NoPlasticity):
         if cfg.noise_lr_factor:
             std *= self.bases[r].lr * (float(lr_multiplier(since, cfg)) if cfg.lr_drop else 1.0)
         return std
+
+    @torch.no_grad()
+    def perturb_experts(self, r: int, stds, generator: torch.Generator) -> int:
+        """Add N(0, stds[e]^2) to every trunk parameter of member r's expert e; returns the
+        number of experts perturbed (std > 0)."""
+        done = 0
+        for idx, std in zip(self.expert_indices(), stds):
+            if std > 0:
+                noise = torch.randn(idx.numel(), generator=generator, device=generator.device)
+                self.actor.flat[r, idx] += noise.to(self.device, self.actor.flat.dtype) * std
+                done += 1
+        return done
 
     @torch.no_grad()
     def on_switch(self, iteration: int) -> None:
@@ -589,7 +548,7 @@ class PhaseController(NoPlasticity):
                 self.noise_left[r] -= 1
         settings = [self.member_settings(r, iteration) for r in range(self.R)]
         self.settings = settings
-        return _schedules(settings, [b.lr for b in self.bases], self.device)
+        return Schedules.stack(settings, [b.lr for b in self.bases], self.device)
 
     def extra_loss(self, batch: dict):
         """(R,) kl_coef * mean KL(pi_theta || pi_ref) on the minibatch, routing replayed; None when no member has an anchor."""
@@ -681,6 +640,31 @@ class PhaseController(NoPlasticity):
 #   alone. The switch-time injection itself still perturbs every expert with the full gamma.
 
 # %% [markdown]
+# ## A controller outside the trainer
+#
+# The trainer builds its population from its `TrainConfig`s (notebook 07). The demonstrations
+# below, the theory check of notebook 08 and the tests drive the controller without the trainer:
+# `MemberConfig` holds the four things a plasticity method reads of a member's config (`TrainConfig`
+# has the same four), and `population_method` (appendix 06b) stacks single-run actors (and critics)
+# into a population with a `RunAdamW` for each, as the trainer does, and builds the named method
+# on them. One actor gives R = 1: one run.
+
+# %%
+#| export
+@dataclass(frozen=True)
+class MemberConfig:
+    """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
+
+    controller: PhaseControllerConfig = PhaseControllerConfig()
+    base: BaseSchedule = BaseSchedule()
+    controller_enabled: bool = True
+    seed: int = 0
+
+    def base_schedule(self) -> BaseSchedule:
+        return self.base
+
+
+# %% [markdown]
 # ## The schedules over three phases
 #
 # One run (R = 1) driven through three phases with the paper's values (1,200-iteration phases
@@ -694,7 +678,7 @@ import torch
 
 from pemamoe.core import by_scale, save_figure
 from pemamoe.nets import make_actor, make_critic
-from pemamoe.population_plasticity import MemberConfig, population_method
+from pemamoe.plasticity import population_method
 
 torch.manual_seed(seed)
 demo_phase = 400

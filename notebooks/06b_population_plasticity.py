@@ -14,17 +14,18 @@
 # # 06b · Appendix: plasticity methods for a population of runs, and the plasticity diagnostics
 #
 # Notebook 06 gives the phase controller's mechanisms and the controller itself, `PhaseController`,
-# read for one run. This appendix holds the bookkeeping around it that the trainer of notebook 07
-# needs, and a reader of the method can skip:
+# read for one run; all of it is one module, `pemamoe/phase_controller.py`. This appendix holds the
+# bookkeeping around it that the trainer of notebook 07 needs, and a reader of the method can skip:
 #
-# * the **interface** every plasticity method implements, the baselines' `NoPlasticity`, and the
-#   registry (`register_plasticity`, `plasticity_method`) through which the trainer and plug-ins
-#   find a method by name;
+# * what every plasticity method shares, in `pemamoe/plasticity.py`: the PPO schedule
+#   (`BaseSchedule`), the **interface** every plasticity method implements, the baselines'
+#   `NoPlasticity`, the registry (`register_plasticity`, `plasticity_method`) through which the
+#   trainer and plug-ins find a method by name, and `population_method`, which builds a method on a
+#   population outside the trainer (notebook 06's demonstrations, the theory check of notebook 08,
+#   the tests);
 # * `RunAdamW`, AdamW over a population's stacked parameters with per-member learning rates,
 #   moments and step counts (so one member's Adam reset or router freeze leaves the others alone),
-#   and `group_index`, which maps each parameter to its optimizer group;
-# * `MemberConfig` and `population_method`, which build a method on a population outside the
-#   trainer (notebook 06's demonstrations, the theory check of notebook 08, the tests);
+#   and `group_index`, which maps each parameter to its optimizer group: `pemamoe/optim.py`;
 # * the **plasticity diagnostics** the paper plots (feature rank, dormant units, router
 #   probabilities, mean action), exported to `pemamoe/diagnostics.py`.
 #
@@ -33,7 +34,7 @@
 # diagnostics before and after.
 
 # %%
-#| default_exp population_plasticity
+#| default_exp plasticity
 
 # %% tags=["parameters"]
 scale = "small"
@@ -45,18 +46,13 @@ seed = 0
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
-import torch.nn.functional as F
 
+from pemamoe.core import require_field
 from pemamoe.methods import load_plugins
-from pemamoe.nets import PopulationActor, PopulationCritic
-from pemamoe.phase_controller import (
-    GROUP_NAMES,
-    BaseSchedule,
-    IterationSettings,
-    PhaseControllerConfig,
-    entropy_coef,
-)
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.popnets import PopulationActor, PopulationCritic
 
 # %% [markdown]
 # ## Plasticity methods for a population of runs
@@ -86,7 +82,7 @@ from pemamoe.phase_controller import (
 # name, so they cannot clash with the trainer's); a method that logs nothing adds no column.
 #
 # `NoPlasticity` is what the baselines use: the shared PPO schedule and nothing else.
-# `PhaseController` (notebook 06, module `pemamoe.controller`) is PE-MAMoE's phase controller,
+# `PhaseController` (notebook 06, module `pemamoe.phase_controller`) is PE-MAMoE's phase controller,
 # the nine mechanisms each still switchable for the ablations. A new method subclasses
 # `NoPlasticity`, overrides the hooks it needs and registers itself with `register_plasticity`;
 # CONTRIBUTING.md shows shrink-and-perturb in a dozen lines.
@@ -101,7 +97,8 @@ from pemamoe.phase_controller import (
 # stopped early on its KL budget does not move), a `frozen` mask per member and group (the router
 # freeze), and `reset(member)` (the Adam reset). Where a member does not step, its parameters,
 # moments and step counts stay bit-identical. `group_index` assigns each parameter of the flat row
-# to the actor's `param_groups()` group.
+# to the actor's `param_groups()` group. Both are the module `pemamoe.optim`, which knows nothing of
+# plasticity methods.
 #
 # **A partial reset.** `reset(member, mask)` forgets the moments of the masked entries only (ReDo,
 # appendix 06c, resets the weights of a few recycled units). Their bias correction must then start
@@ -116,7 +113,15 @@ from pemamoe.phase_controller import (
 # offset, and the update is the one above, bit for bit.
 
 # %%
-#| export
+#| export optim
+import torch
+import torch.nn.functional as F
+
+from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
+
+GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
+
+
 class RunAdamW:
     """AdamW over a population's flat parameters (R, P), every member with its own learning
     rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
@@ -256,11 +261,81 @@ def group_index(module, layout, group_names=GROUP_NAMES) -> tuple:
 
 
 # %% [markdown]
+# ## The shared PPO schedule
+#
+# `BaseSchedule` holds what every method shares with PPO (paper training table: learning rate,
+# clip, target KL, entropy schedule, run and phase lengths, the router temperature); the trainer
+# builds it from its own PPO config (`TrainConfig.base_schedule()`, notebook 07) so there is one
+# source for each number, and the phase controller of notebook 06 modifies its values after a
+# switch. Without a controller the entropy coefficient is annealed linearly from `ent_start` to
+# `ent_end` over the first `ent_anneal_portion` of the run (`base_entropy_coef`; notebook 06's
+# `entropy_coef` re-anneals it within each phase instead). `IterationSettings` is what one member
+# trains with in one iteration, the method's answer for that member.
+
+# %%
+#| export
+@dataclass(frozen=True)
+class BaseSchedule:
+    """The PPO values every method shares (paper training table); the phase controller modifies them."""
+
+    lr: float = 3e-4
+    clip_coef: float = 0.15
+    target_kl: float | None = 0.1  # None: no early stopping
+    ent_start: float = 0.01
+    ent_end: float = 0.003
+    ent_anneal_portion: float = 0.3  # of the whole run (baselines)
+    total_iterations: int = 10800  # 22,118,400 steps / 2048 per iteration
+    phase_length: int = 1200  # iterations per phase (9 phases)
+    temperature: float = 1.0  # router temperature outside the controller's schedule
+
+    def __post_init__(self):
+        require_field(self, "lr", "real", gt=0)
+        require_field(self, "clip_coef", "real", gt=0)
+        require_field(self, "target_kl", "real", gt=0, optional=True)
+        for name in ("ent_start", "ent_end"):
+            require_field(self, name, "real", ge=0)
+        require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
+        for name in ("total_iterations", "phase_length"):
+            require_field(self, name, "int", ge=1)
+        require_field(self, "temperature", "real", gt=0)
+
+
+def linear_anneal(step, span, start: float, end: float):
+    """start -> end linearly over `span` steps, then flat at `end`."""
+    frac = np.clip(np.asarray(step, dtype=float) / span, 0.0, 1.0)
+    return start + (end - start) * frac
+
+
+def base_entropy_coef(iteration, base: BaseSchedule):
+    """Entropy coefficient of the shared schedule: start -> end over the first ent_anneal_portion of the run."""
+    span = max(base.ent_anneal_portion * base.total_iterations, 1e-12)
+    return linear_anneal(iteration, span, base.ent_start, base.ent_end)
+
+
+@dataclass(frozen=True)
+class IterationSettings:
+    """What one member trains with in one iteration (one per member in Schedules.members)."""
+
+    iteration: int
+    since_switch: int | None  # iterations since the last switch (None before the first)
+    lr: dict  # {"head": the actor's rate} and, once the controller acts, "router" (0 while frozen)
+    clip_coef: float
+    target_kl: float | None
+    ent_coef: float
+    kl_coef: float  # 0 when off, before the first switch, or once released
+    policy_temperature: float
+    value_temperature: float
+    router_frozen: bool
+    conservative: bool
+    noise_epochs_left: int
+
+
+# %% [markdown]
 # ## Per-member schedules
 #
-# `begin_iteration` returns one `Schedules`: each number of notebook 06's `IterationSettings` as an
-# (R,) tensor over the members, which the update reads without a Python loop, and the members'
-# `IterationSettings` themselves for the logs.
+# `begin_iteration` returns one `Schedules`: each number of the members' `IterationSettings` as an
+# (R,) tensor over the members (`Schedules.stack`), which the update reads without a Python loop,
+# and the members' `IterationSettings` themselves for the logs.
 
 # %%
 #| export
@@ -279,38 +354,42 @@ class Schedules:
     value_temperature: torch.Tensor
     members: tuple  # one IterationSettings per member (for the logs)
 
+    @classmethod
+    def stack(cls, settings: list, critic_lrs: list, device) -> "Schedules":
+        """The members' IterationSettings (and the critics' learning rates) as (R,) tensors on `device`."""
+        def col(values, dtype=torch.float64):
+            return torch.tensor(values, dtype=dtype, device=device)
 
-def _schedules(settings: list, critic_lrs: list, device) -> Schedules:
-    def col(values, dtype=torch.float64):
-        return torch.tensor(values, dtype=dtype, device=device)
-
-    return Schedules(
-        lr_actor=col([s.lr.get("head", 0.0) for s in settings]),
-        lr_critic=col(critic_lrs),
-        router_frozen=col([s.router_frozen for s in settings], torch.bool),
-        clip_coef=col([s.clip_coef for s in settings], torch.float32),
-        target_kl=col([math.inf if s.target_kl is None else s.target_kl for s in settings], torch.float32),
-        ent_coef=col([s.ent_coef for s in settings], torch.float32),
-        kl_coef=col([s.kl_coef for s in settings], torch.float32),
-        policy_temperature=col([s.policy_temperature for s in settings], torch.float32),
-        value_temperature=col([s.value_temperature for s in settings], torch.float32),
-        members=tuple(settings),
-    )
+        return cls(
+            lr_actor=col([s.lr.get("head", 0.0) for s in settings]),
+            lr_critic=col(critic_lrs),
+            router_frozen=col([s.router_frozen for s in settings], torch.bool),
+            clip_coef=col([s.clip_coef for s in settings], torch.float32),
+            target_kl=col([math.inf if s.target_kl is None else s.target_kl for s in settings], torch.float32),
+            ent_coef=col([s.ent_coef for s in settings], torch.float32),
+            kl_coef=col([s.kl_coef for s in settings], torch.float32),
+            policy_temperature=col([s.policy_temperature for s in settings], torch.float32),
+            value_temperature=col([s.value_temperature for s in settings], torch.float32),
+            members=tuple(settings),
+        )
 
 
 # %% [markdown]
 # ## The interface, the registry and the baselines' method
 #
 # `NoPlasticity` is both the interface (every hook, doing nothing) and the baselines' method: the
-# shared PPO schedule of notebook 06's `BaseSchedule`, entropy annealed over the run. Its helpers
+# shared PPO schedule of `BaseSchedule` above, entropy annealed over the run. Its helpers
 # serve subclasses: `member_generator(r)` (member r's own checkpointed random stream),
-# `expert_indices()` (where each expert's trunk lives in a flat row), `perturb_experts`,
-# `fresh_parameters(r)` (a newly initialised actor's row, drawn from member r's stream) and
-# `probe_batch(r)`. For partial edits of one member, `self.actor.member_param(r, name)` is member
-# r's parameter as a view shaped like it, `self.actor.layout.indices(name)` its flat positions
-# (shaped likewise), which `self.actor_opt.reset(r, mask)` takes to reset the matching moments.
-# `PhaseController` lives in notebook 06's second module, `pemamoe.controller`, which imports this
-# one; `plasticity_method` imports it on first use, so that it is always registered.
+# `expert_indices()` (where each expert's trunk lives in a flat row; the phase controller's
+# `perturb_experts` noises them), `fresh_parameters(r)` (a newly initialised actor's row, drawn
+# from member r's stream) and `probe_batch(r)`. For partial edits of one member,
+# `self.actor.member_param(r, name)` is member r's parameter as a view shaped like it,
+# `self.actor.layout.indices(name)` its flat positions (shaped likewise), which
+# `self.actor_opt.reset(r, mask)` takes to reset the matching moments.
+# `PhaseController` lives in notebook 06's module, `pemamoe.phase_controller`, which imports this
+# one. A method registers when its module is imported: the trainer imports the controller's module
+# and appendix 06c's baselines; for a name it does not know, `plasticity_method` first loads the
+# plug-ins named in `$PEMAMOE_PLUGINS`.
 
 # %%
 #| export
@@ -328,13 +407,13 @@ def register_plasticity(cls):
 def plasticity_method(name: str):
     """The registered plasticity method class called `name` (plug-ins are loaded if needed).
     Methods register when their module is imported: PE-MAMoE's `PhaseController` with
-    `pemamoe.controller` (notebook 06), ReDo and shrink-and-perturb with
+    `pemamoe.phase_controller` (notebook 06), ReDo and shrink-and-perturb with
     `pemamoe.plasticity_baselines` (appendix 06c); the trainer imports both."""
     if name not in PLASTICITY_METHODS:
         load_plugins()
     if name not in PLASTICITY_METHODS:
         raise ValueError(f"plasticity method must be one of {', '.join(sorted(PLASTICITY_METHODS))}, got {name!r} "
-                         "(a method registers when its module is imported: pemamoe.controller, "
+                         "(a method registers when its module is imported: pemamoe.phase_controller, "
                          "pemamoe.plasticity_baselines, or a plugin)")
     return PLASTICITY_METHODS[name]
 
@@ -362,7 +441,7 @@ class NoPlasticity:
         b = self.bases[r]
         return IterationSettings(
             iteration=int(iteration), since_switch=None, lr={"head": b.lr}, clip_coef=b.clip_coef,
-            target_kl=b.target_kl, ent_coef=float(entropy_coef(iteration, iteration, b, None)),
+            target_kl=b.target_kl, ent_coef=float(base_entropy_coef(iteration, b)),
             kl_coef=0.0, policy_temperature=b.temperature, value_temperature=b.temperature,
             router_frozen=False, conservative=False, noise_epochs_left=0)
 
@@ -371,7 +450,7 @@ class NoPlasticity:
 
     def begin_iteration(self, iteration: int) -> Schedules:
         settings = [self.member_settings(r, iteration) for r in range(self.R)]
-        return _schedules(settings, [b.lr for b in self.bases], self.device)
+        return Schedules.stack(settings, [b.lr for b in self.bases], self.device)
 
     def extra_loss(self, batch: dict) -> torch.Tensor | None:
         """(R,) added to each member's loss; None when nothing is added (saves the work)."""
@@ -460,45 +539,19 @@ class NoPlasticity:
             fresh = type(template)(template.obs_dim, template.act_dim, template.cfg)
         return self.actor.layout.flatten([fresh])[0].to(self.device, self.actor.flat.dtype)
 
-    @torch.no_grad()
-    def perturb_experts(self, r: int, stds, generator: torch.Generator) -> int:
-        """Add N(0, stds[e]^2) to every trunk parameter of member r's expert e; returns the
-        number of experts perturbed (std > 0)."""
-        done = 0
-        for idx, std in zip(self.expert_indices(), stds):
-            if std > 0:
-                noise = torch.randn(idx.numel(), generator=generator, device=generator.device)
-                self.actor.flat[r, idx] += noise.to(self.device, self.actor.flat.dtype) * std
-                done += 1
-        return done
-
-
 
 # %% [markdown]
 # ## A method outside the trainer
 #
 # The trainer builds its population from its `TrainConfig`s (notebook 07). Notebook 06's
 # demonstrations, the theory check of notebook 08 and the tests drive a method without the
-# trainer: `MemberConfig` holds the four things a plasticity method reads of a member's config, and
-# `population_method` stacks single-run actors (and critics) into a population with a `RunAdamW`
-# for each, as the trainer does, and builds the named method on them. One actor gives R = 1: one
-# run.
+# trainer: `population_method` stacks single-run actors (and critics) into a population with a
+# `RunAdamW` for each, as the trainer does, and builds the named method on them, given one config
+# per member (a `TrainConfig`, or notebook 06's `MemberConfig`, which holds the four things a
+# plasticity method reads of a member's config). One actor gives R = 1: one run.
 
 # %%
 #| export
-@dataclass(frozen=True)
-class MemberConfig:
-    """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
-
-    controller: PhaseControllerConfig = PhaseControllerConfig()
-    base: BaseSchedule = BaseSchedule()
-    controller_enabled: bool = True
-    seed: int = 0
-
-    def base_schedule(self) -> BaseSchedule:
-        return self.base
-
-
 def population_method(name: str, configs, actors, critics=None, betas=(0.9, 0.999), eps: float = 1e-5,
                       weight_decay: float = 0.0):
     """Plasticity method `name` on the population stacked from single-run `actors` (and `critics`,
@@ -524,10 +577,11 @@ import copy
 
 import numpy as np
 import pandas as pd
+import torch.nn.functional as F
 
-from pemamoe.controller import PhaseController
 from pemamoe.core import by_scale
 from pemamoe.nets import make_actor, make_critic
+from pemamoe.phase_controller import MemberConfig, PhaseController, PhaseControllerConfig
 
 register_plasticity(PhaseController)  # run as a notebook, the cells above made a registry of their own
 

@@ -58,7 +58,7 @@ import torch
 
 from pemamoe.core import require_field
 from pemamoe.diagnostics import DORMANT_TAU
-from pemamoe.population_plasticity import NoPlasticity, register_plasticity
+from pemamoe.plasticity import NoPlasticity, register_plasticity
 
 # %% [markdown]
 # ## The numbers
@@ -278,8 +278,8 @@ import pandas as pd
 from pemamoe.core import by_scale
 from pemamoe.diagnostics import dormant_fraction_tau
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.phase_controller import BaseSchedule
-from pemamoe.population_plasticity import RunAdamW, group_index
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.plasticity import BaseSchedule
 
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
 base = BaseSchedule(total_iterations=300, phase_length=100)

@@ -95,17 +95,9 @@ from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
-from pemamoe.phase_controller import (
-    MECHANISMS,
-    BaseSchedule,
-    PhaseControllerConfig,
-)
-from pemamoe.population_plasticity import (
-    RunAdamW,
-    group_index,
-    plasticity_method,
-)
-import pemamoe.controller  # noqa: F401, E402  registers PE-MAMoE's PhaseController (notebook 06)
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig  # importing it registers PhaseController (06)
+from pemamoe.plasticity import BaseSchedule, plasticity_method
 import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
@@ -409,11 +401,11 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 # Stable-Baselines3. CleanRL checks the same quantity only at epoch ends; checking every minibatch
 # keeps the policy inside the trust region at a finer grain.
 #
-# **Parameter groups.** `RunAdamW` (appendix 06b) knows five named groups, `router`, `experts`,
-# `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller sets each group's
-# learning rate every iteration (the LR drop and warm-up after a switch, a frozen router), clears
-# Adam's moments at a switch and perturbs the experts; the trainer never sets a learning rate
-# itself (but for the optional `anneal_lr` factor). **Where the controller enters:** `on_switch(t)`
+# **Parameter groups.** `RunAdamW` (appendix 06b, `pemamoe.optim`) knows five named groups,
+# `router`, `experts`, `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller
+# sets each group's learning rate every iteration (the LR drop and warm-up after a switch, a frozen
+# router), clears Adam's moments at a switch and perturbs the experts; the trainer never sets a
+# learning rate itself (but for the optional `anneal_lr` factor). **Where the controller enters:** `on_switch(t)`
 # before the rollout at a switch, `begin_iteration(t)` for the settings, `extra_loss(batch)` in
 # every minibatch loss, `after_epoch(expert_counts, stepped)` after each epoch. A method may also
 # keep rollout rows for its next switch (`observe_rollout`) and log columns (`metrics`).

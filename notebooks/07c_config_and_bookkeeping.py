@@ -69,7 +69,8 @@ from pemamoe.core import by_scale, check_scale, config_error, require, require_f
 from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
-from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerConfig
+from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig
+from pemamoe.plasticity import BaseSchedule
 
 # %% [markdown]
 # **Serialisation and identity.** `to_dict` is the content of `config.json`: the dataclass as

@@ -56,9 +56,9 @@ import torch.nn.functional as F
 
 from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
-from pemamoe.phase_controller import BaseSchedule, PhaseControllerConfig, expert_parameters, n_experts_of
-from pemamoe.controller import PhaseController
-from pemamoe.population_plasticity import MemberConfig, population_method
+from pemamoe.phase_controller import (MemberConfig, PhaseController, PhaseControllerConfig, expert_parameters,
+                                      n_experts_of)
+from pemamoe.plasticity import BaseSchedule, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 # %%

@@ -3,7 +3,7 @@
 
 __all__ = ['CHECKPOINT_FORMAT', 'EpisodeTracker', 'explained_variance', 'RunningNorm', 'ValueNorms', 'split_env_state', 'merge_env_states']
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 523)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 524)
 import io
 import os
 import pickle
@@ -100,7 +100,7 @@ class EpisodeTracker:
         self.load_member_state(0, state)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 16 (line 620)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 16 (line 621)
 def explained_variance(pred, target) -> float:
     """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
     pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
@@ -149,7 +149,7 @@ def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
                 leave=True)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 702)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 703)
 import math
 
 
@@ -217,7 +217,7 @@ class ValueNorms:
             n.update(returns[r])
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 854)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 855)
 def _encode(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -384,7 +384,7 @@ class _Determinism:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1021)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1022)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

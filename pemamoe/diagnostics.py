@@ -3,7 +3,7 @@
 
 __all__ = ['DORMANT_PAPER_DELTA', 'DORMANT_TAU', 'SRANK_DELTA', 'singular_values', 'stable_rank', 'effective_rank', 'srank', 'dormant_fraction_paper', 'dormant_fraction_tau', 'plasticity_diagnostics']
 
-# %% notebooks/06b_population_plasticity.py, cell 25 (line 688)
+# %% notebooks/06b_population_plasticity.py, cell 27 (line 742)
 import math
 
 import numpy as np

@@ -22,17 +22,9 @@ from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
-from pemamoe.phase_controller import (
-    MECHANISMS,
-    BaseSchedule,
-    PhaseControllerConfig,
-)
-from pemamoe.population_plasticity import (
-    RunAdamW,
-    group_index,
-    plasticity_method,
-)
-import pemamoe.controller  # noqa: F401, E402  registers PE-MAMoE's PhaseController (notebook 06)
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig  # importing it registers PhaseController (06)
+from pemamoe.plasticity import BaseSchedule, plasticity_method
 import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
@@ -45,13 +37,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     _plain, resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 8 (line 185)
+# %% notebooks/07_mappo.py, cell 8 (line 177)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 10 (line 214)
+# %% notebooks/07_mappo.py, cell 10 (line 206)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -84,7 +76,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 15 (line 289)
+# %% notebooks/07_mappo.py, cell 15 (line 281)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -174,7 +166,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 17 (line 421)
+# %% notebooks/07_mappo.py, cell 17 (line 413)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -311,7 +303,7 @@ def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: di
     return out
 
 
-# %% notebooks/07_mappo.py, cell 19 (line 575)
+# %% notebooks/07_mappo.py, cell 19 (line 567)
 def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -337,7 +329,7 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
     return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 607)
+# %% notebooks/07_mappo.py, cell 21 (line 599)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

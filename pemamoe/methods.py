@@ -13,7 +13,7 @@ class MethodSpec:
 
     name: str
     network: str  # a kind of pemamoe.nets.make_actor / make_critic
-    plasticity: str = "none"  # a name in pemamoe.population_plasticity.PLASTICITY_METHODS
+    plasticity: str = "none"  # a name in pemamoe.plasticity.PLASTICITY_METHODS
     label: str = ""  # display label in figures and tables
     colour: str = "#333333"
     proposed: bool = False  # the paper's method (the headline comparisons are against it)

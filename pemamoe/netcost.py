@@ -3,7 +3,7 @@
 
 __all__ = ['ACTIVE_MODES', 'MAC_MODES', 'count_parameters', 'active_parameters', 'macs_per_step', 'time_forward', 'time_train_step', 'cost_table', 'draw_actor_architecture']
 
-# %% notebooks/05b_population_nets.py, cell 13 (line 802)
+# %% notebooks/05b_population_nets.py, cell 13 (line 819)
 import statistics
 import time
 

@@ -10,7 +10,7 @@ import torch
 
 from pemamoe.core import require_field
 from pemamoe.diagnostics import DORMANT_TAU
-from pemamoe.population_plasticity import NoPlasticity, register_plasticity
+from pemamoe.plasticity import NoPlasticity, register_plasticity
 
 
 # %% notebooks/06c_plasticity_baselines.py, cell 6 (line 79)

@@ -16,10 +16,11 @@ from pemamoe.core import by_scale, check_scale, config_error, require, require_f
 from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
-from pemamoe.phase_controller import MECHANISMS, BaseSchedule, PhaseControllerConfig
+from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig
+from pemamoe.plasticity import BaseSchedule
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 7 (line 131)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 7 (line 132)
 METHODS = compared_methods()  # the methods the experiments compare by default (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed

@@ -36,7 +36,7 @@ def plugin(tmp_path, monkeypatch):
     yield "ln_mlp_sp"
     from pemamoe.methods import METHOD_REGISTRY, _LOADED_PLUGINS
     from pemamoe.nets import NETWORKS
-    from pemamoe.population_plasticity import PLASTICITY_METHODS
+    from pemamoe.plasticity import PLASTICITY_METHODS
 
     METHOD_REGISTRY.pop("ln_mlp_sp", None), NETWORKS.pop("ln_mlp", None), PLASTICITY_METHODS.pop("shrink_perturb", None)
     _LOADED_PLUGINS.discard("my_methods")
@@ -129,7 +129,7 @@ PROBE_PLUGIN = '''
 import torch
 
 from pemamoe.methods import MethodSpec, register_method
-from pemamoe.population_plasticity import NoPlasticity, register_plasticity
+from pemamoe.plasticity import NoPlasticity, register_plasticity
 
 
 @register_plasticity

@@ -8,7 +8,6 @@ import pytest
 import torch
 
 import pemamoe.mappo as mappo
-from pemamoe.controller import PhaseController
 from pemamoe.mappo import (
     METHODS,
     TIMING_COLUMNS,
@@ -20,7 +19,7 @@ from pemamoe.mappo import (
     compute_gae,
     train,
 )
-from pemamoe.phase_controller import PhaseControllerConfig
+from pemamoe.phase_controller import PhaseController, PhaseControllerConfig
 
 
 @pytest.fixture(autouse=True)
@@ -384,7 +383,7 @@ def test_force_controller_runs_noise_only_for_a_baseline():
 def test_paper_preset_and_controller_defaults_agree():
     # BaseSchedule (notebook 06) repeats the paper's PPO values that TrainConfig (notebook 07) holds;
     # this keeps the two copies from drifting apart.
-    from pemamoe.phase_controller import BaseSchedule
+    from pemamoe.plasticity import BaseSchedule
 
     assert TrainConfig.for_scale("paper").base_schedule() == BaseSchedule()
     assert TrainConfig().base_schedule() == BaseSchedule()

@@ -1,6 +1,6 @@
 """Phase controller (notebook 06): every mechanism of Algorithm 1, each behind its own switch.
 
-The controller under test is the one the trainer runs (`pemamoe.controller.PhaseController`),
+The controller under test is the one the trainer runs (`pemamoe.phase_controller.PhaseController`),
 driven here for one run (a population of R = 1), its update steps made as the trainer makes them.
 """
 
@@ -12,11 +12,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pemamoe.controller import PhaseController
 from pemamoe.nets import NetConfig, PopulationActor, make_actor, make_critic
+from pemamoe.optim import group_index
 from pemamoe.phase_controller import (
     MECHANISMS,
-    BaseSchedule,
+    MemberConfig,
+    PhaseController,
     PhaseControllerConfig,
     entropy_coef,
     expert_parameters,
@@ -25,7 +26,7 @@ from pemamoe.phase_controller import (
     temperature_formula,
     temperature_text,
 )
-from pemamoe.population_plasticity import MemberConfig, group_index, plasticity_method, population_method
+from pemamoe.plasticity import BaseSchedule, plasticity_method, population_method
 
 OBS, STATE = 10, 14
 BASE = BaseSchedule(total_iterations=3000, phase_length=1000)

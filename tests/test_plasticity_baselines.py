@@ -10,9 +10,9 @@ import torch
 
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.phase_controller import BaseSchedule
 from pemamoe.plasticity_baselines import ReDo, ShrinkAndPerturb, dormant_units, recycling_layers
-from pemamoe.population_plasticity import RunAdamW, group_index, plasticity_method
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.plasticity import BaseSchedule, plasticity_method
 from pemamoe.train_config import METHODS, TIMING_COLUMNS
 
 OBS, STATE = 10, 14

@@ -15,8 +15,8 @@ import pemamoe.mappo as mappo
 from pemamoe.bookkeeping import _unpack_rows
 from pemamoe.mappo import TIMING_COLUMNS, TrainConfig, train, train_population
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
-from pemamoe.controller import PhaseController
-from pemamoe.population_plasticity import RunAdamW, group_index
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.phase_controller import PhaseController
 
 
 @pytest.fixture(autouse=True)

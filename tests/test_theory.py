@@ -181,7 +181,7 @@ def test_run_tracker_pairing_and_pulses():
 
 def test_run_tracker_uses_the_trainers_controller(monkeypatch):
     """The theory check's noise comes from the controller class the trainer runs, through its hooks."""
-    from pemamoe.controller import PhaseController
+    from pemamoe.phase_controller import PhaseController
 
     calls = []
     for hook in ("on_switch", "after_epoch"):
