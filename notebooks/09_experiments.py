@@ -130,12 +130,24 @@ BUDGET_UPDATES = {  # name -> TrainConfig overrides of the update settings
     "small": {},  # the small preset: 16 envs x 32 slots, 4 epochs x 4 minibatches
     "paper": {"num_envs": 64, "rollout_steps": 32, "update_epochs": 8, "num_minibatches": 32},
 }
+# The sparse actor's two readings (appendix 05d): ours, which the committed study ran (a
+# load-balance loss, one mean head shared by the experts, PPO's ratio on replayed routes), and the
+# paper's (no balance loss, a mean head per expert, the ratio on the routes the current parameters
+# choose). The gated methods run the study under both; MLP has no router, so it runs once.
+_OURS = {"load_balance_coef": 0.01, "expert_heads": "shared", "update_routing": "replay", "top_k": 1}
+_PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routing": "current", "top_k": 1}
+BUDGET_READINGS = {"ours": _OURS, "paper": _PAPERS}  # name -> NetConfig overrides of the gated methods
 
 
-def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None) -> list:
-    """The study's runs: every method x phase x seed with the small update settings, then MLP in
-    phase 0 with the paper's (ordered so that the two CPU workers start on the largest groups)."""
+def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None,
+                 readings=tuple(BUDGET_READINGS)) -> list:
+    """The study's runs: every method x phase x seed with the small update settings (the gated
+    methods once per actor reading, tagged "budget/small/<reading>" except ours, "budget/small"),
+    then MLP in phase 0 with the paper's update settings."""
     check_scale(scale)
+    for name in readings:
+        if name not in BUDGET_READINGS:
+            raise ValueError(f"budget reading must be one of {', '.join(BUDGET_READINGS)}, got {name!r}")
     preset = "ci" if scale == "ci" else "small"
     seeds = tuple(range(by_scale(scale, ci=1, small=3, paper=3))) if seeds is None else tuple(seeds)
     steps = (64 * 4 if scale == "ci" else BUDGET_STEPS) if steps is None else steps
@@ -144,15 +156,20 @@ def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), step
 
     base = TrainConfig.for_scale(preset)
 
-    def spec(method, seed, phase, update):
+    def spec(method, seed, phase, update, reading=None):
         extra = dict(BUDGET_UPDATES[update])
         batch = extra.get("num_envs", base.num_envs) * extra.get("rollout_steps", base.rollout_steps)
         iterations = -(-steps // batch)
         extra.update(fixed_phase=phase, iterations=iterations, phase_length_iters=iterations,
                      diag_every=max(1, min(100, iterations // 20)), checkpoint_every=max(1, min(100, iterations)))
-        return RunSpec(method, seed, preset, overrides=tuple(extra.items()), tag=f"budget/{update}")
+        extra.update(BUDGET_READINGS.get(reading, {}))
+        tag = f"budget/{update}" if reading in (None, "ours") else f"budget/{update}/{reading}"
+        return RunSpec(method, seed, preset, overrides=tuple(extra.items()), tag=tag)
 
-    specs = [spec(m, s, p, "small") for m in methods for p in phases for s in seeds]
+    def arms(method):  # MLP has no router: one run, whatever the readings
+        return (None,) if method_spec(method).network == "mlp" else readings
+
+    specs = [spec(m, s, p, "small", r) for m in methods for r in arms(m) for p in phases for s in seeds]
     if "mlp" in methods:
         specs += [spec("mlp", s, 0, "paper") for s in seeds]
     return specs
@@ -215,8 +232,6 @@ def gating_specs(scale: str, seeds=None, readings=None, phases=(0, 1), steps: in
 # phase 0 for SPARSE_STEPS environment steps with the small update settings, 2 seeds. Every reading
 # names every field it is about, so a later change of a NetConfig default leaves its identity alone.
 SPARSE_STEPS = 1_500_000
-_OURS = {"load_balance_coef": 0.01, "expert_heads": "shared", "update_routing": "replay", "top_k": 1}
-_PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routing": "current", "top_k": 1}
 SPARSE_READINGS = {  # name -> (method, NetConfig overrides)
     "mlp": ("mlp", {}),
     "moe": ("moe", dict(_OURS)),
