@@ -258,6 +258,7 @@ def _error_samples():
                "NoNotebooksError": ("no notebooks/ beside the package at /site-packages",),
                "SweepInterrupted": (signal.SIGTERM,),
                "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed"),
+               "TheoryRecordError": (ROOT / "records" / "medium" / "theory" / "noise.json", "a table's sha256 differs"),
                "StoreLeaseError": ("bucket/results/ci/run/.lease.json", {"host": "node-2", "pid": 77, "heartbeat": 0.0})}
     found = []
     for path in sorted((ROOT / "pemamoe").glob("*.py")):
