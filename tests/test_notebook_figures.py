@@ -28,10 +28,7 @@ LINK_PREFIX = "../paper_figures/"
 # Figures linked before any regeneration has committed them: file -> the notebook that links it,
 # which must also be the notebook that writes it (checked below). Once `make figures` has committed
 # a file, its entry is harmless and can go.
-AWAITING_REGENERATION = {
-    "plasticity_loss_medium.png": "09_experiments.py",  # the plasticity-loss section is newer than the committed figures
-    "sparse_actor.png": "05d_sparse_actor.py",  # the sparse-actor comparison's figure, not regenerated yet
-}
+AWAITING_REGENERATION: dict[str, str] = {}
 
 IMAGE_LINK = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
 SAVE_FIGURE = re.compile(r"""save_figure\(\s*\w+\s*,\s*(f?)(["'])([^"']+)\2""")
