@@ -164,7 +164,7 @@ save_figure(fig, "sparse_actor", figures_dir)
 # %%
 from pemamoe.sweep import budget_specs
 
-study_specs = [s for s in budget_specs(scale, None, ("mlp", "moe", "smoe"))
+study_specs = [s for s in budget_specs(scale, None, ("mlp", "moe", "smoe"), readings=("ours",))
                if s.tag == "budget/small" and dict(s.overrides)["fixed_phase"] == 0]
 study_records = sweep_records(study_specs, backend, workers, results_dir, ray_address, records_dir, retrain)
 rows = [{"method": spec.method, "seed": spec.seed,

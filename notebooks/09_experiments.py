@@ -139,6 +139,16 @@ _PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routi
 BUDGET_READINGS = {"ours": _OURS, "paper": _PAPERS}  # name -> NetConfig overrides of the gated methods
 
 
+def default_reading() -> str:
+    """The name of the actor reading the NetConfig defaults are: the one every gated run without
+    net overrides (the medium sweep's) trains, so the study that serves as their yardstick."""
+    net = TrainConfig().net
+    for name, fields in BUDGET_READINGS.items():
+        if all(getattr(net, key) == value for key, value in fields.items()):
+            return name
+    raise ValueError(f"the NetConfig defaults match none of the study's readings ({', '.join(BUDGET_READINGS)}): {net}")
+
+
 def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None,
                  readings=tuple(BUDGET_READINGS)) -> list:
     """The study's runs: every method x phase x seed with the small update settings (the gated
@@ -956,10 +966,11 @@ plt.show()
 
 # %%
 from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
-from pemamoe.sweep import budget_specs
+from pemamoe.sweep import budget_specs, default_reading  # the study's runs of the actor the sweep trained
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
-study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS)), backend,
+study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS),
+                                   readings=(default_reading(),)), backend,
                       workers, results_dir, ray_address, records_dir, retrain)
 learned = phase_learning(metrics, study_plateaus(study, scale))
 mlp_rows = learned[learned.method == "mlp"]

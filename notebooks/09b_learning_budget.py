@@ -278,6 +278,28 @@ def tuning_table(metrics: pd.DataFrame, grid: dict, tail: float = PLATEAU_TAIL) 
     table.loc[table.groupby("method", sort=False).plateau.idxmax(), "best"] = True
     return table
 
+
+def reading_gaps(curves: pd.DataFrame, baseline: str = "mlp", column: str = "coverage",
+                 tail: float = PLATEAU_TAIL) -> pd.DataFrame:
+    """Per (phase, method, actor reading): the plateau as plateau_table reads it (each run's mean
+    `column` over the last `tail` of its steps, averaged over seeds), its lowest and highest seed,
+    and the gap to `baseline`'s plateau in the same phase (baseline minus method: how far below it
+    the method levels off). `curves`: budget_curves rows of one update setting, with a `reading`
+    column naming each run's actor reading."""
+    rows = []
+    for (phase, method, reading, seed), run in curves.groupby(["phase", "method", "reading", "seed"], sort=False):
+        last = run.env_steps.max()
+        rows.append({"phase": int(phase), "method": method, "reading": reading, "seed": int(seed),
+                     "plateau": float(run.loc[run.env_steps > (1 - tail) * last, column].mean())})
+    runs = pd.DataFrame(rows)
+    table = (runs.groupby(["phase", "method", "reading"], sort=False).plateau
+             .agg(plateau="mean", lowest="min", highest="max", seeds="count").reset_index())
+    if baseline not in set(table.method):
+        raise ValueError(f"reading_gaps: the baseline {baseline!r} has no runs; methods: {sorted(set(table.method))}")
+    base = table[table.method == baseline].groupby("phase").plateau.mean()
+    table[f"gap_to_{baseline}"] = table.phase.map(base) - table.plateau
+    return table.sort_values(["phase", "method", "reading"], kind="stable").reset_index(drop=True)
+
 # %% [markdown]
 # ## The runs
 #
@@ -294,12 +316,17 @@ import matplotlib.pyplot as plt
 from pemamoe.analysis import REFERENCE_POLICIES, method_order, reference_levels
 from pemamoe.core import save_figure, write_table
 from pemamoe.mappo import METHODS, TrainConfig
-from pemamoe.methods import method_colour, method_label
+from pemamoe.methods import method_colour, method_label, method_spec
 from pemamoe.sweep import budget_specs, sweep_records
 
-specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)
+specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)  # both actor readings
 records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
-metrics = load_budget(records)
+# Each run's actor reading, from its spec's tag ("budget/<update>/<reading>"; ours has no suffix);
+# MLP has no router and reads "none". Until the section on readings, the study is ours alone.
+reading_of = {Path(record).stem: spec.tag.split("/")[2] if spec.tag.count("/") == 2 else
+              "none" if method_spec(spec.method).network == "mlp" else "ours" for spec, record in zip(specs, records)}
+all_metrics = load_budget(records)
+metrics = all_metrics[all_metrics.run.map(reading_of) != "paper"].reset_index(drop=True)
 curves = budget_curves(metrics, block_steps=block_steps(scale))
 table = plateau_table(curves)
 study_scale = "ci" if scale == "ci" else "small"
@@ -426,6 +453,47 @@ print(f"medium preset: {medium.phase_length_iters} iterations x {medium.batch_en
 # Notebook 09 ("Did each phase learn?") holds the scale's cycling runs against these plateaus: for
 # every method and phase visit, the coverage over the last 10 % of the visit as a fraction of the
 # plateau, with the bar a scale has to clear (MLP at 85 % or more everywhere, 0.65 in phase 0).
+
+# %% [markdown]
+# ## The study under the paper's actor readings
+#
+# Appendix 05d traced the sparse networks' lower plateau to three settings of ours that the paper
+# does not have: a load-balance loss, one mean head shared by every expert, and PPO's ratio taken
+# on the routes the rollout chose rather than those the updated router would choose. The study is
+# therefore run a second time for the gated methods with the paper's readings (no balance loss, a
+# mean head per expert, the ratio on the current routes), everything else unchanged; MLP has no
+# router and its runs serve both. The table gives each method's plateau under each reading, the
+# spread over seeds, and how far below MLP it levels off in the same phase. The question it settles
+# is whether the gap that carries the medium verdict belongs to top-1 routing or to our readings.
+
+# %%
+curves_by_reading = budget_curves(all_metrics[all_metrics.settings == "small"], block_steps=block_steps(scale))
+curves_by_reading["reading"] = curves_by_reading.run.map(reading_of)
+gaps = reading_gaps(curves_by_reading)
+write_table(gaps.round(4), "learning_budget_readings", figures_dir)
+gaps.pivot_table(index=["phase", "method"], columns="reading", values=["plateau", "gap_to_mlp"]).round(3)
+
+# %%
+fig, axes = plt.subplots(1, len(phases), figsize=(4.4 * len(phases), 3.6), squeeze=False)
+for ax, phase in zip(axes[0], phases):
+    for method in method_order(curves_by_reading.method.unique()):
+        for reading, style in (("none", "-"), ("ours", "-"), ("paper", "--")):
+            g = curves_by_reading[(curves_by_reading.method == method) & (curves_by_reading.reading == reading)
+                                  & (curves_by_reading.phase == phase)]
+            if len(g):
+                mean = g.groupby("env_steps").coverage.mean()
+                label = method_label(method) + ("" if reading == "none" else f" ({reading})")
+                ax.plot(mean.index / 1e6, mean, style, color=method_colour(method), label=label)
+    ax.set(title=f"phase {phase} only", xlabel="environment steps (millions)", ylim=(0, 1))
+axes[0, 0].set_ylabel("coverage (seed mean)")
+axes[0, 0].legend(fontsize=6, loc="lower right", ncol=2)
+fig.suptitle(f"The study under both actor readings (solid: ours, dashed: the paper's; {study_scale} preset)",
+             fontsize=9)
+fig.tight_layout()
+save_figure(fig, "learning_budget_readings", figures_dir)
+
+# %% [markdown]
+# ![The study under both actor readings](../paper_figures/learning_budget_readings.png)
 
 # %% [markdown]
 # ## Tuning every method alike

@@ -296,11 +296,11 @@ print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuris
 # %%
 from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.sweep import budget_specs
+from pemamoe.sweep import budget_specs, default_reading  # the study's runs of the actor the sweep trained
 
 main_metrics = metrics[metrics.run.isin(runs_of["main"])]
 study_methods = tuple(m for m in method_order(main_metrics.method) if m in METHOD_REGISTRY)
-study = sweep_records(budget_specs(scale, seed_list, study_methods), backend, workers, results_dir, ray_address,
+study = sweep_records(budget_specs(scale, seed_list, study_methods, readings=(default_reading(),)), backend, workers, results_dir, ray_address,
                       records_dir, retrain)
 plateaus = study_plateaus(study, scale)
 visits = phase_learning(main_metrics, plateaus)

@@ -6,10 +6,10 @@ import pandas as pd
 import pytest
 import torch
 
-from pemamoe.budget import plateau_table, seconds_to_reach
+from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach
 from pemamoe.env import EnvConfig, UAVVectorEnv
 from pemamoe.mappo import TrainConfig, check_population, population_key, train, train_population
-from pemamoe.sweep import budget_specs, group_specs
+from pemamoe.sweep import BUDGET_READINGS, RunSpec, budget_specs, default_reading, group_specs
 
 from test_population import _assert_same_run
 
@@ -78,9 +78,54 @@ def test_budget_specs_cover_every_method_phase_and_seed_and_group_by_method():
     paper = [c for c in cfgs if c.num_envs == 64]
     assert [(c.method, c.fixed_phase, c.update_epochs, c.num_minibatches) for c in paper] == [("mlp", 0, 8, 32)] * 3
     sizes = sorted(len(g) for g in group_specs(specs, 16, 2))
-    assert sizes == [3, 9, 9]  # one population per method and update setting
+    assert sizes == [3, 9, 9, 9]  # one population per method, actor reading and update setting
     with pytest.raises(ValueError, match="steps must be an integer >= 1"):
         budget_specs("small", steps=0)
+
+
+def test_the_study_runs_the_gated_methods_under_each_actor_reading_and_mlp_once():
+    specs = budget_specs("small", seeds=(0,), methods=("mlp", "smoe"), phases=(0,))
+    assert [(s.method, s.tag) for s in specs] == [
+        ("mlp", "budget/small"), ("smoe", "budget/small"), ("smoe", "budget/small/paper"), ("mlp", "budget/paper")]
+    nets = {s.tag: s.to_config().net for s in specs if s.method == "smoe"}
+    for tag, reading in (("budget/small", "ours"), ("budget/small/paper", "paper")):
+        assert all(getattr(nets[tag], k) == v for k, v in BUDGET_READINGS[reading].items())
+    # ours is the committed study: the same runs (identities) as before the reading axis existed
+    ours = budget_specs("small", seeds=(0,), methods=("smoe",), phases=(0,), readings=("ours",))
+    unpinned = [spec for spec in ours if spec.method == "smoe"][0]
+    plain = RunSpec("smoe", 0, "small", overrides=tuple((k, v) for k, v in unpinned.overrides if k not in BUDGET_READINGS["ours"]),
+                    tag="budget/small")
+    if default_reading() == "ours":
+        assert unpinned.to_config().run_name() == plain.to_config().run_name()
+    with pytest.raises(ValueError, match=r"budget reading must be one of ours, paper, got 'top-3'"):
+        budget_specs("small", readings=("top-3",))
+
+
+def test_default_reading_names_the_reading_the_netconfig_defaults_are(monkeypatch):
+    import pemamoe.sweep as sweep
+
+    assert default_reading() in BUDGET_READINGS
+    for name, fields in BUDGET_READINGS.items():
+        monkeypatch.setitem(sweep.BUDGET_READINGS, name, {**fields, "top_k": 3})
+    with pytest.raises(ValueError, match="match none of the study's readings"):
+        default_reading()
+
+
+def test_reading_gaps_from_hand_made_curves():
+    steps = np.arange(1, 11) * 100_000
+    rows = []
+    for method, reading, level in (("mlp", "none", 0.8), ("smoe", "ours", 0.68), ("smoe", "paper", 0.76)):
+        for seed, jitter in ((0, -0.02), (1, 0.02)):
+            rows += [{"method": method, "reading": reading, "phase": 0, "seed": seed, "env_steps": x,
+                      "coverage": (level + jitter) if x > 900_000 else 0.1} for x in steps]
+    table = reading_gaps(pd.DataFrame(rows)).set_index(["method", "reading"])
+    assert table.loc[("mlp", "none"), "gap_to_mlp"] == pytest.approx(0.0)
+    assert table.loc[("smoe", "ours"), "plateau"] == pytest.approx(0.68)  # the last 10 %: the final block
+    assert table.loc[("smoe", "ours"), "gap_to_mlp"] == pytest.approx(0.12)
+    assert table.loc[("smoe", "paper"), "gap_to_mlp"] == pytest.approx(0.04)
+    assert table.loc[("smoe", "paper"), ["lowest", "highest", "seeds"]].tolist() == pytest.approx([0.74, 0.78, 2])
+    with pytest.raises(ValueError, match="the baseline 'moe' has no runs"):
+        reading_gaps(pd.DataFrame(rows), baseline="moe")
 
 
 def test_plateau_and_steps_to_85_percent_from_hand_made_curves():
