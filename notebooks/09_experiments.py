@@ -139,6 +139,18 @@ _PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routi
 BUDGET_READINGS = {"ours": _OURS, "paper": _PAPERS}  # name -> NetConfig overrides of the gated methods
 
 
+def fixed_phase_twin(method: str, methods) -> str | None:
+    """The method of `methods` whose fixed-phase runs `method`'s are, bit for bit, or None. The phase
+    controller acts only at a phase switch, which a fixed phase never has, so a network plus the
+    controller (PE-MAMoE) trains there exactly as the network alone (SMoE): the committed study's
+    records agree to the byte, and a test checks it. Fixed-phase experiments run such a method once."""
+    spec = method_spec(method)
+    if spec.plasticity != "phase_controller":
+        return None
+    return next((m for m in methods if m != method and method_spec(m).network == spec.network
+                 and method_spec(m).plasticity == "none"), None)
+
+
 def default_reading() -> str:
     """The name of the actor reading the NetConfig defaults are: the one every gated run without
     net overrides (the medium sweep's) trains, so the study that serves as their yardstick."""
@@ -152,8 +164,9 @@ def default_reading() -> str:
 def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None,
                  readings=tuple(BUDGET_READINGS)) -> list:
     """The study's runs: every method x phase x seed with the small update settings (the gated
-    methods once per actor reading, tagged "budget/small/<reading>" except ours, "budget/small"),
-    then MLP in phase 0 with the paper's update settings."""
+    methods once per actor reading, tagged "budget/small/<reading>" except ours, "budget/small";
+    a method with a fixed-phase twin only under ours), then MLP in phase 0 with the paper's
+    update settings."""
     check_scale(scale)
     for name in readings:
         if name not in BUDGET_READINGS:
@@ -177,7 +190,11 @@ def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), step
         return RunSpec(method, seed, preset, overrides=tuple(extra.items()), tag=tag)
 
     def arms(method):  # MLP has no router: one run, whatever the readings
-        return (None,) if method_spec(method).network == "mlp" else readings
+        if method_spec(method).network == "mlp":
+            return (None,)
+        if fixed_phase_twin(method, methods) is not None:  # its runs are the twin's; the committed ones stay
+            return tuple(r for r in readings if r == "ours")
+        return readings
 
     specs = [spec(m, s, p, "small", r) for m in methods for r in arms(m) for p in phases for s in seeds]
     if "mlp" in methods:
@@ -306,7 +323,7 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
     extra = {"fixed_phase": phase, "iterations": iterations, "phase_length_iters": iterations,
              "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
     specs = []
-    for method in methods:
+    for method in (m for m in methods if fixed_phase_twin(m, methods) is None):  # PE-MAMoE takes SMoE's
         net = {} if method_spec(method).network == "mlp" else _PAPERS
         for lr in lrs:
             for ent_start, ent_end in entropy:

@@ -503,9 +503,10 @@ save_figure(fig, "learning_budget_readings", figures_dir)
 # entropy bonus at half, once and twice the preset's (its start and end scaled together), two
 # seeds each, on the study's run (fixed phase 0, 2M environment steps, small update settings).
 # The gated methods run the paper's actor readings (appendix 05d). The centre of the grid is the
-# study's own setting, so those runs are shared with the study.
+# study's own setting, so those runs are shared with the study. PE-MAMoE is not run: in a fixed
+# phase its controller never acts and it trains as SMoE bit for bit, so it takes SMoE's setting.
 #
-# The grid is a sweep of its own, `python -m pemamoe sweep --experiment tuning` (72 runs, 8 of
+# The grid is a sweep of its own, `python -m pemamoe sweep --experiment tuning` (54 runs, 6 of
 # them the study's); this section trains nothing. It tabulates the runs that have a record and
 # says how many are missing. Each method then runs the setting the table marks `best`, which is a
 # change of the experiments' configuration and gets its own numerics bump.

@@ -111,6 +111,26 @@ def test_default_reading_names_the_reading_the_netconfig_defaults_are(monkeypatc
         default_reading()
 
 
+def test_pemamoe_in_a_fixed_phase_trains_as_smoe_bit_for_bit(tmp_path):
+    from pemamoe.sweep import fixed_phase_twin
+
+    assert fixed_phase_twin("pemamoe", ("mlp", "smoe", "pemamoe")) == "smoe"
+    assert fixed_phase_twin("pemamoe", ("mlp", "pemamoe")) is None and fixed_phase_twin("smoe_redo", ("smoe",)) is None
+    net = BUDGET_READINGS["paper"]
+    smoe = train(fixed("smoe", phase=1, **net), tmp_path / "smoe")
+    pemamoe = train(fixed("pemamoe", phase=1, **net), tmp_path / "pemamoe")
+    pd.testing.assert_frame_equal(smoe.episodes, pemamoe.episodes)
+    shared = [c for c in smoe.metrics.columns if c in pemamoe.metrics.columns and "time" not in c and "sps" not in c]
+    pd.testing.assert_frame_equal(smoe.metrics[shared], pemamoe.metrics[shared])
+    for net_name in ("actor", "critic"):
+        for (na, ta), (nb, tb) in zip(getattr(smoe, net_name).state_dict().items(),
+                                      getattr(pemamoe, net_name).state_dict().items()):
+            assert na == nb and torch.equal(ta, tb), (net_name, na)
+    # the study runs PE-MAMoE under the committed reading only
+    assert {s.tag for s in budget_specs("small", seeds=(0,), methods=("smoe", "pemamoe"), phases=(0,))
+            if s.method == "pemamoe"} == {"budget/small"}
+
+
 def test_reading_gaps_from_hand_made_curves():
     steps = np.arange(1, 11) * 100_000
     rows = []
@@ -179,23 +199,25 @@ def test_budget_curves_weight_iterations_by_episodes_and_drop_the_last_partial_b
 
 # --- the tuning grid (issue 38: every method tuned alike) ------------------------------------------
 def test_tuning_grid_gives_every_method_the_same_settings_and_shares_its_centre_with_the_study():
-    from pemamoe.sweep import TUNING_ENTROPY, TUNING_LRS, _PAPERS, tuning_specs
+    from pemamoe.sweep import BUDGET_READINGS, TUNING_ENTROPY, TUNING_LRS, tuning_specs
 
     specs = tuning_specs("small")
     cfgs = [s.to_config() for s in specs]
-    assert len({c.run_name() for c in cfgs}) == len(specs) == 4 * len(TUNING_LRS) * len(TUNING_ENTROPY) * 2
+    # PE-MAMoE is SMoE in a fixed phase (its twin): three methods are run
+    assert len({c.run_name() for c in cfgs}) == len(specs) == 3 * len(TUNING_LRS) * len(TUNING_ENTROPY) * 2
     grids = {}
     for c in cfgs:
         grids.setdefault(c.method, set()).add((c.lr, c.ent_start, c.ent_end, c.seed))
-    assert len(grids) == 4 and all(g == grids["mlp"] for g in grids.values())  # the same grid, the same seeds
+    assert sorted(grids) == ["mlp", "moe", "smoe"] and all(g == grids["mlp"] for g in grids.values())
     assert all(c.fixed_phase == 0 and c.total_env_steps >= 2_000_000 and c.num_envs == 16 for c in cfgs)
     for c in cfgs:
         if c.method != "mlp":  # the gated methods run the paper's actor readings
-            assert all(getattr(c.net, k) == v for k, v in _PAPERS.items()), c.run_name()
-    centre = {c.run_name() for c in cfgs if c.method == "mlp" and c.lr == 3e-4 and c.ent_start == 0.01}
-    study = {s.to_config().run_name() for s in budget_specs("small", seeds=(0, 1), methods=("mlp",))
-             if dict(s.overrides)["fixed_phase"] == 0 and "num_envs" not in dict(s.overrides)}
-    assert centre == study and len(centre) == 2  # the study's MLP runs, not new ones
+            assert all(getattr(c.net, k) == v for k, v in BUDGET_READINGS["paper"].items()), c.run_name()
+    centre = {c.run_name() for c in cfgs if c.lr == 3e-4 and c.ent_start == 0.01}
+    study = {s.to_config().run_name() for s in budget_specs("small", seeds=(0, 1), methods=("mlp", "moe", "smoe"))
+             if dict(s.overrides)["fixed_phase"] == 0 and "num_envs" not in dict(s.overrides)
+             and (s.method == "mlp" or s.tag.endswith("/paper"))}
+    assert centre == study and len(centre) == 6  # the study's runs (MLP; MoE, SMoE read as the paper), not new ones
     with pytest.raises(ValueError, match="learning rate must be a float > 0, got 0"):
         tuning_specs("small", lrs=(0,))
     with pytest.raises(ValueError, match=r"\(ent_start, ent_end\) pairs >= 0, got \(0.01, -1\)"):
