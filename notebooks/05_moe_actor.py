@@ -276,6 +276,21 @@ def topk_weights(kept, top1_weight: str):
     return weights.detach()
 
 
+class ContiguousGrad(torch.autograd.Function):
+    """The identity, whose backward hands on its gradient in contiguous memory. A gradient that
+    reaches a matrix product through views can arrive as a strided view when the population has
+    one member and as a copy when it has several; the product's backward then sums in another
+    order, and a member's last bits would depend on its population's size."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad.contiguous()
+
+
 def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=None):
     """Gated trunk of every member: x (R, n, in), tau (R, n), noise (R, n, E) or None
     (noiseless), experts (R, n, k) to replay or None -> (features (R, n, hidden),
@@ -295,8 +310,13 @@ def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=N
                         p[prefix + "experts.b2"])  # (R, E, n, hidden)
     if heads is not None:  # every expert's own output: (R, E, n, out), mixed below like the features
         (hw, hb), (R, E, n, hid) = heads, h.shape
-        h = torch.baddbmm(hb.reshape(R * E, 1, -1), h.reshape(R * E, n, hid),
-                          hw.transpose(-1, -2).reshape(R * E, hid, -1)).reshape(R, E, n, -1)
+        # One memory layout whatever R is, forward (the parameters: a reshape of a population's
+        # views copies when R > 1 but is a strided view when R = 1, and the product rounds
+        # differently on the two) and backward (ContiguousGrad), so a member's bits do not depend
+        # on its population's size; the layout is the one populations of several always had.
+        h = torch.baddbmm(hb.contiguous().reshape(R * E, 1, -1), h.reshape(R * E, n, hid),
+                          hw.transpose(-1, -2).contiguous().reshape(R * E, hid, -1))
+        h = ContiguousGrad.apply(h).reshape(R, E, n, -1)
     if not sparse:
         features = torch.einsum("rne,renh->rnh", probs, h)
         return features, (probs, None, probs)

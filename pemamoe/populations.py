@@ -26,8 +26,10 @@ from pemamoe.train_config import TrainConfig, _is_int
 
 # %% notebooks/07d_populations.py, cell 6 (line 127)
 # Fields that members of one population may set differently; every other field is shared.
-# (fixed_phase: members may sit in different fixed phases, but either all cycle or none does.)
-MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase")
+# (fixed_phase: members may sit in different fixed phases, but either all cycle or none does;
+# lr and the entropy anneal reach the update only through each member's schedule, so a grid over
+# them trains as one population.)
+MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase", "lr", "ent_start", "ent_end")
 
 
 def population_key(config: TrainConfig) -> str:
@@ -68,7 +70,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07d_populations.py, cell 8 (line 181)
+# %% notebooks/07d_populations.py, cell 8 (line 183)
 @dataclass
 class RunResult:
     """What `train` returns (also rebuilt from a finished run directory by `load_run`)."""
@@ -107,7 +109,7 @@ def load_run(run_dir) -> RunResult:
                      actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
-# %% notebooks/07d_populations.py, cell 10 (line 238)
+# %% notebooks/07d_populations.py, cell 10 (line 240)
 def train_members(configs: list, run_dirs: list | None, resume: bool, train_group, *, max_iterations: int | None,
                   threads: int | None, verbose: bool, progress: bool | None, deadline: float | None) -> list:
     """`train_population`'s bookkeeping around the training loop `train_group` (mappo's `_train_group`).
@@ -176,7 +178,7 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
     return results
 
 
-# %% notebooks/07d_populations.py, cell 12 (line 320)
+# %% notebooks/07d_populations.py, cell 12 (line 322)
 @dataclass
 class MemberStates:
     """The parts of a population's members that a checkpoint stores (lists: one entry per member)."""
@@ -253,7 +255,7 @@ class MemberStates:
             self.metrics_rows[r].release(), self.episode_rows[r].release()
 
 
-# %% notebooks/07d_populations.py, cell 14 (line 406)
+# %% notebooks/07d_populations.py, cell 14 (line 408)
 EVAL_ROUTINGS = ("noiseless", "trained")
 
 

@@ -111,6 +111,17 @@ def test_default_reading_names_the_reading_the_netconfig_defaults_are(monkeypatc
         default_reading()
 
 
+def test_a_member_of_a_learning_rate_and_entropy_grid_trains_as_it_would_alone(tmp_path):
+    net = BUDGET_READINGS["paper"]
+    cfgs = [fixed("smoe", seed=0, **net), fixed("smoe", seed=0, lr=1e-3, ent_start=0.02, ent_end=0.006, **net),
+            fixed("smoe", seed=1, lr=1e-4, **net)]
+    assert len({population_key(c) for c in cfgs}) == 1  # one population for the tuning grid of a method
+    pop = train_population(cfgs, [tmp_path / f"p{i}" for i in range(3)])
+    alone = train(cfgs[1], tmp_path / "alone")
+    _assert_same_run(alone, pop[1], tmp_path / "alone", tmp_path / "p1")
+    assert pop[0].metrics.ent_coef.iloc[0] != pop[1].metrics.ent_coef.iloc[0]
+
+
 def test_pemamoe_in_a_fixed_phase_trains_as_smoe_bit_for_bit(tmp_path):
     from pemamoe.sweep import fixed_phase_twin
 

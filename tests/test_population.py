@@ -86,12 +86,18 @@ GPU_POPULATION_DEPENDENT = pytest.mark.xfail(
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=[DEVICES[1].marks[0], GPU_POPULATION_DEPENDENT])])
-@pytest.mark.parametrize("method", ["pemamoe", "mlp"])
+@pytest.mark.parametrize("method", ["pemamoe", "mlp", "pemamoe/paper", "moe/paper"])
 def test_member_is_bit_identical_alone_and_in_any_population(method, device, tmp_path):
-    # members differ in seed, ablation switch, noise gamma and force_controller; orders differ
-    cfgs = [ci(method, 0, iterations=6, device=device),
-            ci(method, 1, iterations=6, device=device, without=("router_freeze",)),
-            ci(method, 2, iterations=6, device=device, noise_gamma=0.05, force_controller=True)]
+    # members differ in seed, ablation switch, noise gamma, force_controller, learning rate and
+    # entropy anneal; orders differ. "/paper": the paper's actor readings (a mean head per expert)
+    from pemamoe.sweep import BUDGET_READINGS
+
+    method, _, reading = method.partition("/")
+    net = BUDGET_READINGS[reading] if reading else {}
+    cfgs = [ci(method, 0, iterations=6, device=device, **net),
+            ci(method, 1, iterations=6, device=device, without=("router_freeze",), lr=1e-3, **net),
+            ci(method, 2, iterations=6, device=device, noise_gamma=0.05, force_controller=True, ent_start=0.02,
+               ent_end=0.006, **net)]
     alone = train(cfgs[0], tmp_path / "alone")
     pop = train_population(cfgs[::-1], [tmp_path / f"p{i}" for i in range(3)])
     pair = train_population([cfgs[1], cfgs[0]], [tmp_path / "q1", tmp_path / "q0"])
