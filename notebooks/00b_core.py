@@ -259,6 +259,94 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
 
 
 # %% [markdown]
+# ## The command line's names and argument checks
+#
+# `python -m pemamoe COMMAND --help`, and every usage error, must answer at once, so the command
+# line builds its parsers before any heavy module (torch, the trainer, the experiments) is
+# imported. The names its options offer therefore live here, at the bottom of the package, and the
+# modules that own them re-export them: the sweep backends and the default population size
+# (appendix 09c), the experiments (notebook 09), the phase controller's mechanisms (notebook 06)
+# and the seeds a `TrainConfig` accepts (appendix 07c).
+#
+# `int_arg` and `real_arg` are argparse's `type=` for every count and number of every command: a
+# bad value is refused while the arguments are parsed, naming the flag (argparse adds it), the
+# value as typed and what is allowed, in the words of `require` (`--workers: must be an integer
+# >= 1, got '0'`). `one_line` flattens any error message to the single `error:` line a command
+# ends with.
+
+# %%
+#| export
+BACKENDS = ("local", "ray")  # where a sweep trains (appendix 09c)
+DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
+EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning")  # notebook 09's sweeps
+MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseControllerConfig switch (notebook 06)
+    "kl_anchor",
+    "adam_reset",
+    "noise_injection",
+    "log_std_reset",
+    "entropy_reset",
+    "lr_drop",
+    "conservative_window",
+    "router_freeze",
+    "temperature_schedule",
+)
+SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
+
+
+def int_arg(low: int, below: int | None = None):
+    """argparse `type=`: an integer >= low (and < below, if given), else ArgumentTypeError naming
+    the value as typed and what is allowed."""
+    allowed = f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+
+    def parse(text: str) -> int:
+        import argparse
+
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low or (below is not None and value >= below):
+            raise argparse.ArgumentTypeError(f"must be an integer {allowed}, got {text!r}")
+        return value
+
+    return parse
+
+
+def real_arg(*, gt: float | None = None, ge: float | None = None):
+    """argparse `type=`: a finite number > gt (or >= ge), else ArgumentTypeError naming the value
+    as typed and what is allowed."""
+    allowed = f" > {gt:g}" if gt is not None else f" >= {ge:g}" if ge is not None else ""
+
+    def parse(text: str) -> float:
+        import argparse
+
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value) or (gt is not None and value <= gt) or (ge is not None and value < ge):
+            raise argparse.ArgumentTypeError(f"must be a finite number{allowed}, got {text!r}")
+        return value
+
+    return parse
+
+
+def one_line(message) -> str:
+    """`message` (an exception or text) as one line: its whitespace runs, newlines included, become
+    single spaces."""
+    return " ".join(str(message).split())
+
+
+# %%
+#| exporti
+def _bound_text(bound: int) -> str:
+    """A large power of two as `2**k` (the seed limit reads 2**63, not 19 digits)."""
+    if bound >= 2**20 and bound & (bound - 1) == 0:
+        return f"2**{bound.bit_length() - 1}"
+    return str(bound)
+
+
+# %% [markdown]
 # ## Where the repository is, and where outputs go
 #
 # Outputs belong in the repository's `paper_figures/` (and `results/`), whether a notebook runs
@@ -603,8 +691,8 @@ def _read_provenance(readme: Path) -> dict:
 # %% [markdown]
 # ## A quick look
 #
-# What the validator says about a few bad values, where this kernel thinks the repository is, and
-# the notebooks `make figures` runs, in order.
+# What the validator and the command line's argument checks say about a few bad values, where this
+# kernel thinks the repository is, and the notebooks `make figures` runs, in order.
 
 # %%
 for bad in (dict(value=True, kind="int", ge=1), dict(value="100", kind="real", gt=0),
@@ -614,6 +702,14 @@ for bad in (dict(value=True, kind="int", ge=1), dict(value="100", kind="real", g
         require("Demo", "field", **bad)
     except ValueError as err:
         print(err)
+import argparse
+
+for parse, text in ((int_arg(1), "0"), (int_arg(0, SEED_LIMIT), str(2**63)), (real_arg(gt=0), "nan")):
+    try:
+        parse(text)
+    except argparse.ArgumentTypeError as err:
+        print(f"--flag: {err}")
+print(one_line("a message\n  over two lines"))
 print(f"repository root: {REPO_ROOT}")
 print(f"scale={check_scale(scale)!r}; figures go to {repo_path(figures_dir)}")
 print("notebooks:", ", ".join(p.name for p in figure_notebooks()))

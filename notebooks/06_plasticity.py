@@ -59,6 +59,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 import torch
 
+from pemamoe.core import MECHANISMS  # re-export: the mechanisms' names live in core, for the command line (00b)
 from pemamoe.core import require_field
 from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, Schedules, base_entropy_coef,
                                 linear_anneal, register_plasticity)
@@ -256,19 +257,6 @@ class PhaseControllerConfig:
         if mechanism not in MECHANISMS:
             raise ValueError(f"PhaseControllerConfig.without: mechanism must be one of {', '.join(MECHANISMS)}, got {mechanism!r}")
         return PhaseControllerConfig(**{**asdict(self), mechanism: False})
-
-
-MECHANISMS = (
-    "kl_anchor",
-    "adam_reset",
-    "noise_injection",
-    "log_std_reset",
-    "entropy_reset",
-    "lr_drop",
-    "conservative_window",
-    "router_freeze",
-    "temperature_schedule",
-)
 
 # %% [markdown]
 # ## The schedules as pure functions

@@ -41,7 +41,8 @@
 # 4. **Unreadable files are named.** A 0-byte or truncated checkpoint, a garbage `config.json`, a
 #    truncated parquet file, a folder where a file should be: each raises `RunFolderError` with the
 #    folder, the file and the cause (instead of a bare `EOFError`, `JSONDecodeError`,
-#    `ArrowInvalid` or `IsADirectoryError`).
+#    `ArrowInvalid` or `IsADirectoryError`). A truncated checkpoint is called truncated (the zip
+#    archive `torch.save` writes has lost its end), not described by torch's zip reader.
 # 5. **A checkpoint is sealed with its own sha256.** `torch.load` does not check the zip's CRCs, so
 #    flipped bytes inside a tensor load without complaint. `seal_checkpoint` stores the sha256 of
 #    the file as `torch.save` wrote it in the zip archive's comment (the last bytes of the file,
@@ -73,7 +74,7 @@ import json
 import os
 from pathlib import Path
 
-from pemamoe.core import atomic_write_json
+from pemamoe.core import atomic_write_json, one_line
 
 RUN_FILES = ("config.json", "metrics.parquet", "episodes.parquet", "checkpoint.pt", "done.json")
 LOG_FILES = ("metrics.parquet", "episodes.parquet")  # sealed by their sha256 in done.json
@@ -104,7 +105,13 @@ class RunFolderError(_PicklableError, ValueError):
 
     def __init__(self, path, problem: str, hint: str = _START_OVER):
         self.path, self.problem, self.hint = Path(path), problem, hint
-        super().__init__(f"run folder {self.path.parent}: {self.path.name} {problem}" + (f"; {hint}" if hint else ""))
+        super().__init__(self.message())
+
+    def message(self, start_over: str | None = None) -> str:
+        """The message; with `start_over`, that advice replaces the default one (resume=False, how
+        the API starts a run over), so that a command can name its own way (`--no-resume`)."""
+        hint = start_over if start_over is not None and self.hint == _START_OVER else self.hint
+        return f"run folder {self.path.parent}: {self.path.name} {self.problem}" + (f"; {hint}" if hint else "")
 
 
 class RunLockedError(_PicklableError, RuntimeError):
@@ -194,7 +201,11 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
     try:
         ck = torch.load(io.BytesIO(data), weights_only=True)
     except (EOFError, RuntimeError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as err:
-        raise RunFolderError(path, f"cannot be read as a checkpoint ({type(err).__name__}: {err})") from None
+        if not zipfile.is_zipfile(io.BytesIO(data)):  # torch.save writes a zip archive: its end is missing
+            raise RunFolderError(path, f"is truncated or damaged: its {len(data):,} bytes are not a whole checkpoint "
+                                 "(the zip archive that torch.save writes has no end record)") from None
+        cause = one_line(err).split(". ")[0]  # the reader's first sentence, not its advice about itself
+        raise RunFolderError(path, f"cannot be read as a checkpoint ({type(err).__name__}: {cause})") from None
     if not isinstance(ck, dict) or not isinstance(ck.get("config"), dict) or "iteration" not in ck:
         raise RunFolderError(path, "is not a training checkpoint (no 'config' and 'iteration')")
     fmt = ck.get("format", 1)  # the first checkpoints recorded none

@@ -65,6 +65,7 @@ from dataclasses import asdict, dataclass, field, fields
 import numpy as np
 import torch
 
+from pemamoe.core import SEED_LIMIT  # re-export: in core, so that the command line checks --seed without torch (00b)
 from pemamoe.core import by_scale, check_scale, config_error, require, require_field
 from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
@@ -133,7 +134,6 @@ from pemamoe.plasticity import BaseSchedule
 #| export
 METHODS = compared_methods()  # the methods the experiments compare by default (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
-SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
 # The version of the training arithmetic (see the identity above): bump it with any change that

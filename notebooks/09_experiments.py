@@ -56,6 +56,7 @@ retrain = False  # True: ignore the records, train into results_dir and write th
 
 # %%
 #| export
+from pemamoe.core import EXPERIMENTS  # re-export: the experiments' names live in core, for the command line (00b)
 from pemamoe.core import by_scale, check_scale
 from pemamoe.execution import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
     BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
@@ -331,9 +332,6 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
                 specs += [RunSpec(method, seed, preset, overrides=tuple({**extra, **net, **grid}.items()),
                                   tag=f"tuning/lr={lr:g}/ent={ent_start:g}") for seed in seeds]
     return specs
-
-
-EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning")
 
 
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:

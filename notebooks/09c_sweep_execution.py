@@ -55,7 +55,8 @@ import multiprocessing as mp
 
 import numpy as np
 
-from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale
+from pemamoe.core import BACKENDS, DEFAULT_POPULATION  # re-export: in core, for the command line's options (00b)
+from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale, one_line
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -63,8 +64,6 @@ from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, port
                              record_timing, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
-
-BACKENDS = ("local", "ray")
 
 # %% [markdown]
 # ## A run, and the run cache
@@ -159,9 +158,6 @@ def group_specs(specs, population: int, workers: int = 1) -> list:
             bounds.append(bounds[-1] + base + (i < extra))
         out += [members[a:b] for a, b in zip(bounds, bounds[1:])]
     return out
-
-
-DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
 
 
 def check_counts(**counts) -> None:
@@ -349,6 +345,19 @@ class SweepInterrupted(KeyboardInterrupt):
         return type(self), (self.signum,)
 
 
+class SweepRunError(RuntimeError):
+    """A run of the sweep failed (the other populations ran on first): one line naming the run's
+    spec (`label`) and what went wrong (`problem`); the first failure is its `__cause__`."""
+
+    def __init__(self, label: str, problem: str, others: int = 0):
+        self.label, self.problem, self.others = label, problem, others
+        more = f" ({others} other run{'s' if others != 1 else ''} failed too)" if others else ""
+        super().__init__(one_line(f"sweep run {label} failed: {problem}{more}"))
+
+    def __reduce__(self):
+        return type(self), (self.label, self.problem, self.others)
+
+
 def execute_population(specs, results_dir, threads: int = 1, deadline: float | None = None,
                        records_dir=None) -> list:
     """Train compatible runs as one population (notebook 07), each in its own folder (resuming or
@@ -492,8 +501,22 @@ def _finish(errors: list) -> None:
     if errors:
         group, err = errors[0]
         spec = group[0] if isinstance(group, list) else group
-        more = f" ({len(errors) - 1} other runs failed too)" if len(errors) > 1 else ""
-        raise RuntimeError(f"sweep run {spec.label()} failed: {type(err).__name__}: {err}{more}") from err
+        raise SweepRunError(spec.label(), _problem(err), len(errors) - 1) from err
+
+
+def _problem(err: BaseException) -> str:
+    """What went wrong, for SweepRunError's line: the project's own errors as they say it (each
+    names its file, folder or store), any other prefixed with its type; a Ray task's error is
+    its cause (Ray's text carries the remote traceback)."""
+    from pemamoe.runs import RunFolderError, RunLockedError
+    from pemamoe.store import StoreAccessError, StoreLeaseError
+
+    if type(err).__name__.startswith("RayTaskError") and isinstance(getattr(err, "cause", None), BaseException):
+        err = err.cause
+    if isinstance(err, RunFolderError):  # a sweep has no resume=False: it says what to delete
+        return err.message("delete the run folder to train the run again from the start")
+    own = (RunLockedError, RecordError, StoreLeaseError, StoreAccessError)
+    return str(err) if isinstance(err, own) else f"{type(err).__name__}: {err}"
 
 
 def _run_local(groups, results_dir, workers, address, threads, report, deadline=None, records_dir=None):
@@ -604,7 +627,8 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
 
 # %% [markdown]
 # A signal that reaches the sweep becomes `SweepInterrupted` in its main thread, and the old handler
-# is back afterwards. A failed run is reported with its spec's label once the others have finished:
+# is back afterwards. A failed run is reported in one line (`SweepRunError`) with its spec's label
+# once the others have finished:
 
 # %%
 if threading.current_thread() is threading.main_thread():  # elsewhere the sweep installs no handler
@@ -621,7 +645,7 @@ if threading.current_thread() is threading.main_thread():  # elsewhere the sweep
 try:
     _finish([([RunSpec("mlp", 0, "ci")], ValueError("out of memory")),
              ([RunSpec("mlp", 1, "ci")], ValueError("out of memory"))])
-except RuntimeError as err:
+except SweepRunError as err:
     print(err)
 
 # %% [markdown]

@@ -18,6 +18,11 @@
 # every notebook. Both need the experiments (`pemamoe.sweep`), so they live here, in the module
 # `pemamoe.commands`, above the sweep and above everything the sweep imports. The hand-written
 # `pemamoe/__main__.py` parses the top-level command and calls them.
+#
+# The module itself loads only light modules (no torch, numpy or pandas): `sweep --help` and a
+# usage error answer in a fraction of a second, because the parser's choices and defaults come
+# from `pemamoe.core` (appendix 00b) and the experiments, the run cache and the records are
+# imported by the functions that use them, once the arguments are checked.
 
 # %%
 #| default_exp commands
@@ -29,17 +34,17 @@ seed = 0
 
 # %%
 #| export
+import signal
+import sys
 import time
 from pathlib import Path
 
-from pemamoe.core import (REPO_ROOT, SCALES, check_scale, current_umask, figure_notebooks, notebook_parameters,
-                          repo_path, run_notebook, write_figures_readme)
-from pemamoe.execution import status_summary, sweep_status
+from pemamoe.core import (BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, REPO_ROOT, SCALES, SEED_LIMIT, check_scale,
+                          current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
-from pemamoe.records import portable_state_path
-from pemamoe.store import open_store
-from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, experiment_specs, pending_runs,
-                           run_sweep)
+from pemamoe.runs import RunFolderError, RunLockedError
+from pemamoe.store import StoreAccessError, StoreLeaseError, check_access, open_store, store_access_error
 
 # %% [markdown]
 # ## The sweep command
@@ -50,6 +55,14 @@ from pemamoe.sweep import (BACKENDS, DEFAULT_POPULATION, SweepInterrupted, exper
 # names are checked while the arguments are parsed, and so is `--results-dir` (a URL fsspec serves,
 # or a folder that may be new but whose parent folder exists), so a typo fails with a usage message
 # before anything trains. `--status` prints `sweep_status` (appendix 09c) and trains nothing.
+#
+# What goes wrong later ends the command in one line on stderr, naming the problem and the value
+# at fault, and exit status 1, never a traceback: a store that cannot be reached (no credentials,
+# no endpoint, no bucket: `check_access`, appendix 09f, before anything else), a run folder locked
+# by another live process or holding files that cannot be trusted, a damaged record or portable
+# state, a failed run (`SweepRunError`, appendix 09c). `error_line` says which errors those are
+# and gives their line; `train` (in `__main__`) uses it too. Anything else is a bug, and keeps its
+# traceback.
 
 # %%
 #| export
@@ -61,22 +74,22 @@ def sweep_cli(argv=None) -> int:
         description="Train the runs of one experiment (notebook 09) that are neither finished in --results-dir nor "
                     "recorded in --records-dir, compatible runs together as populations, on a local process pool "
                     "or on Ray. Rerun the same command to resume; --status says where it stands.")
-    parser.add_argument("--experiment", default="main", choices=["main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning"],
+    parser.add_argument("--experiment", default="main", choices=EXPERIMENTS,
                         help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
-    parser.add_argument("--seeds", type=_count(0), nargs="+", default=None, metavar="SEED",
-                        help="one or more seeds (default: the scale's)")
+    parser.add_argument("--seeds", type=int_arg(0, SEED_LIMIT), nargs="+", default=None, metavar="SEED",
+                        help="one or more seeds, integers in [0, 2**63) (default: the scale's)")
     parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
                         help=f"one or more registered methods ({', '.join(METHOD_REGISTRY)}, or a plugin's; "
                              f"default: {', '.join(compared_methods())})")
     parser.add_argument("--backend", default="local", choices=BACKENDS,
                         help="local: a process pool on this machine; ray: Ray tasks (default: local)")
-    parser.add_argument("--workers", type=_count(1), default=2,
+    parser.add_argument("--workers", type=int_arg(1), default=2,
                         help="populations trained at once, one core each (default: 2)")
-    parser.add_argument("--population", type=_count(1), default=DEFAULT_POPULATION,
+    parser.add_argument("--population", type=int_arg(1), default=DEFAULT_POPULATION,
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results",
@@ -89,7 +102,7 @@ def sweep_cli(argv=None) -> int:
                         help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
-    parser.add_argument("--hours", type=_hours, default=None, metavar="H",
+    parser.add_argument("--hours", type=real_arg(gt=0), default=None, metavar="H",
                         help="train for at most H hours, then checkpoint every running population, stop, and "
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
@@ -100,35 +113,76 @@ def sweep_cli(argv=None) -> int:
     if str(args.records_dir).strip() == "":
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
+    _check_store_arg(parser, "--records-dir", args.records_dir)
+    stores = (args.results_dir, args.records_dir)
+    try:
+        for store in stores:
+            check_access(store)  # a URL: its credentials, endpoint and bucket, before anything is imported or trained
+        return _sweep(args)
+    except KeyboardInterrupt as stop:  # SweepInterrupted (SIGINT or SIGTERM), or Ctrl-C before the sweep began
+        print(f"[sweep] {str(stop) or 'interrupted'}: running runs were stopped; rerun the same command to resume them",
+              flush=True)
+        return 128 + getattr(stop, "signum", signal.SIGINT)
+    except Exception as err:
+        line = error_line(err, stores, start_over="delete the run folder to train the run again from the start")
+        if line is None:
+            raise
+        print(f"{parser.prog}: error: {line}", file=sys.stderr, flush=True)
+        return 1
+
+
+def _sweep(args) -> int:
+    """The sweep command once its arguments are checked: --status's table, or run_sweep."""
+    from pemamoe.sweep import experiment_specs, pending_runs, run_sweep
+
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
     if args.status:
-        import pandas as pd
-
-        table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
-        with pd.option_context("display.width", 120, "display.max_columns", 10):
-            print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
-        print(status_summary(table, args.workers))
+        _print_status(specs, args)
         return 0
-    try:
-        run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
-                  population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
-        if args.hours is not None and pending_runs(specs, args.results_dir, args.records_dir)[1]:
-            import pandas as pd
+    run_sweep(specs, args.backend, args.workers, args.results_dir, args.address, progress=args.progress,
+              population=args.population, hours=args.hours, records_dir=args.records_dir, retrain=args.retrain)
+    if args.hours is not None and pending_runs(specs, args.results_dir, args.records_dir)[1]:
+        from pemamoe.records import portable_state_path
 
-            table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
-            with pd.option_context("display.width", 120, "display.max_columns", 10):
-                print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
-            print(status_summary(table, args.workers))
-            moved = [p for p in (portable_state_path(args.records_dir, spec.scale, spec.to_config().run_name())
-                                 for spec in specs) if p.exists()]  # this sweep's runs, no other's
-            if moved:
-                print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
-                      f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
-    except SweepInterrupted as stop:
-        print(f"[sweep] {stop}: running runs were stopped; rerun the same command to resume them", flush=True)
-        return 128 + stop.signum
+        _print_status(specs, args)
+        moved = [p for p in (portable_state_path(args.records_dir, spec.scale, spec.to_config().run_name())
+                             for spec in specs) if p.exists()]  # this sweep's runs, no other's
+        if moved:
+            print(f"[sweep] {len(moved)} unfinished runs left their portable state in "
+                  f"{moved[0].parent}: commit it with the records to go on on another machine", flush=True)
     return 0
+
+
+def _print_status(specs, args) -> None:
+    import pandas as pd
+
+    from pemamoe.execution import status_summary, sweep_status
+
+    table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
+    with pd.option_context("display.width", 120, "display.max_columns", 10):
+        print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+    print(status_summary(table, args.workers))
+
+
+def error_line(err: BaseException, stores=(), start_over: str | None = None) -> str | None:
+    """The one line a command ends with on `err`, or None when `err` is none of the errors a command
+    reports in one line (a bug keeps its traceback). stores: the command's stores, whose client
+    errors say which store cannot be used (`store_access_error`, appendix 09f); start_over: the
+    command's own way to start a run over, in place of RunFolderError's resume=False."""
+    for store in stores:
+        access = store_access_error(store, err)
+        if access is not None:
+            return str(access)
+    if isinstance(err, RunFolderError):
+        return one_line(err.message(start_over))
+    # An error of a module not loaded cannot have been raised: importing one here would cost seconds.
+    loaded = [getattr(sys.modules[m], name) for m, name in (("pemamoe.records", "RecordError"),
+                                                             ("pemamoe.execution", "SweepRunError"))
+              if m in sys.modules]
+    if isinstance(err, (RunLockedError, StoreLeaseError, StoreAccessError, OSError, *loaded)):
+        return one_line(err)
+    return None
 
 
 def _check_store_arg(parser, flag: str, text: str) -> None:
@@ -145,19 +199,6 @@ def _check_store_arg(parser, flag: str, text: str) -> None:
                          "folder (the folder itself is created if missing) or a URL such as s3://bucket/prefix")
 
 
-def _hours(text: str) -> float:
-    import argparse
-    import math
-
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a number of hours > 0, got {text!r}")
-    return value
-
-
 def _method(text: str) -> str:
     import argparse
 
@@ -166,28 +207,13 @@ def _method(text: str) -> str:
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
 
-
-def _count(low: int):
-    def parse(text: str) -> int:
-        import argparse
-
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {value}")
-        return value
-
-    return parse
-
 # %% [markdown]
 # The checks, without training anything:
 
 # %%
 import argparse
 
-for _parse, _text in ((_count(1), "0"), (_count(0), "two"), (_method, "nope")):
+for _parse, _text in ((int_arg(1), "0"), (int_arg(0, SEED_LIMIT), "two"), (_method, "nope")):
     try:
         _parse(_text)
     except argparse.ArgumentTypeError as err:
@@ -236,6 +262,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                  09d), train every run into the cache and write the records again.
     """
     import shutil
+
+    from pemamoe.sweep import experiment_specs, run_sweep
 
     check_scale(scale)
     figures_dir = repo_path(figures_dir or "paper_figures")

@@ -129,7 +129,7 @@ import uuid
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
-from pemamoe.core import atomic_path, require
+from pemamoe.core import atomic_path, one_line, require
 from pemamoe.runs import _PicklableError
 
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
@@ -252,6 +252,132 @@ class ResultsStore:
 def open_store(results="results") -> ResultsStore:
     """A ResultsStore from a path, a URL or a ResultsStore (returned as it is)."""
     return results if isinstance(results, ResultsStore) else ResultsStore(results)
+
+
+# %% [markdown]
+# ## Reaching a store
+#
+# A URL can name a store that cannot be used: no credentials, an endpoint that does not answer, a
+# bucket that does not exist, access denied. The client libraries say so in their own words at the
+# end of a long traceback (botocore's `NoCredentialsError` or `EndpointConnectionError`; s3fs turns
+# a missing bucket into a `FileNotFoundError` that does not name it). `check_access` lists the
+# store's top once, before anything trains (a prefix not written yet is fine, its bucket must
+# exist), and `store_access_error` translates such an error into a `StoreAccessError`: one line
+# naming the store's URL, the value at fault (the endpoint, the bucket) and what to do. The commands
+# call `check_access` first; `checked_out` (below) translates the errors of its leases and pulls the
+# same way, so a worker's failure reads alike.
+
+# %%
+#| export
+BUCKET_PROTOCOLS = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")  # a URL's first component is a bucket
+
+
+class StoreAccessError(_PicklableError, RuntimeError):
+    """A remote store cannot be used as named: no credentials, an endpoint that does not answer, a
+    bucket that does not exist, access denied. One line naming the store's URL (`uri`) and what is
+    wrong (`problem`)."""
+
+    def __init__(self, uri: str, problem: str):
+        self.uri, self.problem = uri, problem
+        super().__init__(one_line(f"results store {uri}: {problem}"))
+
+
+def check_access(store) -> "ResultsStore":
+    """Reach a remote store once (list its top; where the prefix is not written yet, its bucket);
+    return it. StoreAccessError, one line, when it cannot be used; a local store is not checked."""
+    store = open_store(store)
+    if not store.remote:
+        return store
+    bucket = _bucket(store)
+    with _access_errors(store):
+        store.fs.invalidate_cache(store.root)
+        try:
+            store.fs.ls(store.root, detail=False)
+        except FileNotFoundError:  # a prefix nothing was written to yet: fine, if its bucket exists
+            if bucket is None:
+                return store
+            if bucket != store.root:
+                store.fs.invalidate_cache(bucket)
+                try:
+                    store.fs.ls(bucket, detail=False)
+                    return store
+                except FileNotFoundError:
+                    pass
+            raise _no_bucket(store, bucket) from None
+    return store
+
+
+def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
+    """`err`, raised while using `store`, as a StoreAccessError when it says that the store cannot
+    be reached or used (credentials, endpoint, bucket, permission); None for any other error."""
+    if isinstance(err, StoreAccessError):
+        return err
+    store = open_store(store)
+    if not store.remote:
+        return None
+    names = {cls.__name__ for cls in type(err).__mro__}
+    protocol = store.uri.split("://", 1)[0].lower()
+    text = one_line(err) or type(err).__name__
+    if names & {"NoCredentialsError", "PartialCredentialsError", "CredentialRetrievalError", "NoAuthTokenError"}:
+        hint = ("set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, or AWS_PROFILE" if protocol in ("s3", "s3a")
+                else "configure the credentials of its client library")
+        return StoreAccessError(store.uri, f"no credentials found ({text}); {hint}")
+    if names & {"EndpointConnectionError", "ConnectTimeoutError", "ConnectionClosedError", "ProxyConnectionError",
+                "ClientConnectorError", "ServerDisconnectedError"} or isinstance(err, (ConnectionError, TimeoutError)):
+        endpoint = _endpoint(store, err)
+        hint = "; check that it is up and that AWS_ENDPOINT_URL names it" if protocol in ("s3", "s3a") else ""
+        return StoreAccessError(store.uri, f"cannot connect to its endpoint {endpoint} ({type(err).__name__}){hint}")
+    bucket = _bucket(store)
+    code = str(getattr(err, "response", {}).get("Error", {}).get("Code", "")) if hasattr(err, "response") else ""
+    if bucket is not None and (code == "NoSuchBucket" or isinstance(err, FileNotFoundError)
+                               and "bucket" in text.lower()):
+        return _no_bucket(store, bucket)
+    if isinstance(err, PermissionError) or code in ("AccessDenied", "InvalidAccessKeyId", "SignatureDoesNotMatch"):
+        where = f"bucket {bucket!r}" if bucket is not None else "it"
+        return StoreAccessError(store.uri, f"access denied ({text}); check that the credentials may read and "
+                                           f"write {where}")
+    return None
+
+
+# %%
+#| exporti
+def _bucket(store) -> "str | None":
+    """The bucket of a remote store whose protocol has buckets, else None."""
+    protocol = store.uri.split("://", 1)[0].lower()
+    return store.root.split("/", 1)[0] if protocol in BUCKET_PROTOCOLS and store.root else None
+
+
+def _no_bucket(store, bucket: str) -> StoreAccessError:
+    protocol = store.uri.split("://", 1)[0].lower()
+    return StoreAccessError(store.uri, f"bucket {bucket!r} does not exist; create it (e.g. `aws s3 mb "
+                                       f"{protocol}://{bucket}`) or name an existing bucket")
+
+
+def _endpoint(store, err) -> str:
+    """scheme://host:port of the endpoint the client tried (from the error, the client's settings
+    or AWS_ENDPOINT_URL), else the service's default."""
+    from urllib.parse import urlsplit
+
+    candidates = [getattr(err, "kwargs", {}).get("endpoint_url") if isinstance(getattr(err, "kwargs", None), dict) else None,
+                  (getattr(store.fs, "client_kwargs", None) or {}).get("endpoint_url"),
+                  getattr(store.fs, "endpoint_url", None), os.environ.get("AWS_ENDPOINT_URL")]
+    for url in candidates:
+        if isinstance(url, str) and url:
+            parts = urlsplit(url)
+            return f"{parts.scheme}://{parts.netloc}" if parts.netloc else url
+    return "(the service's default)"
+
+
+@contextmanager
+def _access_errors(store):
+    """Raise the StoreAccessError of an error that says `store` cannot be used (others as they are)."""
+    try:
+        yield
+    except Exception as err:
+        access = store_access_error(store, err)
+        if access is None or access is err:
+            raise
+        raise access from err
 
 
 # %% [markdown]
@@ -603,10 +729,11 @@ def checked_out(store: ResultsStore, runs: list):
         return
     leases = []
     try:
-        for scale, run in runs:
-            leases.append(StoreLease(store, scale, run).acquire())
-        folders = [store.run_dir(scale, run) for scale, run in runs]  # their .lock stays local: never pushed
-        pushed = [pull_run(store, scale, run) for scale, run in runs]
+        with _access_errors(store):  # no credentials, no endpoint, no bucket: one line (above)
+            for scale, run in runs:
+                leases.append(StoreLease(store, scale, run).acquire())
+            folders = [store.run_dir(scale, run) for scale, run in runs]  # their .lock stays local: never pushed
+            pushed = [pull_run(store, scale, run) for scale, run in runs]
         mirror = _Mirror(store, folders, leases, pushed, _env_seconds(SYNC_ENV, SYNC_SECONDS))
         mirror.start()
         try:
@@ -614,7 +741,8 @@ def checked_out(store: ResultsStore, runs: list):
         finally:
             mirror.stop_event.set()
             mirror.join()
-            mirror.sync()  # the last push of every run still this worker's: finished or not
+            with _access_errors(store):
+                mirror.sync()  # the last push of every run still this worker's: finished or not
             if mirror.lost:
                 raise mirror.lost[min(mirror.lost)]
     finally:

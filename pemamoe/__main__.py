@@ -1,9 +1,10 @@
 """Command line: `python -m pemamoe <command>` (hand-written dispatcher; the work is in modules)."""
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from pemamoe.core import one_line  # light (as every module this file imports before a command runs)
 
 TRAIN_HELP = "train one MAPPO run; logs and checkpoint go to --out"
 
@@ -14,7 +15,7 @@ def main(argv=None) -> int:
         formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
     sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
-    from pemamoe.core import SCALES
+    from pemamoe.core import BACKENDS, SCALES, int_arg  # light: the parsers are built without torch
 
     fig.add_argument("--scale", default="medium", choices=SCALES,
                      help="the preset scale (default: medium, whose run records are committed)")
@@ -25,9 +26,9 @@ def main(argv=None) -> int:
     fig.add_argument("--notebook", action="append", type=_figure_notebook, metavar="NOTEBOOK",
                      help="run only these notebooks (repeatable): a notebook of notebooks/ by file name or stem "
                           "(08_theory_check.py, 08_theory_check), or a path to one")
-    fig.add_argument("--backend", default="local", choices=FIGURES_BACKENDS,
+    fig.add_argument("--backend", default="local", choices=BACKENDS,
                      help="sweep backend: local | ray (default: local)")
-    fig.add_argument("--workers", type=_int_at_least(1), default=2, help="parallel training runs (default: 2)")
+    fig.add_argument("--workers", type=int_arg(1), default=2, help="parallel training runs (default: 2)")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
     fig.add_argument("--results-dir", default="results",
                      help="the results store the runs without a record train into: a folder or a URL such as "
@@ -74,6 +75,12 @@ def main(argv=None) -> int:
         except ValueError as err:
             parser.error(f"--results-dir: {err}")
         _check_parent_folder("--results-dir", args.results_dir, parser)
+        from pemamoe.store import StoreAccessError, check_access
+
+        try:
+            check_access(results_dir)  # a URL: its credentials, endpoint and bucket, before any notebook runs
+        except StoreAccessError as err:
+            parser.exit(1, f"{parser.prog} figures: error: {err}\n")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
@@ -111,9 +118,6 @@ def _check_parent_folder(flag: str, text: str, parser) -> None:
 
 
 # -- figures -----------------------------------------------------------------------------------
-FIGURES_BACKENDS = ("local", "ray")  # pemamoe.execution.BACKENDS, which imports the trainer
-
-
 def _figure_notebook(text: str) -> str:
     """--notebook: a notebook of notebooks/ named by its file name (08_theory_check.py), its stem
     (08_theory_check) or its path in the repository (notebooks/08_theory_check.py); or a path to an
@@ -160,60 +164,10 @@ def _option_value(argv, option: str):
 
 
 # -- train -------------------------------------------------------------------------------------
-def _int_at_least(low: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
-        return value
-
-    return parse
-
-
-class _LazyChoices:
-    """A parser's `choices` that are loaded on first use (a membership test, or the help that lists
-    them), so that building the parser, and every argument error, imports no heavy module."""
-
-    def __init__(self, load):
-        self._load, self._items = load, None
-
-    def _get(self) -> tuple:
-        if self._items is None:
-            self._items = tuple(self._load())
-        return self._items
-
-    def __contains__(self, item) -> bool:
-        return item in self._get()
-
-    def __iter__(self):
-        return iter(self._get())
-
-    def __len__(self) -> int:
-        return len(self._get())
-
-
-def _mechanisms() -> tuple:
-    from pemamoe.phase_controller import MECHANISMS  # imports torch: only when --without is used or --help shown
-
-    return MECHANISMS
-
-
-def _float_at_least_zero(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
-    return value
-
-
 def _add_train_parser(sub) -> argparse.ArgumentParser:
-    # Light modules only (no torch): an argument error must not wait for the trainer to import.
-    from pemamoe.core import SCALES
+    # Light modules only (no torch): --help and an argument error must not wait for the trainer to
+    # import. Every value is checked here, while the arguments are parsed (the seed's range too).
+    from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, int_arg, real_arg
     from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
     load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
@@ -226,7 +180,7 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--method", default=default, choices=methods,
                    help=f"a registered method: network kind and plasticity method (default: {default})")
     p.add_argument("--scale", default="small", choices=SCALES, help="preset budget (default: small)")
-    p.add_argument("--seed", type=_int_at_least(0), default=0,
+    p.add_argument("--seed", type=int_arg(0, SEED_LIMIT), default=0,
                    help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="run directory (default: <results-dir>/train/<method>-s<seed>-<config hash>)")
@@ -234,14 +188,14 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
                    help="the results store the default run directory is in: a folder or a URL such as "
                         "s3://bucket/prefix, where the run is leased, trained in a local cache and copied back "
                         "(appendix 09f; default: results/)")
-    p.add_argument("--without", action="append", default=[], choices=_LazyChoices(_mechanisms), metavar="MECHANISM",
+    p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
                    help="switch a phase-controller mechanism off (repeatable; methods with the phase controller "
                         "only): %(choices)s")
-    p.add_argument("--noise-gamma", type=_float_at_least_zero, default=None, metavar="GAMMA",
+    p.add_argument("--noise-gamma", type=real_arg(ge=0), default=None, metavar="GAMMA",
                    help="expert noise scale of the phase controller (methods with the phase controller only; default: the preset's)")
     p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
                    help="torch device (default: the config's)")
-    p.add_argument("--iterations", type=_int_at_least(1), default=None, metavar="N",
+    p.add_argument("--iterations", type=int_arg(1), default=None, metavar="N",
                    help="training iterations, overriding the preset's")
     p.add_argument("--no-resume", action="store_true",
                    help="start afresh even if --out holds a checkpoint or a finished run of this config")
@@ -251,10 +205,11 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
 
 def train_command(args, parser: argparse.ArgumentParser) -> int:
     """Build the TrainConfig from the flags, run pemamoe.mappo.train, print a summary. Errors of the
-    run folder (a lock held by another process, a damaged or foreign file, a failed write) and
-    Ctrl-C end it with one line on stderr and a non-zero status, not a traceback."""
-    from pemamoe.runs import RunFolderError, RunLockedError  # light: no torch
-    from pemamoe.store import StoreLeaseError, open_store  # light: fsspec only for a URL
+    run folder (a lock held by another process, a damaged or foreign file, a failed write), of the
+    store (no credentials, no endpoint, no bucket) and Ctrl-C end it with one line on stderr and a
+    non-zero status, not a traceback."""
+    from pemamoe.commands import error_line  # light: no torch
+    from pemamoe.store import check_access, open_store  # light: fsspec only for a URL
 
     if args.out is not None and args.out.strip() == "":
         parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
@@ -267,14 +222,18 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")
     try:
+        check_access(args.store)  # a URL: its credentials, endpoint and bucket, before the trainer is imported
         return _train(args, parser)
     except KeyboardInterrupt:
         where = f" in {args.run_dir}" if getattr(args, "run_dir", None) is not None else ""
         print(f"\n{parser.prog}: interrupted; the run{where} can be resumed: run the same command again to "
               "continue from its last checkpoint (--no-resume starts it over)", file=sys.stderr)
         return 130
-    except (RunFolderError, RunLockedError, StoreLeaseError, OSError) as err:
-        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+    except Exception as err:
+        line = error_line(err, [args.store], start_over="delete the folder, or pass --no-resume to start it over")
+        if line is None:
+            raise
+        print(f"{parser.prog}: error: {line}", file=sys.stderr)
         return 1
 
 
@@ -318,17 +277,22 @@ def _train(args, parser: argparse.ArgumentParser) -> int:
 
 def _train_in(out: Path, config, args, parser) -> int:
     from pemamoe import mappo
+    from pemamoe.runs import RunFolderError, check_stored_config, read_config, read_json
 
     _check_out(out, parser)
     stored = out / "config.json"
     if not args.no_resume and stored.exists():
-        try:
-            same = mappo.TrainConfig.from_dict(json.loads(stored.read_text())).identity() == config.identity()
-        except (ValueError, TypeError, KeyError):
-            same = False
-        if not same:
-            parser.error(f"--out {out} holds a run with a different config; choose another --out, "
-                         f"or pass --no-resume to overwrite it")
+        try:  # garbage (not JSON, not an object, not a TrainConfig) is named as such
+            read_config(stored, mappo.TrainConfig)
+        except RunFolderError as err:
+            parser.exit(2, one_line(f"{parser.prog}: error: --out {out}: {stored} is damaged or unreadable: it "
+                                    f"{err.problem}; remove it, choose another --out, or pass --no-resume to start "
+                                    "a new run there") + "\n")
+        try:  # another run's config: named by the keys that differ
+            check_stored_config(read_json(stored), config, stored)
+        except RunFolderError as err:
+            parser.exit(2, one_line(f"{parser.prog}: error: --out {out}: {stored.name} {err.problem}; choose another "
+                                    "--out, or pass --no-resume to overwrite it") + "\n")
     out.mkdir(parents=True, exist_ok=True)
     args.run_dir = out  # named if the run is interrupted
     result = mappo.train(config, out, resume=not args.no_resume, progress=None)

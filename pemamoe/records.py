@@ -234,7 +234,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 314)
+# %% notebooks/09d_records.py, cell 10 (line 317)
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
 _PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
@@ -275,26 +275,27 @@ def read_portable_state(path) -> bytes:
     raw = Path(path).read_bytes()
     head = len(_PORTABLE_MAGIC) + 8
     if not raw.startswith(_PORTABLE_MAGIC) or len(raw) <= head:
-        raise RecordError(path, "is not a portable state (no pemamoe-portable header)")
+        raise RecordError(path, f"is not a portable state (no pemamoe-portable header){_PORTABLE_HINT}")
     size = int.from_bytes(raw[len(_PORTABLE_MAGIC):head], "little")
     try:
         return pa.Codec("zstd").decompress(raw[head:], decompressed_size=size, asbytes=True)
     except (pa.ArrowException, OSError) as err:
-        raise RecordError(path, f"cannot be decompressed ({type(err).__name__}: {err})") from None
+        raise RecordError(path, f"cannot be decompressed ({type(err).__name__}: {err}){_PORTABLE_HINT}") from None
 
 
-def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool:
-    """Copy the portable state of `run_dir`'s run (named by the folder) into the folder when the
-    folder is not already as far along; returns whether it did. The folder gets `config.json`,
-    the checkpoint and `moved.json` (from which iteration on its episode log is complete)."""
+# the end of the message of a portable state that cannot be trusted
+_PORTABLE_HINT = ("; restore it from git (git checkout -- <the file>), or delete it to train the run on from this "
+                  "machine's own checkpoint, or from the start")
+
+
+def _open_portable_state(source: Path, run_name: str) -> tuple:
+    """(the checkpoint's bytes, the checkpoint, its TrainConfig) of the portable state `source`,
+    after the checks a resume makes: a portable state, its checkpoint's seal (sha256) intact, a
+    checkpoint of the run `run_name`. RecordError naming `source` otherwise."""
     import tempfile
 
     from pemamoe.runs import RunFolderError, load_checkpoint
 
-    run_dir = Path(run_dir)
-    source = portable_state_path(records_dir, scale, run_dir.name)
-    if not source.exists():
-        return False
     data = read_portable_state(source)
     with tempfile.TemporaryDirectory() as scratch:
         unpacked = Path(scratch) / "checkpoint.pt"
@@ -302,10 +303,27 @@ def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool
         try:
             ck = load_checkpoint(unpacked)  # its seal is checked: a damaged portable state is refused here
         except RunFolderError as err:
-            raise RecordError(source, err.problem) from None
-    config = TrainConfig.from_dict(ck["config"])
-    if config.run_name() != run_dir.name:
-        raise RecordError(source, f"holds run {config.run_name()!r}, not {run_dir.name!r}")
+            raise RecordError(source, err.problem + _PORTABLE_HINT) from None
+    try:
+        config = TrainConfig.from_dict(ck["config"])
+    except (TypeError, ValueError, KeyError) as err:
+        raise RecordError(source, f"holds no valid TrainConfig ({type(err).__name__}: {err}){_PORTABLE_HINT}") from None
+    if config.run_name() != run_name:
+        raise RecordError(source, f"holds run {config.run_name()!r}, not {run_name!r}")
+    return data, ck, config
+
+
+def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool:
+    """Copy the portable state of `run_dir`'s run (named by the folder) into the folder when the
+    folder is not already as far along; returns whether it did. The folder gets `config.json`,
+    the checkpoint and `moved.json` (from which iteration on its episode log is complete)."""
+    from pemamoe.runs import RunFolderError, load_checkpoint
+
+    run_dir = Path(run_dir)
+    source = portable_state_path(records_dir, scale, run_dir.name)
+    if not source.exists():
+        return False
+    data, ck, config = _open_portable_state(source, run_dir.name)
     here = run_dir / "checkpoint.pt"
     if verify_done(run_dir, config):
         return False
@@ -332,18 +350,13 @@ def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> N
 
 def portable_state_iteration(records_dir, scale: str, run_name: str) -> int | None:
     """The iteration the portable state of `run_name` has reached, or None when there is none
-    (what `sweep --status` reports for a run this machine has not restored yet)."""
-    import io
-
-    import torch
-
+    (what `sweep --status` reports for a run this machine has not restored yet). It is verified as
+    a resume would verify it (seal, run): a damaged one raises RecordError naming the file, rather
+    than reporting an iteration that the sweep would then refuse to resume from."""
     source = portable_state_path(records_dir, scale, run_name)
     if not source.exists():
         return None
-    try:
-        return int(torch.load(io.BytesIO(read_portable_state(source)), weights_only=True)["iteration"])
-    except (RuntimeError, KeyError, TypeError, ValueError) as err:
-        raise RecordError(source, f"holds no readable checkpoint ({type(err).__name__}: {err})") from None
+    return int(_open_portable_state(source, run_name)[1]["iteration"])
 
 
 def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
@@ -352,7 +365,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 12 (line 445)
+# %% notebooks/09d_records.py, cell 12 (line 461)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 

@@ -3,14 +3,14 @@
 
 __all__ = ['RUN_FILES', 'LOG_FILES', 'DONE_FORMAT', 'LOCK_NAME', 'RunFolderError', 'RunLockedError', 'check_run_dir', 'read_json', 'read_parquet', 'read_config', 'load_checkpoint', 'SEALED_FORMAT', 'CHECKPOINT_SEAL', 'seal_checkpoint', 'config_difference', 'check_stored_config', 'file_digest', 'write_done', 'verify_done', 'parquet_rows', 'prepare_run_dir', 'RunLock', 'lock_run', 'holder_pid']
 
-# %% notebooks/07b_run_folders.py, cell 4 (line 68)
+# %% notebooks/07b_run_folders.py, cell 4 (line 69)
 import fcntl
 import hashlib
 import json
 import os
 from pathlib import Path
 
-from pemamoe.core import atomic_write_json
+from pemamoe.core import atomic_write_json, one_line
 
 RUN_FILES = ("config.json", "metrics.parquet", "episodes.parquet", "checkpoint.pt", "done.json")
 LOG_FILES = ("metrics.parquet", "episodes.parquet")  # sealed by their sha256 in done.json
@@ -41,7 +41,13 @@ class RunFolderError(_PicklableError, ValueError):
 
     def __init__(self, path, problem: str, hint: str = _START_OVER):
         self.path, self.problem, self.hint = Path(path), problem, hint
-        super().__init__(f"run folder {self.path.parent}: {self.path.name} {problem}" + (f"; {hint}" if hint else ""))
+        super().__init__(self.message())
+
+    def message(self, start_over: str | None = None) -> str:
+        """The message; with `start_over`, that advice replaces the default one (resume=False, how
+        the API starts a run over), so that a command can name its own way (`--no-resume`)."""
+        hint = start_over if start_over is not None and self.hint == _START_OVER else self.hint
+        return f"run folder {self.path.parent}: {self.path.name} {self.problem}" + (f"; {hint}" if hint else "")
 
 
 class RunLockedError(_PicklableError, RuntimeError):
@@ -62,7 +68,7 @@ def check_run_dir(run_dir) -> Path:
     return Path(run_dir)
 
 
-# %% notebooks/07b_run_folders.py, cell 6 (line 131)
+# %% notebooks/07b_run_folders.py, cell 6 (line 138)
 def read_json(path) -> dict:
     """A JSON object from `path`; RunFolderError (naming the file) when missing, empty or garbage."""
     path = Path(path)
@@ -127,7 +133,11 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
     try:
         ck = torch.load(io.BytesIO(data), weights_only=True)
     except (EOFError, RuntimeError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as err:
-        raise RunFolderError(path, f"cannot be read as a checkpoint ({type(err).__name__}: {err})") from None
+        if not zipfile.is_zipfile(io.BytesIO(data)):  # torch.save writes a zip archive: its end is missing
+            raise RunFolderError(path, f"is truncated or damaged: its {len(data):,} bytes are not a whole checkpoint "
+                                 "(the zip archive that torch.save writes has no end record)") from None
+        cause = one_line(err).split(". ")[0]  # the reader's first sentence, not its advice about itself
+        raise RunFolderError(path, f"cannot be read as a checkpoint ({type(err).__name__}: {cause})") from None
     if not isinstance(ck, dict) or not isinstance(ck.get("config"), dict) or "iteration" not in ck:
         raise RunFolderError(path, "is not a training checkpoint (no 'config' and 'iteration')")
     fmt = ck.get("format", 1)  # the first checkpoints recorded none
@@ -151,7 +161,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
     return ck
 
 
-# %% notebooks/07b_run_folders.py, cell 8 (line 231)
+# %% notebooks/07b_run_folders.py, cell 8 (line 242)
 SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07c); every later one has it too
 CHECKPOINT_SEAL = b"pemamoe-sha256:"  # the zip comment of a sealed checkpoint: this, then the 64 hex digits
 
@@ -180,7 +190,7 @@ def seal_checkpoint(path) -> str:
     return h.hexdigest()
 
 
-# %% notebooks/07b_run_folders.py, cell 9 (line 261)
+# %% notebooks/07b_run_folders.py, cell 9 (line 272)
 _SEAL_LEN = len(CHECKPOINT_SEAL) + 64
 
 
@@ -211,7 +221,7 @@ def _existing_file(path) -> Path:
     return path
 
 
-# %% notebooks/07b_run_folders.py, cell 11 (line 300)
+# %% notebooks/07b_run_folders.py, cell 11 (line 311)
 def config_difference(stored: dict, requested: dict, limit: int = 6) -> str:
     """The keys where two identity dicts differ, as `key: stored X, requested Y` (nested keys
     dotted, at most `limit` of them); "" when equal."""
@@ -242,7 +252,7 @@ def check_stored_config(stored: dict, config, path) -> None:
                              "use another run_dir, or resume=False to overwrite it")
 
 
-# %% notebooks/07b_run_folders.py, cell 12 (line 332)
+# %% notebooks/07b_run_folders.py, cell 12 (line 343)
 def _short(value, width: int = 60) -> str:
     text = repr(value)
     return text if len(text) <= width else text[:width - 3] + "..."
@@ -255,7 +265,7 @@ def _config_from_dict(d, cls, path):
         raise RunFolderError(path, f"does not hold a valid {cls.__name__} ({type(err).__name__}: {err})") from None
 
 
-# %% notebooks/07b_run_folders.py, cell 14 (line 352)
+# %% notebooks/07b_run_folders.py, cell 14 (line 363)
 def file_digest(path) -> str:
     """sha256 of a file's bytes, as hex."""
     h = hashlib.sha256()
@@ -355,7 +365,7 @@ def prepare_run_dir(run_dir, config, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-# %% notebooks/07b_run_folders.py, cell 16 (line 462)
+# %% notebooks/07b_run_folders.py, cell 16 (line 473)
 class RunLock:
     """The exclusive writer lock of one run folder (a context manager; see `lock_run`)."""
 

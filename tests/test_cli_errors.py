@@ -130,3 +130,289 @@ def test_an_unknown_option_is_named_by_its_own_commands_usage(argv, capsys):
     err = capsys.readouterr().err
     assert f"usage: python -m pemamoe {argv[0]}" in err  # the command's usage, not the top-level one
     assert _error_line(err) == f"python -m pemamoe {argv[0]}: error: unrecognized arguments: --bogus"
+
+
+# == Issue 41: one-line errors everywhere ====================================================
+# Each test runs `python -m pemamoe ...` as a user would and requires a non-zero exit status and
+# stderr of exactly one line (or, for a usage error, one `error:` line under argparse's usage)
+# that names the problem and the value at fault, never a traceback.
+import json  # noqa: E402
+import os  # noqa: E402
+import socket  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import textwrap  # noqa: E402
+
+HEAVY = ("torch", "numpy", "pandas", "pyarrow", "numba", "pemamoe.mappo", "pemamoe.execution", "pemamoe.sweep",
+         "pemamoe.records", "pemamoe.phase_controller")
+
+
+def _cli(*args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "pemamoe", *map(str, args)], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout, env={**os.environ, **(env or {})})
+
+
+def _only_line(proc) -> str:
+    """stderr's single line (a runtime error: no usage lines either); exit status non-zero."""
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode != 0, (proc.returncode, proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr and len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+def _usage_error(proc) -> str:
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    return _error_line(proc.stderr)
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _s3_env(tmp_path, endpoint: str, credentials: bool = True) -> dict:
+    """An S3 client environment that reads no file of this machine and tries each request once."""
+    env = {"AWS_ENDPOINT_URL": endpoint, "AWS_DEFAULT_REGION": "us-east-1", "AWS_MAX_ATTEMPTS": "1",
+           "AWS_RETRY_MODE": "standard", "AWS_EC2_METADATA_DISABLED": "true", "AWS_CONFIG_FILE": os.devnull,
+           "AWS_SHARED_CREDENTIALS_FILE": os.devnull, "PEMAMOE_CACHE": str(tmp_path / "cache")}
+    if credentials:
+        env.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing")
+    return env
+
+
+def _without_aws_credentials(env: dict) -> dict:
+    return {k: v for k, v in {**os.environ, **env}.items()
+            if k not in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_PROFILE")}
+
+
+def _store_command(command: str, url: str, tmp_path) -> list:
+    if command == "sweep":
+        return ["sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--workers", "1",
+                "--results-dir", url, "--records-dir", tmp_path / "records"]
+    if command == "figures":
+        return ["figures", "--scale", "ci", "--figures-dir", tmp_path / "figures", "--results-dir", url]
+    return ["train", "--scale", "ci", "--method", "mlp", "--results-dir", url]
+
+
+# -- a, b: a store that cannot be reached -----------------------------------------------------
+@pytest.mark.parametrize("command", ["sweep", "train", "figures"])
+def test_41ab_an_unreachable_store_endpoint_is_one_line_naming_the_endpoint(command, tmp_path):
+    pytest.importorskip("s3fs")
+    endpoint = f"http://127.0.0.1:{_closed_port()}"
+    proc = _cli(*_store_command(command, "s3://bucket/results", tmp_path), env=_s3_env(tmp_path, endpoint))
+    line = _only_line(proc)
+    assert line.startswith(f"python -m pemamoe {command}: error: results store s3://bucket/results: ")
+    assert f"cannot connect to its endpoint {endpoint}" in line and "AWS_ENDPOINT_URL" in line
+
+
+@pytest.mark.parametrize("command", ["sweep", "train"])
+def test_41ab_no_store_credentials_is_one_line_saying_what_to_set(command, tmp_path):
+    pytest.importorskip("s3fs")
+    env = _without_aws_credentials(_s3_env(tmp_path, f"http://127.0.0.1:{_closed_port()}", credentials=False))
+    proc = subprocess.run([sys.executable, "-m", "pemamoe", *map(str, _store_command(command, "s3://bucket/results", tmp_path))],
+                          cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+    line = _only_line(proc)
+    assert "results store s3://bucket/results: no credentials found" in line
+    assert "AWS_ACCESS_KEY_ID" in line and "AWS_SECRET_ACCESS_KEY" in line
+
+
+# -- a, c: a bucket that does not exist, named --------------------------------------------------
+@pytest.fixture
+def s3_endpoint():
+    """A moto S3 server on 127.0.0.1 (no bucket in it); yields its URL."""
+    pytest.importorskip("s3fs")
+    server_mod = pytest.importorskip("moto.server")
+    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    yield f"http://{host}:{port}"
+    server.stop()
+
+
+@pytest.mark.parametrize("command", ["sweep", "train"])
+def test_41c_a_missing_bucket_is_named_in_one_line(command, s3_endpoint, tmp_path):
+    proc = _cli(*_store_command(command, "s3://no-such-bucket-41/results", tmp_path), env=_s3_env(tmp_path, s3_endpoint))
+    line = _only_line(proc)
+    assert "results store s3://no-such-bucket-41/results: bucket 'no-such-bucket-41' does not exist" in line
+    assert "aws s3 mb s3://no-such-bucket-41" in line
+    status = _cli(*_store_command("sweep", "s3://no-such-bucket-41/results", tmp_path), "--status",
+                  env=_s3_env(tmp_path, s3_endpoint))  # --status too: it used to print an empty table
+    assert "bucket 'no-such-bucket-41' does not exist" in _only_line(status)
+
+
+# -- a: a run folder locked by another live process --------------------------------------------
+def test_41a_sweep_over_a_run_locked_by_another_process_is_one_line(tmp_path):
+    from pemamoe.sweep import RunSpec
+
+    results = tmp_path / "results"
+    run_dir = RunSpec("mlp", 0, "ci").run_dir(results)
+    script = textwrap.dedent(f"""
+        import time
+        from pemamoe.runs import lock_run
+        lock = lock_run({str(run_dir)!r})
+        print("locked", flush=True)
+        time.sleep(300)
+    """)
+    holder = subprocess.Popen([sys.executable, "-c", script], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        proc = _cli("sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--workers", "1",
+                    "--results-dir", results, "--records-dir", tmp_path / "records")
+    finally:
+        holder.kill()
+        holder.wait()
+    line = _only_line(proc)
+    assert proc.returncode == 1
+    assert line.startswith("python -m pemamoe sweep: error: sweep run mlp, seed 0 failed: ")
+    assert f"run folder {run_dir} is being written by process {holder.pid}" in line
+
+
+# -- a, d: a damaged portable state ---------------------------------------------------------------
+@pytest.fixture(scope="module")
+def portable_state(tmp_path_factory):
+    """(records folder, the path of a real portable state in it) of a ci MLP run stopped at iteration 2."""
+    from pemamoe.mappo import train_population
+    from pemamoe.records import write_portable_state
+    from pemamoe.sweep import RunSpec
+
+    tmp = tmp_path_factory.mktemp("portable")
+    spec = RunSpec("mlp", 0, "ci")
+    train_population([spec.to_config()], [spec.run_dir(tmp / "first")], max_iterations=2)
+    return tmp / "records", write_portable_state(spec.run_dir(tmp / "first"), "ci", tmp / "records")
+
+
+def _damaged_copy(portable_state, tmp_path):
+    """A copy of the records whose portable state is still a well-formed, decompressible checkpoint
+    that torch loads, but with one byte of a tensor changed: only its seal (sha256) tells."""
+    import shutil
+
+    import pyarrow as pa
+
+    from pemamoe.records import _PORTABLE_MAGIC, read_portable_state
+
+    records, path = portable_state
+    copy = tmp_path / "records"
+    shutil.copytree(records, copy)
+    target = copy / path.relative_to(records)
+    data = bytearray(read_portable_state(path))
+    data[len(data) // 2] ^= 0x01  # the middle of the checkpoint: tensor bytes, which torch.load does not check
+    target.write_bytes(_PORTABLE_MAGIC + len(data).to_bytes(8, "little")
+                       + pa.Codec("zstd").compress(bytes(data), asbytes=True))
+    return copy, target
+
+
+def test_41d_sweep_status_refuses_a_portable_state_whose_seal_fails(portable_state, tmp_path):
+    import io
+
+    import torch
+
+    records, target = _damaged_copy(portable_state, tmp_path)
+    from pemamoe.records import read_portable_state
+
+    assert torch.load(io.BytesIO(read_portable_state(target)), weights_only=True)["iteration"] == 2  # loads
+    proc = _cli("sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--results-dir", tmp_path / "results",
+                "--records-dir", records, "--status")
+    line = _only_line(proc)
+    assert f"run record {target}: fails its content check" in line and "git checkout" in line
+
+
+def test_41a_sweep_refuses_a_damaged_portable_state_in_one_line(portable_state, tmp_path):
+    records, target = _damaged_copy(portable_state, tmp_path)
+    target.write_bytes(b"pemamoe-portable-1\n" + (99).to_bytes(8, "little") + b"\x00" * 40)  # not zstd
+    proc = _cli("sweep", "--scale", "ci", "--methods", "mlp", "--seeds", "0", "--workers", "1",
+                "--results-dir", tmp_path / "results", "--records-dir", records)
+    line = _only_line(proc)
+    assert proc.returncode == 1 and "sweep run mlp, seed 0 failed: " in line
+    assert f"run record {target}: cannot be decompressed" in line
+
+
+# -- e, f: the config.json of --out ------------------------------------------------------------
+@pytest.mark.parametrize("content, problem", [("garbage{", "is not valid JSON"), ("[1, 2]", "holds a JSON list"),
+                                              ('{"lr": "fast"}', "does not hold a valid TrainConfig")])
+def test_41e_a_garbage_config_json_is_named_damaged_not_a_different_config(content, problem, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text(content)
+    line = _only_line(_cli("train", "--scale", "ci", "--method", "mlp", "--out", out))
+    assert f"{out / 'config.json'} is damaged or unreadable: it {problem}" in line
+    assert "different config" not in line and "--no-resume" in line
+
+
+def test_41f_a_different_config_names_the_keys_that_differ(tmp_path):
+    from pemamoe.mappo import TrainConfig
+
+    out = tmp_path / "run"
+    out.mkdir()
+    requested = TrainConfig.for_scale("ci", method="mlp", seed=0)
+    stored = TrainConfig.for_scale("ci", method="mlp", seed=0, lr=requested.lr * 10, gamma=0.5)
+    (out / "config.json").write_text(json.dumps(stored.to_dict()))
+    line = _only_line(_cli("train", "--scale", "ci", "--method", "mlp", "--out", out))
+    assert "holds a run with a different config" in line and "--no-resume" in line
+    assert f"lr: stored {stored.lr!r}, requested {requested.lr!r}" in line
+    assert f"gamma: stored 0.5, requested {requested.gamma!r}" in line
+
+
+# -- g: a truncated checkpoint ------------------------------------------------------------------
+def test_41g_a_truncated_checkpoint_is_one_line_without_the_zip_readers_internals(tmp_path):
+    import torch
+
+    from pemamoe.mappo import TrainConfig
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text(json.dumps(TrainConfig.for_scale("ci", method="mlp", seed=0).to_dict()))
+    torch.save({"config": {}, "iteration": 1, "weights": torch.zeros(4096)}, out / "checkpoint.pt")
+    whole = (out / "checkpoint.pt").read_bytes()
+    (out / "checkpoint.pt").write_bytes(whole[: len(whole) // 2])
+    line = _only_line(_cli("train", "--scale", "ci", "--method", "mlp", "--out", out))
+    assert f"run folder {out}: checkpoint.pt is truncated or damaged: its {len(whole) // 2:,} bytes" in line
+    assert "pass --no-resume" in line
+    for internal in ("PytorchStreamReader", "central directory", "miniz", "RuntimeError"):
+        assert internal not in line, line
+
+
+# -- h, i: arguments checked before any heavy import; help and usage errors stay light ------------
+def _modules_after(argv) -> tuple:
+    """(the heavy modules loaded, stderr) after `main(argv)` in a fresh interpreter."""
+    code = textwrap.dedent(f"""
+        import sys
+        from pemamoe.__main__ import main
+        try:
+            main({[str(a) for a in argv]!r})
+        except SystemExit:
+            pass
+        print(sorted(m for m in {HEAVY!r} if m in sys.modules))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    return proc.stdout.strip().splitlines()[-1], proc.stderr
+
+
+@pytest.mark.parametrize("argv", [["train", "--seed", 2**63], ["sweep", "--seeds", "0", 2**63]])
+def test_41h_a_seed_out_of_range_is_refused_before_the_trainer_is_imported(argv):
+    loaded, err = _modules_after(argv)
+    assert loaded == "[]", loaded
+    assert f"must be an integer in [0, 2**63), got '{2**63}'" in _error_line(err)
+    line = _usage_error(_cli(*argv))
+    assert "--seed" in line and str(2**63) in line
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["sweep", "--help"], ["sweep", "--bogus"], ["sweep", "--workers", "0"],
+                                  ["train", "--help"], ["train", "--bogus"], ["train", "--without", "nothing"],
+                                  ["figures", "--help"], ["figures", "--workers", "0"], ["export", "--help"],
+                                  ["check-export", "--help"]], ids=" ".join)
+def test_41i_help_and_usage_errors_import_no_heavy_module(argv):
+    """What keeps `--help` and a usage error of every command well under half a second (measured
+    by benchmarks/bench_cli.py, not here): neither torch nor the experiments are imported."""
+    loaded, err = _modules_after(argv)
+    assert loaded == "[]", (argv, loaded)
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv", [["sweep", "--scale", "ci", "--workers", "0"], ["figures", "--workers", "0"],
+                                  ["train", "--iterations", "0"]])
+def test_41i_every_command_checks_counts_with_the_same_words(argv, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    assert _error_line(capsys.readouterr().err).endswith(f"argument {argv[-2]}: must be an integer >= 1, got '0'")

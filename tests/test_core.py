@@ -158,3 +158,45 @@ def test_runner_streams_progress_without_kernel_warnings_and_is_silent_by_defaul
     assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-1])
     assert "stderr-from-inside" in loud.err
     assert readme == tmp_path / "figs" / "README.md"
+
+
+# -- the command line's argument checks and names (issue 41: one set, in core, without torch) ------
+@pytest.mark.parametrize("parse, text, message", [
+    (core.int_arg(1), "0", "must be an integer >= 1, got '0'"),
+    (core.int_arg(1), "two", "must be an integer >= 1, got 'two'"),
+    (core.int_arg(1), "1.0", "must be an integer >= 1, got '1.0'"),
+    (core.int_arg(0, core.SEED_LIMIT), str(2**63), f"must be an integer in [0, 2**63), got '{2**63}'"),
+    (core.int_arg(0, core.SEED_LIMIT), "-1", "must be an integer in [0, 2**63), got '-1'"),
+    (core.int_arg(0, 10), "10", "must be an integer in [0, 10), got '10'"),
+    (core.real_arg(gt=0), "0", "must be a finite number > 0, got '0'"),
+    (core.real_arg(gt=0), "inf", "must be a finite number > 0, got 'inf'"),
+    (core.real_arg(ge=0), "-0.1", "must be a finite number >= 0, got '-0.1'"),
+    (core.real_arg(ge=0), "nan", "must be a finite number >= 0, got 'nan'"),
+])
+def test_command_line_checks_name_the_value_as_typed_and_what_is_allowed(parse, text, message):
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError) as err:
+        parse(text)
+    assert str(err.value) == message
+
+
+def test_command_line_checks_return_the_value():
+    assert core.int_arg(0, core.SEED_LIMIT)(str(2**63 - 1)) == 2**63 - 1 and core.int_arg(1)(" 3 ") == 3
+    assert core.real_arg(gt=0)("1e-7") == 1e-7 and core.real_arg(ge=0)("0") == 0.0
+
+
+def test_one_line_flattens_every_whitespace_run():
+    assert core.one_line(ValueError("a\n  b\tc \n")) == "a b c"
+
+
+def test_the_command_lines_names_are_the_owning_modules_own():
+    from dataclasses import fields
+
+    from pemamoe import execution, phase_controller, sweep, train_config
+
+    assert phase_controller.MECHANISMS is core.MECHANISMS and sweep.EXPERIMENTS is core.EXPERIMENTS
+    assert execution.BACKENDS is core.BACKENDS and execution.DEFAULT_POPULATION == core.DEFAULT_POPULATION
+    assert train_config.SEED_LIMIT == core.SEED_LIMIT == 2**63
+    switches = {f.name for f in fields(phase_controller.PhaseControllerConfig) if f.type in (bool, "bool")}
+    assert set(core.MECHANISMS) <= switches  # each names an on/off switch of the controller

@@ -125,7 +125,7 @@ def test_empty_and_torn_checkpoints_are_named(copy):
         train(ci(), d)
     good = copy("seed1") / "checkpoint.pt"
     (d / "checkpoint.pt").write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    with pytest.raises(ValueError, match=r"checkpoint.pt cannot be read as a checkpoint"):
+    with pytest.raises(ValueError, match=r"partial: checkpoint.pt is truncated or damaged: its [\d,]+ bytes are not a whole checkpoint"):
         train(ci(), d)
 
 
@@ -259,7 +259,9 @@ def _error_samples():
                "SweepInterrupted": (signal.SIGTERM,),
                "RecordError": (ROOT / "records" / "ci" / "run.json", "differs from the file it sealed"),
                "TheoryRecordError": (ROOT / "records" / "medium" / "theory" / "noise.json", "a table's sha256 differs"),
-               "StoreLeaseError": ("bucket/results/ci/run/.lease.json", {"host": "node-2", "pid": 77, "heartbeat": 0.0})}
+               "StoreLeaseError": ("bucket/results/ci/run/.lease.json", {"host": "node-2", "pid": 77, "heartbeat": 0.0}),
+               "StoreAccessError": ("s3://no-such-bucket/results", "bucket 'no-such-bucket' does not exist"),
+               "SweepRunError": ("mlp, seed 0", "run folder results/ci/run is being written by process 4321", 2)}
     found = []
     for path in sorted((ROOT / "pemamoe").glob("*.py")):
         if path.stem == "__main__":
