@@ -229,7 +229,7 @@ def checkpoint_cost(scale: str) -> dict:
 
     import pandas as pd
 
-    from pemamoe.bookkeeping import RowLog, _pack_rows, _write_parquet_atomic
+    from pemamoe.bookkeeping import RowLog, _pack_rows, write_rows_parquet
     from pemamoe.mappo import train
 
     cfg = TrainConfig.for_scale(scale)
@@ -270,8 +270,8 @@ def checkpoint_cost(scale: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         for name, final in (("parquet", True), ("parquet_new_rows", False)):
             start = time.perf_counter()
-            _write_parquet_atomic(logs[0], Path(tmp) / "metrics.parquet", final)
-            _write_parquet_atomic(logs[1], Path(tmp) / "episodes.parquet", final)
+            write_rows_parquet(logs[0], Path(tmp) / "metrics.parquet", final)
+            write_rows_parquet(logs[1], Path(tmp) / "episodes.parquet", final)
             out[name] = time.perf_counter() - start
     return out
 

@@ -89,9 +89,8 @@ import torch
 import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
-    EpisodeTracker, _iteration_row, _member_phases, _merged_phases, _progress_bar, RowLog, RunningNorm, ValueNorms,
-    explained_variance, merge_env_states, split_env_state)
-from pemamoe.diagnostics import plasticity_diagnostics
+    EpisodeTracker, RowLog, RunningNorm, ValueNorms, explained_variance, merge_env_states, split_env_state)
+from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07c)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
@@ -101,13 +100,13 @@ from pemamoe.plasticity import BaseSchedule, plasticity_method
 import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
-    EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, RunResult, _build, check_population, evaluate_policy, load_run,
-    plasticity_name, population_key, train_members)
+    EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, RunResult, check_population, evaluate_policy, load_run,
+    member_networks, plasticity_name, population_key, train_members)
 from pemamoe.runs import write_done
 # the configuration (appendix 07c): callers import TrainConfig and the presets from here
 from pemamoe.train_config import (  # re-export (public names only)
     DEVICES, MEDIUM_PHASE_ITERS, METHODS, PAPER_PHASE_LENGTH, PAPER_UPDATE_EPOCHS, TIMING_COLUMNS, TrainConfig,
-    _plain, resolve_device, scale_controller)
+    resolve_device, scale_controller)
 
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose
@@ -179,6 +178,90 @@ from pemamoe.train_config import (  # re-export (public names only)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
+
+# %% [markdown]
+# ## What learns: the population
+#
+# Everything that learns, and everything the update reads, is built once by
+# `build_population(configs)` and kept in one object, a `Population`, the way CleanRL builds its
+# agent and optimiser at the top of its script:
+#
+# * each member's actor and critic, initialised from its own seed alone (`member_networks`,
+#   appendix 07d), then stacked into a `PopulationActor` and a `PopulationCritic` (notebook 05b)
+#   whose parameters are the rows of one flat (R, P) tensor per network;
+# * one `RunAdamW` per network, with a learning rate, moments and step counts per member. The
+#   actor's parameters are in named groups (`router`, `experts`, `head`, `log_std`) so that the
+#   phase controller can set, freeze and reset each group on its own; the critic's are one group;
+# * the members' plasticity method (the phase controller of notebook 06, ReDo or
+#   shrink-and-perturb of appendix 06c, or none), and each member's return normaliser;
+# * each member's random streams: a torch generator for the actions and the gate noise, and a
+#   numpy generator for the minibatch permutations.
+#
+# The update, `ppo_update(population, settings, data)`, reads it whole. The training loop adds what
+# does not learn: the environments, the phase clock, the running episodes and the logs. The tests
+# build their populations the same way.
+
+# %%
+#| export
+@dataclasses.dataclass
+class Population:
+    """What learns in a population of R runs, and what the update reads (see `build_population`)."""
+
+    configs: list  # one TrainConfig per member; they share every field but MEMBER_FIELDS
+    singles: list  # per member its (actor, critic) single-run modules: a row's layout, what a checkpoint holds
+    actor: PopulationActor  # every member's actor, parameters in actor.flat (R, P)
+    critic: PopulationCritic  # every member's critic, parameters in critic.flat (R, Q)
+    actor_opt: RunAdamW  # AdamW per member over actor.flat, the parameters in named groups (group_names)
+    critic_opt: RunAdamW  # AdamW per member over critic.flat, one group
+    group_names: list  # the actor's parameter groups in actor_opt's order, e.g. ["router", "experts", ...]
+    plasticity: object  # the members' plasticity method (NoPlasticity, PhaseController, ReDo, ...)
+    norms: ValueNorms  # each member's return normaliser
+    generators: list  # each member's torch generator: actions and gate noise
+    rngs: list  # each member's numpy generator: minibatch permutations
+    device: torch.device  # where the networks, the optimisers and the update live
+
+    @property
+    def config(self) -> TrainConfig:
+        """The settings every member shares (the first member's config)."""
+        return self.configs[0]
+
+    def member(self, r: int) -> tuple:
+        """Member r's (actor, critic) as single-run modules holding its current parameters."""
+        actor, critic = self.singles[r]
+        return self.actor.member(r, actor), self.critic.member(r, critic)
+
+    def frozen_groups(self, sched) -> torch.Tensor | None:
+        """(R, G) True where a member's parameter group takes no step this iteration (a router the
+        phase controller froze), or None when nothing is frozen."""
+        if "router" not in self.group_names or not bool(sched.router_frozen.any()):
+            return None
+        frozen = torch.zeros(len(self.configs), len(self.group_names), dtype=torch.bool, device=self.device)
+        frozen[:, self.group_names.index("router")] = sched.router_frozen.to(self.device)
+        return frozen
+
+
+def build_population(configs: list) -> Population:
+    """The population of `configs` (TrainConfigs that may differ only in MEMBER_FIELDS), every member
+    built from its own config and seed alone, on the device the configs name."""
+    check_population(configs)
+    c0 = configs[0]
+    device = resolve_device(c0.device)
+    singles = [member_networks(c) for c in configs]
+    actor = PopulationActor([a for a, _ in singles]).to(device)
+    critic = PopulationCritic([c for _, c in singles]).to(device)
+    group_of, group_names = group_index(singles[0][0], actor.layout)
+    actor_opt = RunAdamW(actor.flat, group_of, len(group_names), c0.adam_betas, c0.adam_eps, c0.weight_decay)
+    critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
+                          c0.adam_eps, c0.weight_decay)
+    names = {plasticity_name(c) for c in configs}
+    # check_population lets only "none" and "phase_controller" mix; the controller serves both
+    # (a member with the controller off behaves exactly as NoPlasticity)
+    method = plasticity_method(names.pop() if len(names) == 1 else "phase_controller")
+    plasticity = method(configs, actor, critic, actor_opt, critic_opt)
+    generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
+    rngs = [np.random.default_rng(int(c.seed)) for c in configs]
+    return Population(list(configs), singles, actor, critic, actor_opt, critic_opt, group_names, plasticity,
+                      ValueNorms(configs), generators, rngs, device)
 
 # %% [markdown]
 # ## GAE, truncation and termination
@@ -409,11 +492,171 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 # before the rollout at a switch, `begin_iteration(t)` for the settings, `extra_loss(batch)` in
 # every minibatch loss, `after_epoch(expert_counts, stepped)` after each epoch. A method may also
 # keep rollout rows for its next switch (`observe_rollout`) and log columns (`metrics`).
+#
+# **How the code reads.** `ppo_update(population, sched, data)` takes the `Population` above, the
+# iteration's settings and the rollout's data, and has the shape of CleanRL's update loop. Each
+# epoch draws one permutation per member; each minibatch is gathered for every member at once
+# (`_minibatch`), scored (`_minibatch_loss` returns the loss of each member and the statistics it
+# logs), checked against the KL budget (`_KLStop`: a member over it takes no step now, nor later in
+# this update), back-propagated, clipped and stepped (`_gradient_step`), and added to the sums of
+# the logged statistics (`_UpdateStatistics`). The members' losses are summed into one number
+# before `backward`, each weighted by whether its member still steps: a member's gradient depends
+# on its own loss alone, so another member's stop changes none of its bits. The sums stay tensors
+# and are read once, at the end of the update, because every read of a number waits for the
+# device.
 
 # %%
 #| export
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
+
+
+class _Steps(NamedTuple):
+    """The update's data, one entry per environment step, flattened over (member, step) to
+    (R*N, ...): one index_select per tensor then draws a minibatch of every member at once."""
+
+    obs: torch.Tensor  # (R*N, U, obs_dim)
+    actions: torch.Tensor  # (R*N, U, A)
+    logprobs: torch.Tensor  # (R*N, U) behaviour log-probabilities
+    advantages: torch.Tensor  # (R*N,)
+    states: torch.Tensor  # (R*N, S)
+    returns: torch.Tensor  # (R*N,) normalised: the critic's targets
+    values: torch.Tensor  # (R*N,) normalised: the rollout's values (value clipping starts from them)
+    routing: tuple | None  # the rollout's (noise, experts, temperature), leading (R*N, U); None without gates
+
+
+class _Minibatch(NamedTuple):
+    """One minibatch of every member: m environment steps, their m*U agent rows for the actor."""
+
+    obs: torch.Tensor  # (R, m*U, obs_dim)
+    actions: torch.Tensor  # (R, m*U, A)
+    logprobs: torch.Tensor  # (R, m*U)
+    advantages: torch.Tensor  # (R, m)
+    states: torch.Tensor  # (R, m, S)
+    returns: torch.Tensor  # (R, m)
+    values: torch.Tensor  # (R, m)
+    routing: RoutingSample | None  # leading (R, m*U): the rollout's routing, replayed
+
+
+class _Coefficients(NamedTuple):
+    """The iteration's per-member settings on the update's device: clip (R, 1), the others (R,)."""
+
+    clip: torch.Tensor
+    target_kl: torch.Tensor
+    ent_coef: torch.Tensor
+    value_temperature: torch.Tensor
+    lr_actor: torch.Tensor
+    lr_critic: torch.Tensor
+
+
+def _flatten_steps(population: Population, data: dict) -> _Steps:
+    """`data` (see ppo_update) as flattened per-step tensors on the population's device, returns
+    and values normalised by each member's normaliser."""
+    R, N = data["obs"].shape[:2]
+    device, norms = population.device, population.norms
+
+    def flat(x):
+        return x.reshape(R * N, *x.shape[2:])
+
+    route = data["actor_routing"]
+    return _Steps(obs=flat(data["obs"]), actions=flat(data["actions"].to(device)),
+                  logprobs=flat(data["logprobs"].to(device)), advantages=flat(data["advantages"].float().to(device)),
+                  states=flat(data["states"].to(device)), returns=flat(norms.normalize(data["returns"]).float().to(device)),
+                  values=flat(norms.normalize(data["values"]).float().to(device)),
+                  routing=None if route is None else tuple(flat(x) for x in (route.noise, route.experts,
+                                                                              route.temperature)))
+
+
+def _minibatch(steps: _Steps, rows: torch.Tensor, R: int) -> _Minibatch:
+    """The minibatch of the flattened rows `rows` (R*m,) = member * N + step, member by member."""
+
+    def take(x):  # one index_select on the (R*N, ...) view: the numbers of x[member, step], through a cheaper kernel
+        return x.index_select(0, rows).reshape(R, -1, *x.shape[1:])
+
+    def agent_rows(x):  # (R*N, U, ...) -> (R, m*U, ...): the U agent rows of each chosen step
+        return take(x).reshape(R, agent_count, *x.shape[2:])
+
+    agent_count = (rows.numel() // R) * steps.obs.shape[1]
+    routing = None if steps.routing is None else RoutingSample(*(agent_rows(x) for x in steps.routing))
+    return _Minibatch(agent_rows(steps.obs), agent_rows(steps.actions), agent_rows(steps.logprobs),
+                      take(steps.advantages), take(steps.states), take(steps.returns), take(steps.values), routing)
+
+
+def _minibatch_loss(population: Population, coef: _Coefficients, batch: _Minibatch) -> tuple:
+    """PPO's loss on one minibatch, per member (R,), and the statistics it logs ({name: (R,) tensor}:
+    `_UPDATE_STATS` but the gradient norms, and "ratio" (R, m*U) and the chosen "experts")."""
+    actor, critic, config = population.actor, population.critic, population.config
+    R, rows = batch.logprobs.shape
+    steps = batch.advantages.shape[1]
+    new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(batch.obs, batch.actions, batch.routing)
+    logratio = new_logp - batch.logprobs
+    ratio = logratio.exp()
+    # every agent row of a step takes the step's team advantage, normalised over the member's minibatch
+    adv = batch.advantages.unsqueeze(2).expand(R, steps, rows // steps).reshape(R, rows)
+    if config.norm_adv:
+        adv = (adv - adv.mean(1, keepdim=True)) / (adv.std(1, keepdim=True) + 1e-8)
+    pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - coef.clip, 1 + coef.clip)).mean(1)
+
+    v, c_lb, _ = critic(batch.states, coef.value_temperature)
+    if config.clip_vloss:
+        v_clipped = batch.values + torch.clamp(v - batch.values, -coef.clip, coef.clip)
+        v_loss = torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean(1)
+    else:
+        v_loss = ((v - batch.returns) ** 2).mean(1)
+    route, sparse = batch.routing, actor.gated and actor.k < actor.n_experts
+    kl_ref = population.plasticity.extra_loss({
+        "obs": batch.obs, "tau": None if route is None else route.temperature,
+        "noise": None if route is None else route.noise, "experts": chosen if sparse else None,
+        "mean": mean, "log_std": log_std})
+    loss = pg_loss + config.vf_coef * v_loss - coef.ent_coef * entropy + actor.lb_coef * lb + critic.lb_coef * c_lb
+    if kl_ref is not None:
+        loss = loss + kl_ref
+    with torch.no_grad():
+        stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy,
+                 "kl_ref": torch.zeros(R, device=loss.device) if kl_ref is None else kl_ref,  # 0 when none is added
+                 "load_balance": lb, "critic_load_balance": c_lb,
+                 "approx_kl": ((ratio - 1) - logratio).mean(1),  # CleanRL's low-variance estimator
+                 "clip_frac": ((ratio - 1.0).abs() > coef.clip).float().mean(1),
+                 "ratio": ratio, "experts": chosen}
+    return loss, stats
+
+
+class _KLStop:
+    """Each member's early stop at its target KL: once a minibatch's estimate exceeds it, the member
+    takes no step on that minibatch nor on any later one of this update."""
+
+    def __init__(self, target_kl: torch.Tensor):
+        self.target_kl = target_kl
+        self.stopped = torch.zeros(target_kl.shape, dtype=torch.bool, device=target_kl.device)
+        self.epoch = torch.full(target_kl.shape, -1, dtype=torch.long, device=target_kl.device)  # -1: never stopped
+
+    @torch.no_grad()
+    def check(self, approx_kl: torch.Tensor, epoch: int) -> torch.Tensor:
+        """The members that step on this minibatch, (R,) bool."""
+        over = approx_kl > self.target_kl
+        self.epoch = torch.where(over & ~self.stopped, epoch, self.epoch)
+        self.stopped = self.stopped | over
+        return ~self.stopped
+
+
+class _UpdateStatistics:
+    """The update's `_UPDATE_STATS`, summed per member over the minibatches it stepped on. They stay
+    tensors and are read once, at the end: one host sync per update instead of one per minibatch."""
+
+    def __init__(self, R: int, device):
+        self.sums = torch.zeros(len(_UPDATE_STATS), R, dtype=torch.float64, device=device)  # rows in _UPDATE_STATS order
+        self.steps = torch.zeros(R, dtype=torch.long, device=device)  # gradient steps per member
+
+    @torch.no_grad()
+    def add(self, stats: dict, stepping: torch.Tensor) -> None:
+        self.steps += stepping.long()
+        # the ten statistics in one (10, R) accumulation, each element as `sum += value * w`
+        self.sums.add_(torch.stack([stats[name] for name in _UPDATE_STATS]).double() * stepping.to(torch.float64))
+
+    def means(self) -> dict:
+        """{stat: (R,) list} of means over each member's steps (nan for a member that took none)."""
+        means = torch.where(self.steps > 0, self.sums / self.steps.double().clamp(min=1), torch.nan).tolist()
+        return dict(zip(_UPDATE_STATS, means))
 
 
 def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
@@ -424,126 +667,70 @@ def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     return norm
 
 
-def _take_flat(x, flat_idx, R: int):
-    """x (R*N, ...) flattened over (member, step), flat_idx (R*m,) = r*N + step -> (R, m, ...)."""
-    return x.index_select(0, flat_idx).reshape(R, -1, *x.shape[1:])
+def _gradient_step(population: Population, coef: _Coefficients, stepping, frozen, frozen_rows) -> tuple:
+    """Clip each member's actor and critic gradients and step the members in `stepping` (none of a
+    group in `frozen` (R, G), whose entries `frozen_rows` (R, P) get no gradient either). Returns
+    the gradient norms before clipping, (R,) each."""
+    actor, critic, max_norm = population.actor, population.critic, population.config.max_grad_norm
+    with torch.no_grad():
+        if frozen_rows is not None:
+            actor.flat.grad.masked_fill_(frozen_rows, 0.0)
+        norms = _clip_rows(actor.flat.grad, max_norm), _clip_rows(critic.flat.grad, max_norm)
+    population.actor_opt.step(coef.lr_actor, stepping, frozen)
+    population.critic_opt.step(coef.lr_critic, stepping)
+    return norms
 
 
-def ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data: dict, norms: ValueNorms,
-               config, rngs, frozen_groups=None) -> dict:
+def ppo_update(population: Population, sched, data: dict) -> dict:
     """`update_epochs` x `num_minibatches` PPO steps for every member of a population at once.
 
-    data (member axis R, then N = T*B environment steps): obs (R, N, U, obs_dim), actions
-    (R, N, U, A), logprobs (R, N, U), advantages (R, N), returns (R, N), values (R, N)
-    de-normalised, states (R, N, S), actor_routing (leading (R, N, U)) or None.
-    Each member stops at its own target KL (its later minibatches leave it untouched, bit for
-    bit); statistics are summed as tensors and read once, at the end. Returns {stat: (R,) list}.
+    sched: the iteration's Schedules (from the plasticity method's `begin_iteration`); data (member
+    axis R, then N = T*B environment steps): obs (R, N, U, obs_dim), actions (R, N, U, A), logprobs
+    (R, N, U), advantages (R, N), returns (R, N), values (R, N) de-normalised, states (R, N, S),
+    actor_routing (leading (R, N, U)) or None. Each member stops at its own target KL (its later
+    minibatches leave it untouched, bit for bit). Returns {stat: (R,) list}.
     """
-    obs, actions, old_logp = data["obs"], data["actions"], data["logprobs"]
-    R, N, U, obs_dim = obs.shape
-    act_dim = actions.shape[-1]
-    device = actor.flat.device
-    mb = N // config.num_minibatches
-    rows = torch.arange(R, device=device).unsqueeze(1)
-    target = norms.normalize(data["returns"]).float().to(device)
-    old_v = norms.normalize(data["values"]).float().to(device)
-    adv_all = data["advantages"].float().to(device)
-    actions, old_logp, states = actions.to(device), old_logp.to(device), data["states"].to(device)
-    route = data["actor_routing"]
-    per_step = [obs, actions, old_logp, adv_all, states, target, old_v]  # (R, N, ...) each
-    if route is not None:
-        per_step += [route.noise, route.experts, route.temperature]
-    per_step = [x.reshape(R * N, *x.shape[2:]) for x in per_step]
-    offsets = torch.arange(R, device=device).unsqueeze(1) * N
-    clip = sched.clip_coef.to(device).unsqueeze(1)
-    target_kl, ent_coef = sched.target_kl.to(device), sched.ent_coef.to(device)
-    tau_v = sched.value_temperature.to(device)
-    lr_a, lr_c = sched.lr_actor.to(device), sched.lr_critic.to(device)
-    frozen_rows = None
-    if frozen_groups is not None:
-        frozen_rows = frozen_groups.index_select(1, actor_opt.group_of)  # (R, P) True where frozen
-    sums = torch.zeros(len(_UPDATE_STATS), R, dtype=torch.float64, device=device)  # rows in _UPDATE_STATS order
-    no_kl = torch.zeros(R, device=device)  # kl_ref when the plasticity adds none (sums stay 0, as before)
-    steps = torch.zeros(R, dtype=torch.long, device=device)
-    stopped = torch.zeros(R, dtype=torch.bool, device=device)
-    early_stop_epoch = torch.full((R,), -1, dtype=torch.long, device=device)
-    first_ratio_dev = None
-    noised = [0] * R
+    config, actor, plasticity = population.config, population.actor, population.plasticity
+    R, N = data["obs"].shape[:2]
+    device, mb = population.device, N // config.num_minibatches
+    steps = _flatten_steps(population, data)
+    coef = _Coefficients(sched.clip_coef.to(device).unsqueeze(1), sched.target_kl.to(device), sched.ent_coef.to(device),
+                         sched.value_temperature.to(device), sched.lr_actor.to(device), sched.lr_critic.to(device))
+    frozen = population.frozen_groups(sched)
+    frozen_rows = None if frozen is None else frozen.index_select(1, population.actor_opt.group_of)  # (R, P)
+    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl)
+    first_ratio_dev, noised = None, [0] * R
     sparse = actor.gated and actor.k < actor.n_experts
+    offsets = torch.arange(R, device=device).unsqueeze(1) * N  # member r's steps are rows r*N.. of `steps`
     for epoch in range(config.update_epochs):
-        live = (~stopped).tolist()  # one host sync per epoch: stopped members draw no permutation
-        perm = torch.from_numpy(np.stack([rngs[r].permutation(N) if live[r] else np.arange(N) for r in range(R)]))
-        perm = perm.to(device)
-        counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None
+        live = (~kl_stop.stopped).tolist()  # one host sync per epoch: stopped members draw no permutation
+        perm = np.stack([population.rngs[r].permutation(N) if live[r] else np.arange(N) for r in range(R)])
+        flat_perm = torch.from_numpy(perm).to(device) + offsets
+        counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None  # experts chosen by stepped rows
         stepped_epoch = torch.zeros(R, dtype=torch.bool, device=device)
-        flat_perm = perm + offsets  # rows of the (R*N, ...) flattened per-step tensors
         for k in range(config.num_minibatches):
-            # one index_select per tensor on its flattened (R*N, ...) view: the same numbers as
-            # x[rows, idx], through a cheaper kernel (contiguous, cache-warm minibatch copies)
-            fi = flat_perm[:, k * mb:(k + 1) * mb].reshape(-1)
-            o_p, a_p, lp_p, adv_p, st_p, tg_p, ov_p, *r_p = [_take_flat(x, fi, R) for x in per_step]
-            o = o_p.reshape(R, mb * U, obs_dim)
-            a = a_p.reshape(R, mb * U, act_dim)
-            r_sel = None if route is None else RoutingSample(
-                r_p[0].reshape(R, mb * U, -1), r_p[1].reshape(R, mb * U, -1), r_p[2].reshape(R, mb * U))
-            new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(o, a, r_sel)
-            logratio = new_logp - lp_p.reshape(R, mb * U)
-            ratio = logratio.exp()
+            batch = _minibatch(steps, flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R)
+            loss, mb_stats = _minibatch_loss(population, coef, batch)
             with torch.no_grad():
-                approx_kl = ((ratio - 1) - logratio).mean(1)
-                clip_frac = ((ratio - 1.0).abs() > clip).float().mean(1)
-                if first_ratio_dev is None:
-                    first_ratio_dev = (ratio - 1.0).abs().amax(1)
-                over = approx_kl > target_kl
-                early_stop_epoch = torch.where(over & ~stopped, epoch, early_stop_epoch)
-                stopped = stopped | over
-                stepping = ~stopped
-            mb_adv = adv_p.unsqueeze(2).expand(R, mb, U).reshape(R, mb * U)
-            if config.norm_adv:
-                mb_adv = (mb_adv - mb_adv.mean(1, keepdim=True)) / (mb_adv.std(1, keepdim=True) + 1e-8)
-            pg_loss = torch.max(-mb_adv * ratio, -mb_adv * torch.clamp(ratio, 1 - clip, 1 + clip)).mean(1)
-
-            v, c_lb, _ = critic(st_p, tau_v)
-            t_mb = tg_p
-            if config.clip_vloss:
-                ov = ov_p
-                v_clipped = ov + torch.clamp(v - ov, -clip, clip)
-                v_loss = torch.max((v - t_mb) ** 2, (v_clipped - t_mb) ** 2).mean(1)
-            else:
-                v_loss = ((v - t_mb) ** 2).mean(1)
-            kl_ref = plasticity.extra_loss({"obs": o, "tau": None if r_sel is None else r_sel.temperature,
-                                            "noise": None if r_sel is None else r_sel.noise,
-                                            "experts": chosen if sparse else None, "mean": mean, "log_std": log_std})
-            loss = (pg_loss + config.vf_coef * v_loss - ent_coef * entropy
-                    + actor.lb_coef * lb + critic.lb_coef * c_lb)
-            if kl_ref is not None:
-                loss = loss + kl_ref
+                if first_ratio_dev is None:  # 0 up to rounding: the rollout's routing is replayed
+                    first_ratio_dev = (mb_stats["ratio"] - 1.0).abs().amax(1)
+                stepping = kl_stop.check(mb_stats["approx_kl"], epoch)  # checked before the step it would take
             (loss * stepping.to(loss.dtype)).sum().backward()
-            with torch.no_grad():
-                if frozen_rows is not None:
-                    actor.flat.grad.masked_fill_(frozen_rows, 0.0)
-                gn_a = _clip_rows(actor.flat.grad, config.max_grad_norm)
-                gn_c = _clip_rows(critic.flat.grad, config.max_grad_norm)
-            actor_opt.step(lr_a, stepping, frozen_groups)
-            critic_opt.step(lr_c, stepping)
+            mb_stats["grad_norm_actor"], mb_stats["grad_norm_critic"] = _gradient_step(
+                population, coef, stepping, frozen, frozen_rows)
             plasticity.after_minibatch(stepping)
             with torch.no_grad():
-                steps += stepping.long()
+                stats.add(mb_stats, stepping)
                 stepped_epoch |= stepping
-                # the ten statistics in one (10, R) accumulation, each element as `sum += value * w`
-                stat = torch.stack([pg_loss, v_loss, entropy, no_kl if kl_ref is None else kl_ref, lb, c_lb,
-                                    approx_kl, clip_frac, gn_a, gn_c]).double()
-                sums.add_(stat * stepping.to(torch.float64))
                 if counts is not None:
-                    counts += F.one_hot(chosen.reshape(R, -1), actor.n_experts).sum(1).float() * stepping.unsqueeze(1)
+                    chosen = F.one_hot(mb_stats["experts"].reshape(R, -1), actor.n_experts).sum(1).float()
+                    counts += chosen * stepping.unsqueeze(1)
         for r, n in enumerate(plasticity.after_epoch(counts, stepped_epoch)):
             noised[r] += n
-        if bool(stopped.all()):
+        if bool(kl_stop.stopped.all()):
             break
-    n_steps = steps.double().clamp(min=1)
-    means = torch.where(steps > 0, sums / n_steps, torch.nan).tolist()
-    out = dict(zip(_UPDATE_STATS, means))
-    out.update(early_stop_epoch=early_stop_epoch.tolist(), gradient_steps=steps.tolist(),
+    out = stats.means()
+    out.update(early_stop_epoch=kl_stop.epoch.tolist(), gradient_steps=stats.steps.tolist(),
                first_ratio_dev=first_ratio_dev.double().tolist(), noised_experts=noised)
     return out
 
@@ -593,8 +780,13 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
 # %% [markdown]
 # ### `train`
 #
-# The loop below is the whole algorithm; read it top to bottom. `max_iterations` stops a run
-# early with a checkpoint (it simulates an interruption; `train(..., resume=True)` continues it).
+# The loop below is the whole algorithm; read it top to bottom. It builds the population (above),
+# the environments and the phase clock, then runs the five steps of an iteration. What a
+# checkpoint stores beyond the population (the running episodes, the log rows) is `MemberStates`'s
+# (appendix 07d), and what the loop reports after each iteration (the log rows with their
+# diagnostics, the progress bar) is `IterationLogger`'s (appendix 07c), so the loop holds the
+# algorithm and little else. `max_iterations` stops a run early with a checkpoint (it simulates an
+# interruption; `train(..., resume=True)` continues it).
 
 # %%
 #| export
@@ -635,55 +827,23 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
 def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress, deadline=None) -> list:
     """The training loop for members that start at the same iteration (read top to bottom)."""
     wall_start = time.perf_counter()
-    c0, R = configs[0], len(configs)
-    device = resolve_device(c0.device)
+    c0, R, B = configs[0], len(configs), configs[0].num_envs
     # --- construction: every member from its own config and seed ----------------------------------
-    env_cfg = c0.env_config()
-    B = c0.num_envs
-    venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=env_cfg)
-    U = venv.n_agents
-    singles = [_build(c, venv.obs_dim, venv.state_dim) for c in configs]
-    actor = PopulationActor([a for a, _ in singles]).to(device)
-    critic = PopulationCritic([c for _, c in singles]).to(device)
-    group_of, group_names = group_index(singles[0][0], actor.layout)
-    actor_opt = RunAdamW(actor.flat, group_of, len(group_names), c0.adam_betas, c0.adam_eps, c0.weight_decay)
-    critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
-                          c0.adam_eps, c0.weight_decay)
-    router_group = group_names.index("router") if "router" in group_names else None
-    names = {plasticity_name(c) for c in configs}
-    # check_population lets only "none" and "phase_controller" mix; the controller serves both
-    # (a member with the controller off behaves exactly as NoPlasticity)
-    method_cls = plasticity_method(names.pop() if len(names) == 1 else "phase_controller")
-    plasticity = method_cls(configs, actor, critic, actor_opt, critic_opt)
-    norms = ValueNorms(configs)
-    tracker = EpisodeTracker(R * B, members=R)
+    pop = build_population(configs)
+    venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=c0.env_config())
     clock = phase_schedule(c0)
-    probes = [collect_probe(c) for c in configs]
-    generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
-    rngs = [np.random.default_rng(int(c.seed)) for c in configs]  # minibatch permutations
     fixed = c0.fixed_phase is not None  # all members or none (check_population)
     member_phase = [c.fixed_phase for c in configs]
     venv.set_phase(np.repeat(member_phase, B) if fixed else clock.phase_at(0))
     obs, state, _ = venv.reset()
+    members = MemberStates(pop, EpisodeTracker(R * B, members=R), wall_start)  # what a checkpoint adds (07d)
+    tracker = members.tracker
     start, global_step, resumed_from = 0, 0, None
-    metrics_rows, episode_rows, elapsed = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)], [0.0] * R
-    torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
-
-    members = MemberStates(configs, singles, actor, critic, actor_opt, critic_opt, plasticity, norms, tracker,
-                           generators, rngs, metrics_rows, episode_rows, elapsed, torch_threads)  # appendix 07d
     if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
-        start, global_step = members.restore(ckpts, venv, obs, state, device)
+        start, global_step = members.restore(ckpts, venv, obs, state)
         resumed_from = start
-
-    def save(r, iteration, env_state):
-        """Member r's checkpoint and logs; env_state: the whole population's (taken once per checkpoint)."""
-        if run_dirs[r] is not None:
-            members.save(r, run_dirs[r], iteration, global_step, elapsed[r] + time.perf_counter() - wall_start,
-                         env_state, obs, state)
-
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
-    label = c0.method if R == 1 else f"{c0.method} x{R}"
-    bar = _progress_bar(c0.iterations, start, progress, label)
+    log = IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose)  # 07c
     for it in range(start, stop):
         # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
         phase = member_phase if fixed else [int(clock.phase_at(it))] * R
@@ -693,23 +853,20 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         if switch:
             obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
             tracker.discard_running()
-            plasticity.on_switch(it)
-        sched = plasticity.begin_iteration(it)
+            pop.plasticity.on_switch(it)
+        sched = pop.plasticity.begin_iteration(it)
         if c0.anneal_lr:
             frac = 1.0 - it / c0.iterations
             sched = dataclasses.replace(sched, lr_actor=sched.lr_actor * frac, lr_critic=sched.lr_critic * frac)
-        frozen = None
-        if router_group is not None and bool(sched.router_frozen.any()):
-            frozen = torch.zeros(R, len(group_names), dtype=torch.bool, device=device)
-            frozen[:, router_group] = sched.router_frozen.to(device)
 
         # --- 2. rollout of every member's environments -------------------------------------------
         t0 = time.perf_counter()
         noise_std = None  # sigma of fixed or annealed routing noise, per member (a learned scale is the network's)
-        if actor.noise_mode in ("fixed", "annealed"):
-            noise_std = torch.tensor([routing_noise_std(c.net, it, c.iterations) for c in configs], device=device)
+        if pop.actor.noise_mode in ("fixed", "annealed"):
+            noise_std = torch.tensor([routing_noise_std(c.net, it, c.iterations) for c in configs], device=pop.device)
         ro, obs, state, step_stats, new_episodes = collect_rollout(
-            venv, actor, critic, norms, obs, state, c0.rollout_steps, sched, tracker, it, generators, device, noise_std)
+            venv, pop.actor, pop.critic, pop.norms, obs, state, c0.rollout_steps, sched, tracker, it, pop.generators,
+            pop.device, noise_std)
         global_step += c0.batch_env_steps
         rollout_time = time.perf_counter() - t0
 
@@ -718,74 +875,59 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         adv, ret = compute_gae(ro.rewards.transpose(0, 1), ro.values.transpose(0, 1), ro.next_values.transpose(0, 1),
                                ro.dones.transpose(0, 1), c0.gamma, c0.gae_lambda)
         adv, ret = adv.transpose(0, 1).contiguous(), ret.transpose(0, 1).contiguous()  # (R, T, B)
-        norms.update(ret)
-        N = c0.batch_env_steps
+        pop.norms.update(ret)
+        N, U = c0.batch_env_steps, venv.n_agents
         data = {
             "obs": ro.obs.reshape(R, N, U, -1), "actions": ro.actions.reshape(R, N, U, -1),
             "logprobs": ro.logprobs.reshape(R, N, U), "advantages": adv.reshape(R, N), "returns": ret.reshape(R, N),
             "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
-            "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(device),
+            "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(pop.device),
         }
-        plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if the method keeps any
+        pop.plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if the method keeps any
 
         # --- 4. PPO update of every member ------------------------------------------------------
-        upd = ppo_update(actor, critic, actor_opt, critic_opt, plasticity, sched, data, norms, c0, rngs, frozen)
+        upd = ppo_update(pop, sched, data)
         update_time = time.perf_counter() - t0
-        step_stats.update(actor.reroute_readings(data["obs"], data["actor_routing"]))  # {} unless routes are re-chosen
+        step_stats.update(pop.actor.reroute_readings(data["obs"], data["actor_routing"]))  # {} unless routes are re-chosen
 
-        # --- 5. logging, diagnostics and checkpoints, per member ---------------------------------
-        diag = it % c0.diag_every == 0 or switch or it == c0.iterations - 1
+        # --- 5. logging and diagnostics, then checkpoints, per member ----------------------------
+        log.record(it, phase, switch, global_step, sched, ro, ret, step_stats, new_episodes, upd, rollout_time,
+                   update_time)
         out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
-        checkpoint = (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time
-        env_state = venv.state_dict() if checkpoint and any(d is not None for d in run_dirs) else None
-        for r in range(R):
-            row = _iteration_row(configs[r], r, it, phase[r], switch, global_step, sched, group_names, actor, norms,
-                                 step_stats, new_episodes[r], upd, ro, ret, U)
-            own = plasticity.metrics(r)  # the method's own columns (none for most methods)
-            if own.keys() & row.keys():
-                raise ValueError(f"{type(plasticity).__name__}.metrics names trainer columns: {sorted(own.keys() & row.keys())}")
-            row.update(own)
-            t1 = time.perf_counter()
-            if diag:
-                a_r, c_r = actor.member(r, singles[r][0]), critic.member(r, singles[r][1])
-                row.update(plasticity_diagnostics(a_r, c_r, probes[r][0], probes[r][1],
-                                                  sched.members[r].policy_temperature))
-            now = time.perf_counter()
-            row.update(sps=c0.batch_env_steps / max(rollout_time + update_time, 1e-9),
-                       sps_total=global_step / max(elapsed[r] + now - wall_start, 1e-9),
-                       rollout_time=rollout_time, update_time=update_time, diag_time=now - t1,
-                       wall_time=elapsed[r] + now - wall_start, population=R)
-            metrics_rows[r].append(row)
-            episode_rows[r] += new_episodes[r]
-            if checkpoint:
-                save(r, it + 1, env_state)
-        recent = [m[-1]["episode_return"] for m in metrics_rows if np.isfinite(m[-1]["episode_return"])]
-        recent = float(np.mean(recent)) if recent else float("nan")
-        if verbose:
-            shown = phase[0] if len(set(phase)) == 1 else "/".join(map(str, phase))
-            print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {metrics_rows[0][-1]['sps']:7.0f}", flush=True)
-        bar.set_postfix(phase=phase[0] if len(set(phase)) == 1 else "mixed", ret=f"{recent:.1f}", sps=f"{metrics_rows[0][-1]['sps']:.0f}", refresh=False)
-        bar.update(1)
+        if (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time:
+            _save_members(members, run_dirs, venv, it + 1, global_step, obs, state)
         if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
             stop = it + 1
             break
-    bar.close()
-
+    log.close()
     finished = stop == c0.iterations
+    if finished and start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
+        _save_members(members, run_dirs, venv, stop, global_step, obs, state)
+    return _group_results(members, run_dirs, finished, global_step, resumed_from)
+
+
+def _save_members(members, run_dirs, venv, iteration, global_step, obs, state) -> None:
+    """Every member's checkpoint and logs at `iteration`, in its folder (none without one)."""
+    if any(d is not None for d in run_dirs):
+        env_state = venv.state_dict()  # the whole population's, taken once per checkpoint
+        for r, run_dir in enumerate(run_dirs):
+            if run_dir is not None:
+                members.save(r, run_dir, iteration, global_step, env_state, obs, state)
+
+
+def _group_results(members, run_dirs, finished, global_step, resumed_from) -> list:
+    """One RunResult per member; each member that finished gets its done.json."""
+    pop = members.population
     results = []
-    env_state = venv.state_dict() if finished and start >= stop else None
-    for r, config in enumerate(configs):
-        run_dir = run_dirs[r]
+    for r, (config, run_dir) in enumerate(zip(pop.configs, run_dirs)):
         if run_dir is not None and finished:
-            if start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
-                save(r, stop, env_state)
-            final = pd.DataFrame(metrics_rows[r])
-            write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(torch_threads[r]),
-                       wall_time_s=elapsed[r] + time.perf_counter() - wall_start,
+            final = pd.DataFrame(members.metrics_rows[r])
+            write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(members.torch_threads[r]),
+                       wall_time_s=members.seconds(r),
                        final_episode_return=float(final["episode_return"].tail(config.phase_length_iters).mean()))
-        results.append(RunResult(config, pd.DataFrame(metrics_rows[r]), pd.DataFrame(episode_rows[r]),
-                                 actor.member(r, singles[r][0]), critic.member(r, singles[r][1]), run_dir,
-                                 finished=finished, resumed_from=resumed_from))
+        actor, critic = pop.member(r)
+        results.append(RunResult(config, pd.DataFrame(members.metrics_rows[r]), pd.DataFrame(members.episode_rows[r]),
+                                 actor, critic, run_dir, finished=finished, resumed_from=resumed_from))
     return results
 
 

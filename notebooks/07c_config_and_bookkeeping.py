@@ -166,10 +166,6 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _is_int(v):
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-
 def _plain(v):
     if isinstance(v, np.generic):
         return v.item()
@@ -513,13 +509,20 @@ pd.DataFrame(_rows)
 # environments restart and `discard_running` forgets the unfinished episodes. Its state is part of
 # the checkpoint, per member.
 #
-# `_iteration_row` builds one row of `metrics.parquet` from an iteration's pieces: the episodes that
-# ended in it, the step statistics of the rollout, the update's statistics (in `ppo_update`'s order),
-# the explained variance of the critic, the learning rate of every parameter group and the
-# schedule the phase controller handed out, the log-std and the value normaliser's mean and
-# standard deviation, and, for sparse gating, the share of rollout rows routed to each expert. The
-# trainer adds the diagnostics of appendix 06b and the timing columns. `_progress_bar` is the
-# trainer's optional tqdm bar (shown by default only when stderr is a terminal).
+# `IterationLogger` is what the training loop reports after each iteration, so that the loop itself
+# holds no logging code. For each member it builds one row of `metrics.parquet` from the
+# iteration's pieces: the episodes that ended in it, the step statistics of the rollout, the
+# update's statistics (in `ppo_update`'s order), the explained variance of the critic, the learning
+# rate of every parameter group and the schedule the phase controller handed out, the log-std and
+# the value normaliser's mean and standard deviation, and, for sparse gating, the share of rollout
+# rows routed to each expert. Then come the plasticity method's own columns (a method may not
+# reuse a trainer column: that is an error naming them), the diagnostics of appendix 06b on the
+# iterations that take them (every `diag_every`-th, each switch and the last) and the timing
+# columns. The row joins the member's log, and the episodes that ended join its episode log. For
+# the population as a whole it keeps an optional tqdm bar (shown by default only when stderr is a
+# terminal) and, with `verbose`, prints one line per iteration. It reads the trainer's objects
+# (the `Population` of notebook 07, the `MemberStates` of appendix 07d) by their attributes,
+# without importing their modules, which sit above this one.
 
 # %%
 #| export bookkeeping
@@ -528,6 +531,7 @@ import os
 import pickle
 import shutil
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -535,6 +539,7 @@ import pandas as pd
 import torch
 
 from pemamoe.core import atomic_path
+from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.runs import seal_checkpoint
 from pemamoe.train_config import TRAINING_NUMERICS
 
@@ -627,36 +632,100 @@ def explained_variance(pred, target) -> float:
     return float("nan") if var == 0 else float(1 - (target - pred).var(unbiased=False) / var)
 
 
-def _iteration_row(config, r, it, phase, switch, global_step, sched, group_names, actor, norms, step_stats,
-                   episodes, upd, ro, ret, U) -> dict:
-    row = {"iteration": it, "phase": phase, "switch": switch, "env_steps": global_step,
-           "agent_steps": global_step * U}
-    ep = pd.DataFrame(episodes)
-    row["episodes"] = len(ep)
-    for name, col in (("episode_return", "return"), ("episode_length", "length"), ("coverage", "coverage"),
-                      ("served_users", "served_users"), ("uav_using_rate", "uav_using_rate"),
-                      ("energy_rate_kj", "energy_rate_kj"), ("collisions_per_episode", "collisions")):
-        row[name] = float(ep[col].mean()) if len(ep) else float("nan")
-    row.update({k: float(v[r]) for k, v in step_stats.items()})
-    row.update({k: v[r] for k, v in upd.items()})  # ppo_update's statistics, in its order
-    row["explained_variance"] = explained_variance(ro.values[r].reshape(-1), ret[r].reshape(-1))
-    s = sched.members[r]
-    lr_a, lr_c = float(sched.lr_actor[r]), float(sched.lr_critic[r])
-    for name in group_names:
-        row[f"lr/{name}"] = 0.0 if (name == "router" and s.router_frozen) else lr_a
-    row["lr/critic"] = lr_c
-    row.update({"clip_coef": s.clip_coef, "target_kl": float("nan") if s.target_kl is None else s.target_kl,
-                "ent_coef": s.ent_coef, "kl_coef": s.kl_coef,
-                "temperature/policy": s.policy_temperature, "temperature/value": s.value_temperature,
-                "router_frozen": s.router_frozen, "conservative": s.conservative,
-                "noise_epochs_left": s.noise_epochs_left,
-                "log_std_mean": float(actor.params()["log_std"][r].detach().double().mean()),
-                "value_norm/mean": float(norms.norms[r]._mean()), "value_norm/std": float(norms.norms[r].std)})
-    if ro.actor_routing is not None and actor.k < actor.n_experts:
-        counts = torch.bincount(ro.actor_routing.experts[r].reshape(-1).cpu(), minlength=actor.n_experts).double()
-        for j, c in enumerate(counts / counts.sum()):
-            row[f"rollout/expert_frac{j}"] = float(c)
-    return row
+class IterationLogger:
+    """The training loop's report of each iteration: per member one row of `metrics.parquet` and
+    the episodes that ended; for the population the progress bar and, with `verbose`, one line.
+
+    population: the trainer's Population (its configs, networks, plasticity method, normalisers);
+    members: its MemberStates (the log rows it appends to, each member's training seconds); probes:
+    per member the fixed (observations, states) batch of the diagnostics; start: the first iteration.
+    """
+
+    def __init__(self, population, members, probes: list, start: int, progress: bool | None, verbose: bool):
+        self.population, self.members, self.probes, self.verbose = population, members, probes, verbose
+        config, R = population.config, len(population.configs)
+        self.bar = _progress_bar(config.iterations, start, progress, config.method if R == 1 else f"{config.method} x{R}")
+
+    def record(self, it, phases, switch, global_step, sched, rollout, returns, step_stats, episodes, update,
+               rollout_time, update_time) -> None:
+        """Log iteration `it`: phases (one per member), switch, global_step (environment steps so far),
+        sched (the iteration's Schedules), rollout and returns (R, T, B), step_stats ({key: (R,)}),
+        episodes (per member, the finished episodes' rows), update (ppo_update's statistics) and the
+        seconds the rollout and the update took."""
+        pop, members, config = self.population, self.members, self.population.config
+        diagnose = it % config.diag_every == 0 or switch or it == config.iterations - 1
+        for r in range(len(pop.configs)):
+            row = self._row(r, it, phases[r], switch, global_step, sched, rollout, returns, step_stats, episodes[r],
+                            update)
+            own = pop.plasticity.metrics(r)  # the method's own columns (none for most methods)
+            if own.keys() & row.keys():
+                raise ValueError(f"{type(pop.plasticity).__name__}.metrics names trainer columns: "
+                                 f"{sorted(own.keys() & row.keys())}")
+            row.update(own)
+            t1 = time.perf_counter()
+            if diagnose:
+                actor, critic = pop.member(r)
+                row.update(plasticity_diagnostics(actor, critic, self.probes[r][0], self.probes[r][1],
+                                                  sched.members[r].policy_temperature))
+            diag_time, seconds = time.perf_counter() - t1, members.seconds(r)
+            row.update(sps=config.batch_env_steps / max(rollout_time + update_time, 1e-9),
+                       sps_total=global_step / max(seconds, 1e-9), rollout_time=rollout_time,
+                       update_time=update_time, diag_time=diag_time, wall_time=seconds, population=len(pop.configs))
+            members.metrics_rows[r].append(row)
+            members.episode_rows[r] += episodes[r]
+        self._show(it, phases)
+
+    def _row(self, r, it, phase, switch, global_step, sched, rollout, returns, step_stats, episodes, update) -> dict:
+        """Member r's row of the trainer's own columns."""
+        pop = self.population
+        actor, norm = pop.actor, pop.norms.norms[r]
+        agents = rollout.obs.shape[3]  # (R, T, B, U, obs_dim)
+        row = {"iteration": it, "phase": phase, "switch": switch, "env_steps": global_step,
+               "agent_steps": global_step * agents}
+        ep = pd.DataFrame(episodes)
+        row["episodes"] = len(ep)
+        for name, col in (("episode_return", "return"), ("episode_length", "length"), ("coverage", "coverage"),
+                          ("served_users", "served_users"), ("uav_using_rate", "uav_using_rate"),
+                          ("energy_rate_kj", "energy_rate_kj"), ("collisions_per_episode", "collisions")):
+            row[name] = float(ep[col].mean()) if len(ep) else float("nan")
+        row.update({k: float(v[r]) for k, v in step_stats.items()})
+        row.update({k: v[r] for k, v in update.items()})  # ppo_update's statistics, in its order
+        row["explained_variance"] = explained_variance(rollout.values[r].reshape(-1), returns[r].reshape(-1))
+        s = sched.members[r]
+        lr_a, lr_c = float(sched.lr_actor[r]), float(sched.lr_critic[r])
+        for name in pop.group_names:
+            row[f"lr/{name}"] = 0.0 if (name == "router" and s.router_frozen) else lr_a
+        row["lr/critic"] = lr_c
+        row.update({"clip_coef": s.clip_coef, "target_kl": float("nan") if s.target_kl is None else s.target_kl,
+                    "ent_coef": s.ent_coef, "kl_coef": s.kl_coef,
+                    "temperature/policy": s.policy_temperature, "temperature/value": s.value_temperature,
+                    "router_frozen": s.router_frozen, "conservative": s.conservative,
+                    "noise_epochs_left": s.noise_epochs_left,
+                    "log_std_mean": float(actor.params()["log_std"][r].detach().double().mean()),
+                    "value_norm/mean": float(norm._mean()), "value_norm/std": float(norm.std)})
+        if rollout.actor_routing is not None and actor.k < actor.n_experts:
+            counts = torch.bincount(rollout.actor_routing.experts[r].reshape(-1).cpu(),
+                                    minlength=actor.n_experts).double()
+            for j, c in enumerate(counts / counts.sum()):
+                row[f"rollout/expert_frac{j}"] = float(c)
+        return row
+
+    def _show(self, it, phases) -> None:
+        """The progress bar's step and, with verbose, a line: the members' mean return of the episodes
+        that ended in this iteration, and the update speed of member 0."""
+        last = [rows[-1] for rows in self.members.metrics_rows]
+        recent = [row["episode_return"] for row in last if np.isfinite(row["episode_return"])]
+        recent = float(np.mean(recent)) if recent else float("nan")
+        same = len(set(phases)) == 1
+        if self.verbose:
+            shown = phases[0] if same else "/".join(map(str, phases))
+            print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {last[0]['sps']:7.0f}", flush=True)
+        self.bar.set_postfix(phase=phases[0] if same else "mixed", ret=f"{recent:.1f}", sps=f"{last[0]['sps']:.0f}",
+                             refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
@@ -788,10 +857,10 @@ print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {floa
 # budget and random generator), the torch and numpy random states, the environments' complete
 # state including their random streams, the current observations, the running episodes and the
 # log rows so far. Everything is stored as tensors, plain numbers, strings and dicts, so
-# `torch.load(..., weights_only=True)` reads it without unpickling code: `_encode` turns every
-# numpy array of the environment's state into a marked tensor, and `_decode` turns it back. Files
-# are written to a temporary name and renamed, so a killed run leaves the previous complete file,
-# never a torn one.
+# `torch.load(..., weights_only=True)` reads it without unpickling code: `encode_arrays` turns
+# every numpy array of the environment's state into a marked tensor, and `decode_arrays` turns it
+# back. Files are written to a temporary name and renamed, so a killed run leaves the previous
+# complete file, never a torn one.
 #
 # The log rows are the bulk of a late checkpoint (a `medium` run's reach 13,200 metric rows of 112
 # numbers and some 190,000 episode rows), and `torch.save` pickles every one of those millions of
@@ -821,7 +890,7 @@ print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {floa
 # converts all rows at once as before, so a run's final logs are the same bytes however often it
 # was checkpointed or resumed; only the logs of an unfinished run come from pieces.
 #
-# Format 5 keeps format 4's content and adds two safeguards (notebook 07b): `_torch_save_atomic`
+# Format 5 keeps format 4's content and adds two safeguards (notebook 07b): `write_checkpoint`
 # stamps every checkpoint with `CHECKPOINT_FORMAT` and `TRAINING_NUMERICS`, the version of the
 # arithmetic that computed it, which `load_checkpoint` compares with the running code's before a
 # run resumes; and it seals the file with its sha256 before the rename (`seal_checkpoint`), which
@@ -837,43 +906,46 @@ print(f"mean {_norm.mean:.3f}, std {_norm.std:.3f}; normalised first value {floa
 # shared by all environments stays one number; per-environment phases (members in different fixed
 # phases) are sliced and concatenated like the other arrays.
 #
-# `_Determinism` holds torch to deterministic algorithms and a fixed thread count for the length of
-# a run and restores both afterwards; the thread count is recorded, since results with one and two
-# threads differ in the last bits.
+# `DeterministicTorch` holds torch to deterministic algorithms and a fixed thread count for the
+# length of a run and restores both afterwards; the thread count is recorded, since results with
+# one and two threads differ in the last bits. Appendix 07d writes and reads checkpoints with these
+# functions (`write_checkpoint`, `write_rows_parquet`, `encode_arrays`, `decode_arrays`) and runs
+# a population inside `DeterministicTorch`; the helpers they call stay private to this module.
 #
 # Run directory layout:
 #
 # | file | content |
 # |---|---|
 # | `config.json` | the resolved `TrainConfig` (`TrainConfig.from_dict` reads it back) |
-# | `metrics.parquet` | one row per iteration (`_iteration_row`, plus diagnostics and timing) |
+# | `metrics.parquet` | one row per iteration (`IterationLogger`: the trainer's columns, the plasticity method's, diagnostics and timing) |
 # | `episodes.parquet` | one row per finished training episode (`EpisodeTracker`) |
 # | `checkpoint.pt` | the resumable state (above) |
 # | `done.json` | written last: the run finished, sealed with its config hash, iteration count and the logs' sha256; `train` then returns the stored result once it verifies (notebook 07b) |
 # | `.lock` | the writer's lock, holding its PID (notebook 07b) |
 
 # %%
-#| exporti bookkeeping
-def _encode(obj):
+#| export bookkeeping
+def encode_arrays(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
         return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(obj).copy())}
     if isinstance(obj, dict):
-        return {k: _encode(v) for k, v in obj.items()}
+        return {k: encode_arrays(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_encode(v) for v in obj)
+        return type(obj)(encode_arrays(v) for v in obj)
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
 
 
-def _decode(obj):
+def decode_arrays(obj):
+    """The inverse of `encode_arrays`: marked tensors back to numpy arrays (copies)."""
     if isinstance(obj, dict):
         if set(obj) == {"__ndarray__"}:
             return obj["__ndarray__"].numpy().copy()
-        return {k: _decode(v) for k, v in obj.items()}
+        return {k: decode_arrays(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_decode(v) for v in obj)
+        return type(obj)(decode_arrays(v) for v in obj)
     return obj
 
 
@@ -954,7 +1026,7 @@ class RowLog(list):
         return self._frame
 
 
-def _torch_save_atomic(obj, path: Path) -> None:
+def write_checkpoint(obj, path: Path) -> None:
     """Write a checkpoint: `obj` stamped with CHECKPOINT_FORMAT and TRAINING_NUMERICS, saved by
     torch to a temporary file, sealed with its sha256 (pemamoe.runs.seal_checkpoint) and renamed
     onto `path`. A failed write (a full disk, most often) raises OSError naming `path`."""
@@ -982,7 +1054,7 @@ def _free_space(folder: Path) -> str:
         return "unknown"
 
 
-def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:
+def write_rows_parquet(rows, path: Path, final: bool = True) -> None:
     """rows (a list, or a RowLog whose cached tables serve a non-final write) -> a parquet file.
     final: convert every row at once, so that the file does not depend on how it was built."""
     frame = rows.frame() if not final and isinstance(rows, RowLog) else pd.DataFrame(rows)
@@ -996,7 +1068,7 @@ def _write_parquet_atomic(rows, path: Path, final: bool = True) -> None:
 FILL_UNINITIALIZED_MEMORY = False
 
 
-class _Determinism:
+class DeterministicTorch:
     """Single-threaded, deterministic torch for the duration of a run (restored afterwards)."""
 
     def __init__(self, threads: int | None):
@@ -1075,7 +1147,7 @@ _full = _venv.state_dict()
 _parts = [split_env_state(_full, range(0, 2)), split_env_state(_full, range(2, 4))]
 assert _same(merge_env_states(_parts), _full)
 _buf = io.BytesIO()
-torch.save(_encode(_parts[1]), _buf)
+torch.save(encode_arrays(_parts[1]), _buf)
 _buf.seek(0)
-assert _same(_decode(torch.load(_buf, weights_only=True)), _parts[1])
+assert _same(decode_arrays(torch.load(_buf, weights_only=True)), _parts[1])
 print("split -> merge and encode -> save -> load -> decode give back the same state")

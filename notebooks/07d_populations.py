@@ -96,7 +96,7 @@ figures_dir = "paper_figures"
 import dataclasses
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -104,13 +104,13 @@ import pandas as pd
 import torch
 import torch.nn as nn
 
-from pemamoe.bookkeeping import (EpisodeTracker, RowLog, _decode, _Determinism, _encode, _torch_save_atomic,
-                                  _write_parquet_atomic, merge_env_states, split_env_state)
+from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, decode_arrays, encode_arrays,
+                                  merge_env_states, split_env_state, write_checkpoint, write_rows_parquet)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
 from pemamoe.nets import make_actor, make_critic
 from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
                           verify_done)
-from pemamoe.train_config import TrainConfig, _is_int
+from pemamoe.train_config import TrainConfig
 
 # %% [markdown]
 # ## Who may share a population
@@ -176,9 +176,9 @@ def plasticity_name(config: TrainConfig) -> str:
 # `train` returns a `RunResult`: the config, the metrics and episode logs as tables, and the two
 # networks as single-run modules. `load_run` rebuilds the same object from a finished folder
 # (`from_cache=True`): the networks come from the last checkpoint, and the folder counts as
-# finished only when its `done.json` verifies (appendix 07b). `_build` makes one member's actor and
-# critic from its seed alone; the trainer builds every member with it before stacking them into a
-# population.
+# finished only when its `done.json` verifies (appendix 07b). `member_networks` makes one member's
+# actor and critic from its seed alone; the trainer's `build_population` (notebook 07) builds every
+# member with it before stacking them into a population.
 
 # %%
 #| export
@@ -197,11 +197,14 @@ class RunResult:
     from_cache: bool = False  # True when done.json was found and nothing was recomputed
 
 
-def _build(config: TrainConfig, obs_dim: int, state_dim: int):
-    """One member's single-run actor and critic, initialised from its seed alone."""
+def member_networks(config: TrainConfig) -> tuple:
+    """One member's single-run (actor, critic), initialised from its seed alone (the global torch
+    generator is seeded with it first, so nothing drawn before changes them)."""
+    env_cfg = config.env_config()
     torch.manual_seed(config.seed)
     kind = config.method_spec().network
-    return make_actor(kind, obs_dim, 2, config.net), make_critic(kind, state_dim, config.net)
+    return (make_actor(kind, observation_dim(env_cfg), 2, config.net),
+            make_critic(kind, state_dim(env_cfg), config.net))
 
 
 def load_run(run_dir) -> RunResult:
@@ -212,8 +215,7 @@ def load_run(run_dir) -> RunResult:
     done = verify_done(run_dir, config)
     ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations if done else None,
                            resuming=done is None)
-    env_cfg = config.env_config()
-    actor, critic = _build(config, observation_dim(env_cfg), state_dim(env_cfg))
+    actor, critic = member_networks(config)
     actor.load_state_dict(ckpt["actor"])
     critic.load_state_dict(ckpt["critic"])
     return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
@@ -239,9 +241,14 @@ def load_run(run_dir) -> RunResult:
 
 # %%
 #| export
+def _is_int(value) -> bool:
+    """An int or a numpy integer, and not a bool (which Python counts as an int)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 def train_members(configs: list, run_dirs: list | None, resume: bool, train_group, *, max_iterations: int | None,
                   threads: int | None, verbose: bool, progress: bool | None, deadline: float | None) -> list:
-    """`train_population`'s bookkeeping around the training loop `train_group` (mappo's `_train_group`).
+    """`train_population`'s bookkeeping around the training loop `train_group` (the trainer's, notebook 07).
 
     Checks the arguments, reads back finished members, locks and prepares every other member's
     folder, loads its checkpoint, and trains members grouped by the iteration they start from: the
@@ -280,7 +287,7 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
             start = 0 if ckpt is None else int(ckpt["iteration"])
             pending.setdefault(start, []).append((r, ckpt))
         first_start = {r: start for start, members in pending.items() for r, _ in members}
-        with _Determinism(threads):
+        with DeterministicTorch(threads):
             while pending:
                 start = min(pending)
                 members = pending.pop(start)
@@ -310,58 +317,64 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
 # %% [markdown]
 # ## A member's checkpoint, written and read back
 #
-# The training loop keeps its members' state in plain local variables; `MemberStates` bundles the
-# ones a checkpoint stores, so that writing and reading a checkpoint live here rather than in the
-# loop. `save` writes one member's checkpoint (what it holds: appendix 07c), then its
-# `metrics.parquet` and `episodes.parquet`; the last write of a finished run converts every row at
-# once and releases the rows (the logs `done.json` seals). `restore` loads every member's
-# checkpoint back into the population, in the same order of fields, so that the next iteration
-# reads exactly what it would have read without the interruption. The lists are the loop's own:
-# `restore` fills them in place.
+# The training loop holds what learns in one object, the trainer's `Population` (notebook 07:
+# networks, optimisers, plasticity method, return normalisers, random streams). `MemberStates`
+# adds what else a checkpoint stores: the running episodes, each member's log rows, its training
+# seconds before this process and the torch thread counts it ran with. Writing and reading a
+# checkpoint live here rather than in the loop. `save` writes one member's checkpoint (what it
+# holds: appendix 07c), then its `metrics.parquet` and `episodes.parquet`; the last write of a
+# finished run converts every row at once and releases the rows (the logs `done.json` seals).
+# `restore` loads every member's checkpoint back into the population, in the same order of fields,
+# so that the next iteration reads exactly what it would have read without the interruption. The
+# loop reads the log lists from here, and `restore` fills them in place.
 
 # %%
 #| export
 @dataclass
 class MemberStates:
-    """The parts of a population's members that a checkpoint stores (lists: one entry per member)."""
+    """What a checkpoint stores of a population's members besides the `Population` itself (lists:
+    one entry per member)."""
 
-    configs: list
-    singles: list  # (actor, critic) single-run modules per member
-    actor: nn.Module  # the PopulationActor
-    critic: nn.Module  # the PopulationCritic
-    actor_opt: object  # RunAdamW of the actor
-    critic_opt: object  # RunAdamW of the critic
-    plasticity: object  # the population's plasticity method
-    norms: object  # ValueNorms
+    population: object  # the trainer's Population (notebook 07): what learns, and its random streams
     tracker: EpisodeTracker  # running episodes of all R*B environments
-    generators: list  # torch generators (actions, gate noise)
-    rngs: list  # numpy generators (minibatch permutations)
-    metrics_rows: list  # RowLog of metrics rows
-    episode_rows: list  # RowLog of episode rows
-    elapsed: list  # training seconds before this process
-    torch_threads: list  # sets of the torch thread counts used
+    wall_start: float  # time.perf_counter() when this process started training the members
+    metrics_rows: list = field(init=False)  # RowLog of metrics rows
+    episode_rows: list = field(init=False)  # RowLog of episode rows
+    elapsed: list = field(init=False)  # training seconds before this process
+    torch_threads: list = field(init=False)  # sets of the torch thread counts used
 
-    def restore(self, ckpts, venv, obs, state, device) -> tuple:
+    def __post_init__(self):
+        R = len(self.population.configs)
+        self.metrics_rows, self.episode_rows = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)]
+        self.elapsed = [0.0] * R
+        self.torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
+
+    def seconds(self, r: int) -> float:
+        """Member r's training seconds so far: before this process and in it."""
+        return self.elapsed[r] + time.perf_counter() - self.wall_start
+
+    def restore(self, ckpts, venv, obs, state) -> tuple:
         """Load every member's checkpoint (all of one iteration) into the population, the vector
         environment `venv` and the current `obs` and `state` arrays (in place).
         Returns (iteration, global_step) of the checkpoints."""
-        B = self.configs[0].num_envs
+        pop = self.population
+        B = pop.configs[0].num_envs
         env_states = []
         for r, ck in enumerate(ckpts):
             with torch.no_grad():
-                a, c = self.singles[r]
+                a, c = pop.singles[r]
                 a.load_state_dict(ck["actor"]), c.load_state_dict(ck["critic"])
-                self.actor.flat[r] = self.actor.layout.flatten([a])[0].to(device)
-                self.critic.flat[r] = self.critic.layout.flatten([c])[0].to(device)
-            self.actor_opt.load_member_state(r, ck["optimizer"]["actor"])
-            self.critic_opt.load_member_state(r, ck["optimizer"]["critic"])
-            self.plasticity.load_state_dict(r, ck["plasticity"])
-            self.norms.norms[r].load_state_dict(ck["value_norm"])
+                pop.actor.flat[r] = pop.actor.layout.flatten([a])[0].to(pop.device)
+                pop.critic.flat[r] = pop.critic.layout.flatten([c])[0].to(pop.device)
+            pop.actor_opt.load_member_state(r, ck["optimizer"]["actor"])
+            pop.critic_opt.load_member_state(r, ck["optimizer"]["critic"])
+            pop.plasticity.load_state_dict(r, ck["plasticity"])
+            pop.norms.norms[r].load_state_dict(ck["value_norm"])
             self.tracker.load_member_state(r, ck["tracker"])
-            env_states.append(_decode(ck["env"]))
+            env_states.append(decode_arrays(ck["env"]))
             obs[r * B:(r + 1) * B], state[r * B:(r + 1) * B] = ck["obs"].numpy(), ck["state"].numpy()
-            self.generators[r].set_state(ck["torch_rng"])
-            self.rngs[r].bit_generator.state = ck["numpy_rng"]
+            pop.generators[r].set_state(ck["torch_rng"])
+            pop.rngs[r].bit_generator.state = ck["numpy_rng"]
             global_step, self.elapsed[r] = int(ck["global_step"]), float(ck["elapsed"])
             self.metrics_rows[r] = RowLog.from_checkpoint(ck["metrics_rows"])
             self.episode_rows[r] = RowLog.from_checkpoint(ck["episode_rows"])
@@ -370,29 +383,29 @@ class MemberStates:
         venv.load_state_dict(merge_env_states(env_states))
         return start, global_step
 
-    def save(self, r, run_dir, iteration, global_step, elapsed, env_state, obs, state) -> None:
-        """Member r's checkpoint and logs in run_dir. elapsed: its training seconds so far;
-        env_state: the whole population's environment state (taken once per checkpoint); obs, state:
-        the population's current observations and global states."""
-        B = self.configs[r].num_envs
+    def save(self, r, run_dir, iteration, global_step, env_state, obs, state) -> None:
+        """Member r's checkpoint and logs in run_dir. env_state: the whole population's environment
+        state (taken once per checkpoint); obs, state: the population's current observations and
+        global states."""
+        pop = self.population
+        B = pop.configs[r].num_envs
         env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
-        _torch_save_atomic({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
-            "config": self.configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
-            "elapsed": elapsed,
-            "actor": self.actor.member(r, self.singles[r][0]).state_dict(),
-            "critic": self.critic.member(r, self.singles[r][1]).state_dict(),
-            "optimizer": {"actor": self.actor_opt.member_state(r), "critic": self.critic_opt.member_state(r)},
-            "plasticity": self.plasticity.state_dict(r), "value_norm": self.norms.norms[r].state_dict(),
-            "tracker": self.tracker.member_state(r), "env": _encode(env_state),
+        actor, critic = pop.member(r)
+        write_checkpoint({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
+            "config": pop.configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
+            "elapsed": self.seconds(r), "actor": actor.state_dict(), "critic": critic.state_dict(),
+            "optimizer": {"actor": pop.actor_opt.member_state(r), "critic": pop.critic_opt.member_state(r)},
+            "plasticity": pop.plasticity.state_dict(r), "value_norm": pop.norms.norms[r].state_dict(),
+            "tracker": self.tracker.member_state(r), "env": encode_arrays(env_state),
             "obs": torch.from_numpy(obs[r * B:(r + 1) * B].copy()),
             "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
-            "torch_rng": self.generators[r].get_state(), "numpy_rng": self.rngs[r].bit_generator.state,
+            "torch_rng": pop.generators[r].get_state(), "numpy_rng": pop.rngs[r].bit_generator.state,
             "metrics_rows": self.metrics_rows[r].packed(), "episode_rows": self.episode_rows[r].packed(),
             "torch_threads": sorted(self.torch_threads[r]),
         }, run_dir / "checkpoint.pt")
-        final = iteration == self.configs[r].iterations  # the logs done.json seals: every row converted at once
-        _write_parquet_atomic(self.metrics_rows[r], run_dir / "metrics.parquet", final)
-        _write_parquet_atomic(self.episode_rows[r], run_dir / "episodes.parquet", final)
+        final = iteration == pop.configs[r].iterations  # the logs done.json seals: every row converted at once
+        write_rows_parquet(self.metrics_rows[r], run_dir / "metrics.parquet", final)
+        write_rows_parquet(self.episode_rows[r], run_dir / "episodes.parquet", final)
         if final:
             self.metrics_rows[r].release(), self.episode_rows[r].release()
 

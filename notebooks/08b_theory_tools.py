@@ -891,8 +891,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from pemamoe.core import REPO_ROOT, SCALES, atomic_write_json, check_scale
-from pemamoe.records import RecordError, _parquet_bytes, _write_bytes
+from pemamoe.core import REPO_ROOT, SCALES, atomic_write_bytes, atomic_write_json, check_scale
+from pemamoe.records import RecordError, parquet_bytes
 from pemamoe.runs import read_json, read_parquet
 from pemamoe.train_config import TRAINING_NUMERICS
 
@@ -1080,8 +1080,8 @@ def write_theory_record(marker_path, parameters: dict, tables: dict, values: dic
             raise ValueError(f"theory record: table {name!r} must have the default index 0..n-1 (reset_index)")
         if not all(isinstance(c, str) for c in frame.columns):
             raise ValueError(f"theory record: table {name!r} has column names that are not strings")
-        data = _parquet_bytes(frame)
-        _write_bytes(_table_path(path, name), data)
+        data = parquet_bytes(frame)
+        atomic_write_bytes(_table_path(path, name), data)
         seals[name] = {"file": _table_path(path, name).name, "rows": int(len(frame)),
                        "sha256": hashlib.sha256(data).hexdigest()}
     marker = {"format": THEORY_RECORD_FORMAT, "experiment": path.stem, "parameters": _plain(parameters),

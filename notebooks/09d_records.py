@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_json, check_scale
+from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_bytes, atomic_write_json, check_scale
 from pemamoe.runs import read_config, read_json, read_parquet, verify_done
 from pemamoe.train_config import TIMING_COLUMNS, TRAINING_NUMERICS, TrainConfig
 
@@ -140,7 +140,9 @@ def record_files(records_dir, scale: str, run_name: str) -> dict:
             "marker": base / f"{run_name}.json", "timing": base / f"{run_name}.timing.json"}
 
 
-def _parquet_bytes(frame: pd.DataFrame) -> bytes:
+def parquet_bytes(frame: pd.DataFrame) -> bytes:
+    """`frame` as the compact parquet file of a record (zstd, no pandas schema, no column
+    statistics); the theory records of appendix 08b use it too."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -157,11 +159,6 @@ def _actor_frame(state: dict) -> pd.DataFrame:
                                     for t in state.values()]})
 
 
-def _write_bytes(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
 def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
     RecordError when the run is not finished."""
@@ -175,11 +172,11 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     files = record_files(records_dir, scale, name)
     metrics = read_parquet(run_dir / "metrics.parquet")
     block = record_block(config)
-    data = _parquet_bytes(record_frame(metrics, block))
+    data = parquet_bytes(record_frame(metrics, block))
     ckpt = load_checkpoint(run_dir / "checkpoint.pt", config, iteration=config.iterations, resuming=False)
-    actor = _parquet_bytes(_actor_frame(ckpt["actor"]))
-    _write_bytes(files["data"], data)
-    _write_bytes(files["actor"], actor)
+    actor = parquet_bytes(_actor_frame(ckpt["actor"]))
+    atomic_write_bytes(files["data"], data)
+    atomic_write_bytes(files["actor"], actor)
     if not files["timing"].exists():  # a measurement of the training that made the record first
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),

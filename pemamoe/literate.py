@@ -17,12 +17,12 @@ classes, assignments) that do not start with ``_``. Imported names are not publi
 explicit exception, for a main notebook's module that re-exports what its appendix defines::
 
     from pemamoe.train_config import (  # re-export
-        TrainConfig, resolve_device, _plain)
+        TrainConfig, resolve_device, scale_controller as _scale)
 
 A ``# re-export`` comment (alone, or followed by prose: ``# re-export: ...``) on the first line
 of a top-level ``from ... import`` statement in an ``#| export`` cell puts the names that
 statement binds (the ``as`` name where there is one) in ``__all__``, except those starting with
-``_`` (imported, not exported: ``_plain`` above). Every other import stays out of ``__all__``.
+``_`` (imported, not exported: ``_scale`` above). Every other import stays out of ``__all__``.
 The marker anywhere else (another line, ``import x``, ``import *``, an ``#| exporti`` cell) is an
 export error, so a misplaced one never goes unseen.
 

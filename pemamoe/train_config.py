@@ -56,10 +56,6 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _is_int(v):
-    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-
 def _plain(v):
     if isinstance(v, np.generic):
         return v.item()

@@ -18,3 +18,16 @@ def repository_records_untouched():
     yield
     after = _tree(RECORDS)
     assert after == before, f"a test changed {RECORDS}: {sorted(set(after) ^ set(before))[:5]}"
+
+
+@pytest.fixture
+def one_thread():
+    """torch on one thread for the test (restored after): training results with one and two threads
+    differ in the last bits, and the tests compare runs bit for bit. Use it with
+    `pytestmark = pytest.mark.usefixtures("one_thread")` for a whole file."""
+    import torch
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)

@@ -4,7 +4,6 @@ environment, the study's run list and its read-out (plateau, steps to 85 %)."""
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 
 from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach
 from pemamoe.env import EnvConfig, UAVVectorEnv
@@ -14,12 +13,7 @@ from pemamoe.sweep import BUDGET_READINGS, RunSpec, budget_specs, default_readin
 from test_population import _assert_same_run
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def fixed(method="mlp", seed=0, phase=0, **kw):

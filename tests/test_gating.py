@@ -16,12 +16,7 @@ from pemamoe.nets import (CRITIC_GATINGS, ROUTING_NOISES, TOP1_WEIGHTS, MLPCriti
                           make_critic, routing_noise_std, topk_weights)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_top1_weight_values_and_gradients_by_hand():

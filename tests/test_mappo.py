@@ -22,12 +22,7 @@ from pemamoe.mappo import (
 from pemamoe.phase_controller import PhaseController, PhaseControllerConfig
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 RATIO_ROUNDING = 1e-5  # |log-ratio| allowed before the first step: float rounding, never a routing mismatch
@@ -61,10 +56,8 @@ def test_gae_hand_computed_with_truncation_and_termination():
 
 def _population_of_one(cfg):
     venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
-    a, c = mappo._build(cfg, venv.obs_dim, venv.state_dim)
-    actor, critic = mappo.PopulationActor([a]), mappo.PopulationCritic([c])
-    plasticity = mappo.plasticity_method(mappo.plasticity_name(cfg))([cfg], actor, critic, None, None)
-    return venv, actor, critic, plasticity
+    pop = mappo.build_population([cfg])
+    return venv, pop.actor, pop.critic, pop.plasticity
 
 
 def test_rollout_bootstraps_truncation_from_final_state():
@@ -138,6 +131,18 @@ def test_each_method_trains_and_logs(method, tmp_path):
     assert len(eps) > 0 and {"return", "phase", "served_users", "collisions", "env"} <= set(eps.columns)
 
 
+def test_build_population_builds_each_member_from_its_own_seed_alone():
+    cfgs = [ci("smoe").replace(seed=s) for s in (4, 7)]
+    pop = mappo.build_population(cfgs)
+    for r, cfg in enumerate(cfgs):  # member r's row holds exactly the networks its config builds alone
+        for got, alone in zip(pop.member(r), mappo.member_networks(cfg)):
+            assert all(torch.equal(a, b) for a, b in zip(got.state_dict().values(), alone.state_dict().values()))
+    assert pop.config is cfgs[0] and pop.group_names[0] == "router" and len(pop.rngs) == len(pop.generators) == 2
+    assert pop.frozen_groups(pop.plasticity.begin_iteration(0)) is None  # nothing frozen before a switch
+    with pytest.raises(ValueError, match="must share"):
+        mappo.build_population([ci("smoe"), ci("mlp")])
+
+
 def test_first_ratio_is_one_directly():
     # the update's forward pass on a minibatch (other rows, another batch size) replays the
     # rollout's log-probabilities bit for bit, for every member of a population
@@ -145,15 +150,12 @@ def test_first_ratio_is_one_directly():
         cfgs = [ci(method).replace(seed=s) for s in (0, 1)]
         venv = mappo.UAVVectorEnv(seeds=[x for c in cfgs for x in mappo.vector_seeds(c.seed, c.num_envs)],
                                   cfg=cfgs[0].env_config())
-        singles = [mappo._build(c, venv.obs_dim, venv.state_dim) for c in cfgs]
-        actor = mappo.PopulationActor([a for a, _ in singles])
-        critic = mappo.PopulationCritic([c for _, c in singles])
-        plasticity = mappo.plasticity_method(mappo.plasticity_name(cfgs[0]))(cfgs, actor, critic, None, None)
+        pop = mappo.build_population(cfgs)
+        actor = pop.actor
         obs, state, _ = venv.reset()
-        sched = plasticity.begin_iteration(0)
-        ro, *_ = collect_rollout(venv, actor, critic, mappo.ValueNorms(cfgs), obs, state, cfgs[0].rollout_steps,
-                                 sched, EpisodeTracker(venv.num_envs, members=2), 0,
-                                 [torch.Generator().manual_seed(s) for s in (0, 1)])
+        sched = pop.plasticity.begin_iteration(0)
+        ro, *_ = collect_rollout(venv, actor, pop.critic, pop.norms, obs, state, cfgs[0].rollout_steps, sched,
+                                 EpisodeTracker(venv.num_envs, members=2), 0, pop.generators)
         R, N, U = 2, cfgs[0].batch_env_steps, venv.n_agents
         idx = torch.stack([torch.randperm(N)[: N // 2] for _ in range(R)])
         rows = torch.arange(R).unsqueeze(1)
@@ -362,7 +364,7 @@ def test_presets_and_overrides():
 
 def test_evaluate_policy_is_deterministic():
     cfg = ci("smoe")
-    actor, _ = mappo._build(cfg, mappo.observation_dim(cfg.env_config()), mappo.state_dim(cfg.env_config()))
+    actor, _ = mappo.build_population([cfg]).member(0)
     a = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
     b = mappo.evaluate_policy(actor, cfg.env_config(), episodes=3, seed=1, phase=2)
     assert len(a) == 3 and (a["phase"] == 2).all()

@@ -19,12 +19,7 @@ from pemamoe.optim import RunAdamW, group_index
 from pemamoe.phase_controller import PhaseController
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def ci(method="pemamoe", seed=0, **kw):

@@ -149,8 +149,7 @@ def test_switch_times_and_configs():
         TrackingProblemConfig(shift=-1.0)
 
 
-def test_run_tracker_pairing_and_pulses():
-    torch.set_num_threads(1)
+def test_run_tracker_pairing_and_pulses(one_thread):
     prob = TrackingProblem(TrackingProblemConfig(n_phases=3, probe_size=64), seed=0)
     base = dict(iterations=24, n_switches=2, batch=16, epochs=2, noise_epochs=3)
     clean = run_tracker(prob, TrackerConfig(controller="off", **base), seed=5)
