@@ -4,6 +4,7 @@ environment, the study's run list and its read-out (plateau, steps to 85 %)."""
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach
 from pemamoe.env import EnvConfig, UAVVectorEnv
