@@ -19,13 +19,14 @@
 # importable package `pemamoe/`. Nothing in `pemamoe/` is written by hand except the exporter and
 # the command line: the notebooks are the source.
 #
-# **What we found.** At the `medium` scale PE-MAMoE does not reproduce the paper's headline claims
-# and does no better than its own sparse network without the phase controller (notebook 10). Most
-# of that gap comes from the top-1 sparse actor, which learns even a single fixed phase worse than
-# the MLP and the dense MoE because its routing splits states between experts whose actions
-# disagree; the paper's own readings of the actor close two thirds of the gap to the MLP but not
-# the gap to the dense MoE (appendix 05d). Revisited phases are relearned about as well as the
-# first time at this scale (notebook 09), and the paper's own, longer regime is being run.
+# **What we found.** At the `medium` scale PE-MAMoE did not reproduce the paper's headline claims
+# and did no better than its own sparse network without the phase controller (notebook 10). That
+# verdict is on hold: the top-1 sparse actor it rested on, built with three settings of ours,
+# learns even a single fixed phase 0.11 worse than the MLP because its routing splits states
+# between experts whose actions disagree (appendix 05d). Built as the paper describes it (a mean
+# head per expert, no balance loss, the PPO ratio on the current routes) the same actor levels off
+# with the MLP and the dense MoE in every phase (appendix 09b), so the gated methods are being
+# rerun at `medium` that way, every method tuned alike, and the paper's longer regime is being run.
 #
 # ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #
