@@ -17,6 +17,7 @@ Takes about 15 minutes at medium on the 2-core machine.
 
 import argparse
 import filecmp
+import os
 import re
 import shutil
 import subprocess
@@ -45,7 +46,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scale", default="medium", choices=("ci", "small", "medium", "paper"))
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--install", action="store_true", help="copy the regenerated paper_figures/ into this checkout")
+    parser.add_argument("--install", action="store_true", default=os.environ.get("PEMAMOE_INSTALL_FIGURES") == "1",
+                        help="copy the regenerated paper_figures/ into this checkout (also PEMAMOE_INSTALL_FIGURES=1, "
+                             "the way through benchmarks/run.py)")
     args = parser.parse_args()
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="pemamoe-figures-") as tmp:
