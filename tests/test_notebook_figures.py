@@ -28,7 +28,7 @@ LINK_PREFIX = "../paper_figures/"
 # Figures linked before any regeneration has committed them: file -> the notebook that links it,
 # which must also be the notebook that writes it (checked below). Once `make figures` has committed
 # a file, its entry is harmless and can go.
-AWAITING_REGENERATION = {"learning_budget_readings.png": "09b_learning_budget.py"}  # the study under both readings
+AWAITING_REGENERATION: dict[str, str] = {}
 
 IMAGE_LINK = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
 SAVE_FIGURE = re.compile(r"""save_figure\(\s*\w+\s*,\s*(f?)(["'])([^"']+)\2""")
