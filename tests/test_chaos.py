@@ -150,7 +150,7 @@ def test_kills_two_writers_and_corrupt_files(tmp_path):
     with pytest.raises(ValueError, match=rf"{mine.name}: checkpoint.pt holds a run with a different config \(seed"):
         train(SPECS[0].to_config(), mine)
     (mine / "checkpoint.pt").write_bytes((other / "checkpoint.pt").read_bytes()[:1000])
-    with pytest.raises(ValueError, match=rf"{mine.name}: checkpoint.pt cannot be read"):
+    with pytest.raises(ValueError, match=rf"{mine.name}: checkpoint.pt is truncated or damaged"):
         train(SPECS[0].to_config(), mine)
 
     # --- 4. nothing is left running ---------------------------------------------------------------
