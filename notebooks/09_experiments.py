@@ -152,14 +152,20 @@ def fixed_phase_twin(method: str, methods) -> str | None:
                  and method_spec(m).plasticity == "none"), None)
 
 
+def net_reading(net) -> str | None:
+    """The name of the reading of BUDGET_READINGS whose fields the NetConfig `net` has, or None."""
+    return next((name for name, fields in BUDGET_READINGS.items()
+                 if all(getattr(net, key) == value for key, value in fields.items())), None)
+
+
 def default_reading() -> str:
     """The name of the actor reading the NetConfig defaults are: the one every gated run without
     net overrides (the medium sweep's) trains, so the study that serves as their yardstick."""
-    net = TrainConfig().net
-    for name, fields in BUDGET_READINGS.items():
-        if all(getattr(net, key) == value for key, value in fields.items()):
-            return name
-    raise ValueError(f"the NetConfig defaults match none of the study's readings ({', '.join(BUDGET_READINGS)}): {net}")
+    name = net_reading(TrainConfig().net)
+    if name is None:
+        raise ValueError(f"the NetConfig defaults match none of the study's readings ({', '.join(BUDGET_READINGS)}): "
+                         f"{TrainConfig().net}")
+    return name
 
 
 def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None,

@@ -258,6 +258,11 @@ def study_plateaus(study_records, scale: str, settings: str = "small") -> pd.Dat
 
 
 
+def run_plateau(run: pd.DataFrame, column: str = "coverage", tail: float = PLATEAU_TAIL) -> float:
+    """One run's plateau: the mean of `column` over the rows in the last `tail` of its steps."""
+    return float(run.loc[run.env_steps > (1 - tail) * run.env_steps.max(), column].mean())
+
+
 def tuning_table(metrics: pd.DataFrame, grid: dict, tail: float = PLATEAU_TAIL) -> pd.DataFrame:
     """The tuning grid's table: per method x learning rate x entropy setting (grid: run name ->
     (lr, ent_start, ent_end)), each run's plateau (mean coverage over the last `tail` of its steps)
@@ -265,11 +270,9 @@ def tuning_table(metrics: pd.DataFrame, grid: dict, tail: float = PLATEAU_TAIL) 
     `best` marks each method's setting with the highest mean (ties: the first in grid order)."""
     rows = []
     for run, group in metrics.groupby("run", sort=False):
-        last = group.env_steps.max()
         rows.append({"run": run, "method": group.method.iloc[0], "seed": int(group.seed.iloc[0]),
                      "lr": grid[run][0], "ent_start": grid[run][1], "ent_end": grid[run][2],
-                     "plateau": float(group.loc[group.env_steps > (1 - tail) * last, "coverage"].mean()),
-                     "hours": float(group.member_seconds.sum()) / 3600})
+                     "plateau": run_plateau(group, tail=tail), "hours": float(group.member_seconds.sum()) / 3600})
     runs = pd.DataFrame(rows)
     table = (runs.groupby(["method", "lr", "ent_start", "ent_end"], sort=False)
              .agg(plateau=("plateau", "mean"), spread=("plateau", "std"), seeds=("seed", "nunique"),
@@ -288,9 +291,8 @@ def reading_gaps(curves: pd.DataFrame, baseline: str = "mlp", column: str = "cov
     column naming each run's actor reading."""
     rows = []
     for (phase, method, reading, seed), run in curves.groupby(["phase", "method", "reading", "seed"], sort=False):
-        last = run.env_steps.max()
         rows.append({"phase": int(phase), "method": method, "reading": reading, "seed": int(seed),
-                     "plateau": float(run.loc[run.env_steps > (1 - tail) * last, column].mean())})
+                     "plateau": run_plateau(run, column, tail)})
     runs = pd.DataFrame(rows)
     table = (runs.groupby(["phase", "method", "reading"], sort=False).plateau
              .agg(plateau="mean", lowest="min", highest="max", seeds="count").reset_index())
@@ -317,14 +319,14 @@ from pemamoe.analysis import REFERENCE_POLICIES, method_order, reference_levels
 from pemamoe.core import save_figure, write_table
 from pemamoe.mappo import METHODS, TrainConfig
 from pemamoe.methods import method_colour, method_label, method_spec
-from pemamoe.sweep import budget_specs, sweep_records
+from pemamoe.sweep import budget_specs, net_reading, sweep_records
 
 specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)  # both actor readings
 records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
-# Each run's actor reading, from its spec's tag ("budget/<update>/<reading>"; ours has no suffix);
-# MLP has no router and reads "none". Until the section on readings, the study is ours alone.
-reading_of = {Path(record).stem: spec.tag.split("/")[2] if spec.tag.count("/") == 2 else
-              "none" if method_spec(spec.method).network == "mlp" else "ours" for spec, record in zip(specs, records)}
+# Each run's actor reading, from its network's settings (MLP has no router: "none"). Until the
+# section on readings, the study is ours alone.
+reading_of = {Path(record).stem: "none" if method_spec(spec.method).network == "mlp"
+              else net_reading(spec.to_config().net) for spec, record in zip(specs, records)}
 all_metrics = load_budget(records)
 metrics = all_metrics[all_metrics.run.map(reading_of) != "paper"].reset_index(drop=True)
 curves = budget_curves(metrics, block_steps=block_steps(scale))
