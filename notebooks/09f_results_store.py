@@ -206,7 +206,7 @@ class ResultsStore:
         if not isinstance(uri, (str, os.PathLike)) or str(uri).strip() == "":
             raise ValueError(f"results store must be a folder path or a URL such as s3://bucket/prefix, got {uri!r}")
         text = os.fspath(uri)
-        protocol = text.split("://", 1)[0].lower() if "://" in text else "file"
+        self.protocol = protocol = text.split("://", 1)[0].lower() if "://" in text else "file"
         if protocol in ("file", "local"):
             self.remote, self.fs = False, None
             self.folder = Path(text.split("://", 1)[1] if "://" in text else text)
@@ -316,7 +316,7 @@ def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
     if not store.remote:
         return None
     names = {cls.__name__ for cls in type(err).__mro__}
-    protocol = store.uri.split("://", 1)[0].lower()
+    protocol = store.protocol
     text = one_line(err) or type(err).__name__
     if names & {"NoCredentialsError", "PartialCredentialsError", "CredentialRetrievalError", "NoAuthTokenError"}:
         hint = ("set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, or AWS_PROFILE" if protocol in ("s3", "s3a")
@@ -343,12 +343,12 @@ def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
 #| exporti
 def _bucket(store) -> "str | None":
     """The bucket of a remote store whose protocol has buckets, else None."""
-    protocol = store.uri.split("://", 1)[0].lower()
+    protocol = store.protocol
     return store.root.split("/", 1)[0] if protocol in BUCKET_PROTOCOLS and store.root else None
 
 
 def _no_bucket(store, bucket: str) -> StoreAccessError:
-    protocol = store.uri.split("://", 1)[0].lower()
+    protocol = store.protocol
     return StoreAccessError(store.uri, f"bucket {bucket!r} does not exist; create it (e.g. `aws s3 mb "
                                        f"{protocol}://{bucket}`) or name an existing bucket")
 
