@@ -584,6 +584,131 @@ def _kernel_manager_config():
 
 
 # %% [markdown]
+# ## Progress in a terminal and in a log
+#
+# Training and sweeps report progress on stderr. In a terminal that knows its width the report is
+# a tqdm bar redrawn in place. Where redrawing has no meaning (a CI log, a file, an IDE console
+# that reports a width of 0 columns, in which tqdm would draw nothing) the same counts come as
+# plain lines: one at the start, then at most one every `every` seconds, and one at the end. When a
+# run is interrupted the bar is cleared rather than left behind, so the interrupt message is the
+# last thing on the screen. `progress=None` means "only if stderr is a terminal".
+
+# %%
+#| export
+class Progress:
+    """Progress of `total` steps on stderr, starting at `initial`: a tqdm bar in a sized terminal,
+    plain lines elsewhere (see above). enabled: True, False or None (only when stderr is a
+    terminal). Use as a context manager, or call `close(clear=...)` yourself."""
+
+    def __init__(self, total: int, initial: int = 0, *, label: str, unit: str = "it", enabled: bool | None = None,
+                 every: float = 30.0, stream=None):
+        import time
+
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = _is_terminal(self.stream) if enabled is None else bool(enabled)
+        self.total, self.n, self.label, self.unit, self.every = total, initial, label, unit, every
+        self.postfix, self._clock, self._bar = {}, time.monotonic, None
+        self._start = self._last = self._clock()
+        self._initial, self._reported = initial, None  # the count of the last plain line
+        if self.enabled and _terminal_columns(self.stream) > 0:
+            from tqdm.auto import tqdm
+
+            self._bar = tqdm(total=total, initial=initial, desc=label, unit=unit, dynamic_ncols=True, leave=True,
+                             file=self.stream)
+        elif self.enabled:
+            self._line()
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if self._bar is not None:
+            self._bar.update(n)
+        elif self.enabled and self._clock() - self._last >= self.every:
+            self._line()
+
+    def set_postfix(self, **values) -> None:
+        """Values shown after the counts (refreshed with the next update)."""
+        self.postfix = values
+        if self._bar is not None:
+            self._bar.set_postfix(refresh=False, **values)
+
+    def write(self, message: str) -> None:
+        """A line of text that does not break the bar."""
+        if self._bar is not None:
+            self._bar.write(message, file=self.stream)
+        else:
+            print(message, file=self.stream, flush=True)
+
+    def close(self, clear: bool = False) -> None:
+        """Stop reporting: the bar (or a last plain line) stays, unless `clear` (an interruption)."""
+        if self._bar is not None:
+            self._bar.leave = not clear
+            self._bar.close()
+            self._bar = None
+        elif self.enabled and not clear and self.n != self._reported:
+            self._line()
+        self.enabled = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        self.close(clear=kind is not None)
+
+    def _line(self) -> None:
+        from tqdm import tqdm
+
+        elapsed = self._clock() - self._start
+        rate = (self.n - self._initial) / elapsed if elapsed > 0 else None
+        post = ", ".join(f"{k}={v}" for k, v in self.postfix.items())
+        text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.label, unit=self.unit, rate=rate,
+                                 postfix=post or None,
+                                 bar_format="{desc}: {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}, {rate_fmt}{postfix}]")
+        print(text, file=self.stream, flush=True)
+        self._last, self._reported = self._clock(), self.n
+
+
+# %%
+#| exporti
+def _is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # a closed or replaced stream
+        return False
+
+
+def _terminal_columns(stream) -> int:
+    """The width of the terminal behind `stream`; 0 when it is none or does not say."""
+    if not _is_terminal(stream):
+        return 0
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (OSError, ValueError, AttributeError):
+        return 0
+
+
+# %% [markdown]
+# A log, as CI sees it: a start line, a line every `every` seconds (here 0, so each step), the end.
+
+# %%
+import io
+
+_log = io.StringIO()
+with Progress(3, label="demo", unit="run", enabled=True, every=0.0, stream=_log) as _p:
+    for _ in range(3):
+        _p.set_postfix(phase=0)
+        _p.update()
+print(_log.getvalue())
+assert _log.getvalue().count("\n") == 4 and "3/3 run" in _log.getvalue()
+_log = io.StringIO()
+try:
+    with Progress(3, label="demo", enabled=True, every=60.0, stream=_log) as _p:
+        _p.update()
+        raise KeyboardInterrupt
+except KeyboardInterrupt:
+    pass
+assert _log.getvalue().count("\n") == 1  # the start line only: nothing re-printed after the interrupt
+
+# %% [markdown]
 # ## Regenerating every figure
 #
 # `make figures` runs the notebooks in paper order (`figure_notebooks`) with the same runner,

@@ -519,8 +519,9 @@ pd.DataFrame(_rows)
 # reuse a trainer column: that is an error naming them), the diagnostics of appendix 06b on the
 # iterations that take them (every `diag_every`-th, each switch and the last) and the timing
 # columns. The row joins the member's log, and the episodes that ended join its episode log. For
-# the population as a whole it keeps an optional tqdm bar (shown by default only when stderr is a
-# terminal) and, with `verbose`, prints one line per iteration. It reads the trainer's objects
+# the population as a whole it keeps a `Progress` report (appendix 00b: a bar in a terminal, plain
+# lines in a log, cleared when the run is interrupted) and, with `verbose`, prints one line per
+# iteration. It reads the trainer's objects
 # (the `Population` of notebook 07, the `MemberStates` of appendix 07d) by their attributes,
 # without importing their modules, which sit above this one.
 
@@ -530,7 +531,6 @@ import io
 import os
 import pickle
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -538,7 +538,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pemamoe.core import atomic_path
+from pemamoe.core import Progress, atomic_path
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.runs import seal_checkpoint
 from pemamoe.train_config import TRAINING_NUMERICS
@@ -644,7 +644,8 @@ class IterationLogger:
     def __init__(self, population, members, probes: list, start: int, progress: bool | None, verbose: bool):
         self.population, self.members, self.probes, self.verbose = population, members, probes, verbose
         config, R = population.config, len(population.configs)
-        self.bar = _progress_bar(config.iterations, start, progress, config.method if R == 1 else f"{config.method} x{R}")
+        self.bar = Progress(config.iterations, start, label=config.method if R == 1 else f"{config.method} x{R}",
+                            enabled=progress)
 
     def record(self, it, phases, switch, global_step, sched, rollout, returns, step_stats, episodes, update,
                rollout_time, update_time) -> None:
@@ -720,21 +721,14 @@ class IterationLogger:
         if self.verbose:
             shown = phases[0] if same else "/".join(map(str, phases))
             print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {last[0]['sps']:7.0f}", flush=True)
-        self.bar.set_postfix(phase=phases[0] if same else "mixed", ret=f"{recent:.1f}", sps=f"{last[0]['sps']:.0f}",
-                             refresh=False)
+        self.bar.set_postfix(phase=phases[0] if same else "mixed", ret=f"{recent:.1f}", sps=f"{last[0]['sps']:.0f}")
         self.bar.update(1)
 
-    def close(self) -> None:
-        self.bar.close()
+    def __enter__(self):
+        return self
 
-
-def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
-    from tqdm.auto import tqdm
-
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    return tqdm(total=total, initial=initial, disable=not enabled, desc=label, unit="it", dynamic_ncols=True,
-                leave=True)
+    def __exit__(self, kind, error, trace) -> None:
+        self.bar.close(clear=kind is not None)  # an interrupted run leaves no stale bar under its message
 
 # %% [markdown]
 # Two environments of two members, a few random steps: each member's episodes are numbered from 0

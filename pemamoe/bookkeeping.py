@@ -3,12 +3,11 @@
 
 __all__ = ['CHECKPOINT_FORMAT', 'EpisodeTracker', 'explained_variance', 'IterationLogger', 'RunningNorm', 'ValueNorms', 'encode_arrays', 'decode_arrays', 'RowLog', 'write_checkpoint', 'write_rows_parquet', 'FILL_UNINITIALIZED_MEMORY', 'DeterministicTorch', 'split_env_state', 'merge_env_states']
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 527)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 528)
 import io
 import os
 import pickle
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pemamoe.core import atomic_path
+from pemamoe.core import Progress, atomic_path
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.runs import seal_checkpoint
 from pemamoe.train_config import TRAINING_NUMERICS
@@ -122,7 +121,8 @@ class IterationLogger:
     def __init__(self, population, members, probes: list, start: int, progress: bool | None, verbose: bool):
         self.population, self.members, self.probes, self.verbose = population, members, probes, verbose
         config, R = population.config, len(population.configs)
-        self.bar = _progress_bar(config.iterations, start, progress, config.method if R == 1 else f"{config.method} x{R}")
+        self.bar = Progress(config.iterations, start, label=config.method if R == 1 else f"{config.method} x{R}",
+                            enabled=progress)
 
     def record(self, it, phases, switch, global_step, sched, rollout, returns, step_stats, episodes, update,
                rollout_time, update_time) -> None:
@@ -198,24 +198,17 @@ class IterationLogger:
         if self.verbose:
             shown = phases[0] if same else "/".join(map(str, phases))
             print(f"it {it:5d} phase {shown} return {recent:9.2f} sps/member {last[0]['sps']:7.0f}", flush=True)
-        self.bar.set_postfix(phase=phases[0] if same else "mixed", ret=f"{recent:.1f}", sps=f"{last[0]['sps']:.0f}",
-                             refresh=False)
+        self.bar.set_postfix(phase=phases[0] if same else "mixed", ret=f"{recent:.1f}", sps=f"{last[0]['sps']:.0f}")
         self.bar.update(1)
 
-    def close(self) -> None:
-        self.bar.close()
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        self.bar.close(clear=kind is not None)  # an interrupted run leaves no stale bar under its message
 
 
-def _progress_bar(total: int, initial: int, enabled: bool | None, label: str):
-    from tqdm.auto import tqdm
-
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    return tqdm(total=total, initial=initial, disable=not enabled, desc=label, unit="it", dynamic_ncols=True,
-                leave=True)
-
-
-# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 772)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 766)
 import math
 
 
@@ -283,7 +276,7 @@ class ValueNorms:
             n.update(returns[r])
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 926)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 920)
 def encode_arrays(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -451,7 +444,7 @@ class DeterministicTorch:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1094)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1088)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

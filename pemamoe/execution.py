@@ -20,7 +20,7 @@ import multiprocessing as mp
 import numpy as np
 
 from pemamoe.core import BACKENDS, DEFAULT_POPULATION  # re-export: in core, for the command line's options (00b)
-from pemamoe.core import REPO_ROOT, atomic_write_json, check_scale, one_line
+from pemamoe.core import REPO_ROOT, Progress, atomic_write_json, check_scale, one_line
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -171,7 +171,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     too: check them with pemamoe.runs.verify_done, or call pending_runs.
 
     A run counts as done only when its done.json (or record) verifies (a corrupt or foreign one
-    raises). progress: a tqdm bar of runs done out of all (cached ones counted), with an ETA;
+    raises). progress: a `Progress` of runs done out of all (cached ones counted), with an ETA;
     None: only when stderr is a terminal. SIGINT or SIGTERM kill the running runs, start no
     queued one and raise SweepInterrupted (rerun to resume)."""
     if backend not in BACKENDS:
@@ -386,23 +386,15 @@ def _stop_on_signals():
 
 @contextmanager
 def _progress(total: int, cached: int, progress, verbose: bool):
-    """Yield report(spec): one more run done (a tqdm bar, and a line when verbose)."""
-    from tqdm.auto import tqdm
+    """Yield report(spec): one more run done (a `Progress` of runs, and a line when verbose)."""
+    with Progress(total, cached, label="sweep", unit="run", enabled=progress) as bar:
+        def report(spec):
+            bar.update(1)
+            if verbose:
+                (bar.write if bar.enabled else print)(f"[sweep] done: {spec.label()}")
+                sys.stdout.flush()
 
-    if progress is None:
-        progress = sys.stderr.isatty()
-    bar = tqdm(total=total, initial=cached, desc="sweep", unit="run", disable=not progress, dynamic_ncols=True)
-
-    def report(spec):
-        bar.update(1)
-        if verbose:
-            (bar.write if progress else print)(f"[sweep] done: {spec.label()}")
-            sys.stdout.flush()
-
-    try:
         yield report
-    finally:
-        bar.close()
 
 
 def _finish(errors: list) -> None:
@@ -534,7 +526,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_execution.py, cell 17 (line 698)
+# %% notebooks/09c_sweep_execution.py, cell 17 (line 690)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 

@@ -536,63 +536,64 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         start, global_step = members.restore(ckpts, venv, obs, state)
         resumed_from = start
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
-    log = IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose)  # 07c
-    for it in range(start, stop):
-        # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
-        phase = member_phase if fixed else [int(clock.phase_at(it))] * R
-        switch = False if fixed else bool(clock.is_switch(it))
-        if not fixed:
-            venv.set_phase(phase[0])
-        if switch:
-            obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
-            tracker.discard_running()
-            pop.plasticity.on_switch(it)
-        sched = pop.plasticity.begin_iteration(it)
-        if c0.anneal_lr:
-            frac = 1.0 - it / c0.iterations
-            sched = dataclasses.replace(sched, lr_actor=sched.lr_actor * frac, lr_critic=sched.lr_critic * frac)
+    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07c
+        for it in range(start, stop):
+            # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
+            phase = member_phase if fixed else [int(clock.phase_at(it))] * R
+            switch = False if fixed else bool(clock.is_switch(it))
+            if not fixed:
+                venv.set_phase(phase[0])
+            if switch:
+                obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
+                tracker.discard_running()
+                pop.plasticity.on_switch(it)
+            sched = pop.plasticity.begin_iteration(it)
+            if c0.anneal_lr:
+                frac = 1.0 - it / c0.iterations
+                sched = dataclasses.replace(sched, lr_actor=sched.lr_actor * frac, lr_critic=sched.lr_critic * frac)
 
-        # --- 2. rollout of every member's environments -------------------------------------------
-        t0 = time.perf_counter()
-        noise_std = None  # sigma of fixed or annealed routing noise, per member (a learned scale is the network's)
-        if pop.actor.noise_mode in ("fixed", "annealed"):
-            noise_std = torch.tensor([routing_noise_std(c.net, it, c.iterations) for c in configs], device=pop.device)
-        ro, obs, state, step_stats, new_episodes = collect_rollout(
-            venv, pop.actor, pop.critic, pop.norms, obs, state, c0.rollout_steps, sched, tracker, it, pop.generators,
-            pop.device, noise_std)
-        global_step += c0.batch_env_steps
-        rollout_time = time.perf_counter() - t0
+            # --- 2. rollout of every member's environments -------------------------------------------
+            t0 = time.perf_counter()
+            noise_std = None  # sigma of fixed or annealed routing noise, per member (a learned scale is the network's)
+            if pop.actor.noise_mode in ("fixed", "annealed"):
+                noise_std = torch.tensor([routing_noise_std(c.net, it, c.iterations) for c in configs],
+                                         device=pop.device)
+            ro, obs, state, step_stats, new_episodes = collect_rollout(
+                venv, pop.actor, pop.critic, pop.norms, obs, state, c0.rollout_steps, sched, tracker, it,
+                pop.generators, pop.device, noise_std)
+            global_step += c0.batch_env_steps
+            rollout_time = time.perf_counter() - t0
 
-        # --- 3. advantages (GAE) per member and return normalisers --------------------------------
-        t0 = time.perf_counter()
-        adv, ret = compute_gae(ro.rewards.transpose(0, 1), ro.values.transpose(0, 1), ro.next_values.transpose(0, 1),
-                               ro.dones.transpose(0, 1), c0.gamma, c0.gae_lambda)
-        adv, ret = adv.transpose(0, 1).contiguous(), ret.transpose(0, 1).contiguous()  # (R, T, B)
-        pop.norms.update(ret)
-        N, U = c0.batch_env_steps, venv.n_agents
-        data = {
-            "obs": ro.obs.reshape(R, N, U, -1), "actions": ro.actions.reshape(R, N, U, -1),
-            "logprobs": ro.logprobs.reshape(R, N, U), "advantages": adv.reshape(R, N), "returns": ret.reshape(R, N),
-            "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
-            "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(pop.device),
-        }
-        pop.plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if the method keeps any
+            # --- 3. advantages (GAE) per member and return normalisers --------------------------------
+            t0 = time.perf_counter()
+            adv, ret = compute_gae(ro.rewards.transpose(0, 1), ro.values.transpose(0, 1),
+                                   ro.next_values.transpose(0, 1), ro.dones.transpose(0, 1), c0.gamma, c0.gae_lambda)
+            adv, ret = adv.transpose(0, 1).contiguous(), ret.transpose(0, 1).contiguous()  # (R, T, B)
+            pop.norms.update(ret)
+            N, U = c0.batch_env_steps, venv.n_agents
+            data = {
+                "obs": ro.obs.reshape(R, N, U, -1), "actions": ro.actions.reshape(R, N, U, -1),
+                "logprobs": ro.logprobs.reshape(R, N, U), "advantages": adv.reshape(R, N), "returns": ret.reshape(R, N),
+                "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
+                "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(pop.device),
+            }
+            pop.plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if it keeps any
 
-        # --- 4. PPO update of every member ------------------------------------------------------
-        upd = ppo_update(pop, sched, data)
-        update_time = time.perf_counter() - t0
-        step_stats.update(pop.actor.reroute_readings(data["obs"], data["actor_routing"]))  # {} unless routes are re-chosen
+            # --- 4. PPO update of every member ------------------------------------------------------
+            upd = ppo_update(pop, sched, data)
+            update_time = time.perf_counter() - t0
+            # {} unless the update re-chooses routes:
+            step_stats.update(pop.actor.reroute_readings(data["obs"], data["actor_routing"]))
 
-        # --- 5. logging and diagnostics, then checkpoints, per member ----------------------------
-        log.record(it, phase, switch, global_step, sched, ro, ret, step_stats, new_episodes, upd, rollout_time,
-                   update_time)
-        out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
-        if (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time:
-            _save_members(members, run_dirs, venv, it + 1, global_step, obs, state)
-        if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
-            stop = it + 1
-            break
-    log.close()
+            # --- 5. logging and diagnostics, then checkpoints, per member ----------------------------
+            log.record(it, phase, switch, global_step, sched, ro, ret, step_stats, new_episodes, upd, rollout_time,
+                       update_time)
+            out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
+            if (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time:
+                _save_members(members, run_dirs, venv, it + 1, global_step, obs, state)
+            if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
+                stop = it + 1
+                break
     finished = stop == c0.iterations
     if finished and start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
         _save_members(members, run_dirs, venv, stop, global_step, obs, state)
