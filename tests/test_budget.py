@@ -242,9 +242,35 @@ def test_tuning_table_reads_each_runs_last_tenth_and_marks_each_methods_best_set
         for x in steps:  # the level only in the last block: the plateau reads the last tenth alone
             rows.append({"run": run, "method": method, "seed": seed, "env_steps": x,
                          "coverage": level if x == 1000 else 0.0, "member_seconds": 36.0})
-    table = tuning_table(pd.DataFrame(rows), grid).set_index(["method", "lr"])
+    table = tuning_table(pd.DataFrame(rows), grid, centre=(1e-4, 0.01, 0.003)).set_index(["method", "lr"])
     assert table.loc[("mlp", 1e-4), "plateau"] == pytest.approx(0.6)
     assert table.loc[("mlp", 1e-4), "spread"] == pytest.approx(np.std([0.5, 0.7], ddof=1))
     assert table.loc[("mlp", 3e-4), "best"] and not table.loc[("mlp", 1e-4), "best"]  # 0.65 > 0.6
     assert table.loc[("smoe", 1e-4), "best"] and table.loc[("smoe", 1e-4), "seeds"] == 1
     assert table.loc[("mlp", 1e-4), "member_hours"] == pytest.approx(2 * 10 * 36 / 3600)
+    # 0.65 vs the centre's 0.6 +- 0.141 (2 seeds): a lead of 0.05 < 2 x 0.1 standard errors, the centre stays
+    assert table.loc[("mlp", 1e-4), "chosen"] and not table.loc[("mlp", 3e-4), "chosen"]
+    assert table.loc[("smoe", 1e-4), "chosen"]  # its best is its centre
+
+
+def test_tuning_moves_off_the_centre_only_when_the_lead_exceeds_the_seed_noise():
+    from pemamoe.budget import TUNING_MARGIN, tuning_table
+
+    def table(levels):  # lr -> the plateaus of its two seeds
+        rows, grid = [], {}
+        for lr, plateaus in levels.items():
+            for seed, level in enumerate(plateaus):
+                run = f"mlp-{lr}-{seed}"
+                grid[run] = (lr, 0.01, 0.003)
+                rows += [{"run": run, "method": "mlp", "seed": seed, "env_steps": x, "coverage": level,
+                          "member_seconds": 1.0} for x in (1, 2)]
+        return tuning_table(pd.DataFrame(rows), grid, centre=(3e-4, 0.01, 0.003)).set_index("lr")
+
+    # spread 0.01 each: standard error of the difference 0.01; a lead of 0.03 > 2 x 0.01 moves
+    moved = table({3e-4: (0.70, 0.70 + 0.01 * np.sqrt(2)), 1e-3: (0.73, 0.73 + 0.01 * np.sqrt(2))})
+    assert moved.loc[1e-3, "chosen"] and not moved.loc[3e-4, "chosen"]
+    kept = table({3e-4: (0.70, 0.70 + 0.01 * np.sqrt(2)), 1e-3: (0.715, 0.715 + 0.01 * np.sqrt(2))})
+    assert TUNING_MARGIN == 2.0 and kept.loc[1e-3, "best"] and kept.loc[3e-4, "chosen"]
+    with pytest.raises(ValueError, match=r"mlp has no run at the centre setting \(0.001, 0.02, 0.006\)"):
+        tuning_table(pd.DataFrame([{"run": "a", "method": "mlp", "seed": 0, "env_steps": 1, "coverage": 0.5,
+                                    "member_seconds": 1.0}]), {"a": (3e-4, 0.01, 0.003)}, centre=(1e-3, 0.02, 0.006))
