@@ -253,7 +253,8 @@ def gating_specs(scale: str, seeds=None, readings=None, phases=(0, 1), steps: in
     specs = []
     for name in readings:
         method, net = GATING_READINGS[name]
-        extra = {**(GATING_NOISE if method != "mlp" else {}), **net, "iterations": iterations,
+        gated = {**GATING_NOISE, **_OURS} if method != "mlp" else {}  # the sparse actor it ran: ours (05d), pinned
+        extra = {**gated, **net, "iterations": iterations,
                  "phase_length_iters": iterations, "diag_every": max(1, min(100, iterations // 20)),
                  "checkpoint_every": max(1, min(100, iterations))}
         specs += [RunSpec(method, seed, preset, overrides=tuple({**extra, "fixed_phase": phase}.items()),

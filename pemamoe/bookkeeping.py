@@ -3,7 +3,7 @@
 
 __all__ = ['CHECKPOINT_FORMAT', 'EpisodeTracker', 'explained_variance', 'IterationLogger', 'RunningNorm', 'ValueNorms', 'encode_arrays', 'decode_arrays', 'RowLog', 'write_checkpoint', 'write_rows_parquet', 'FILL_UNINITIALIZED_MEMORY', 'DeterministicTorch', 'split_env_state', 'merge_env_states']
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 528)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 15 (line 529)
 import io
 import os
 import pickle
@@ -101,7 +101,7 @@ class EpisodeTracker:
         self.load_member_state(0, state)
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 16 (line 626)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 16 (line 627)
 def explained_variance(pred, target) -> float:
     """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
     pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
@@ -208,7 +208,7 @@ class IterationLogger:
         self.bar.close(clear=kind is not None)  # an interrupted run leaves no stale bar under its message
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 766)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 20 (line 767)
 import math
 
 
@@ -276,7 +276,7 @@ class ValueNorms:
             n.update(returns[r])
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 920)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 24 (line 921)
 def encode_arrays(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -444,7 +444,7 @@ class DeterministicTorch:
         return False
 
 
-# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1088)
+# %% notebooks/07c_config_and_bookkeeping.py, cell 25 (line 1089)
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

@@ -223,7 +223,8 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
-        d["net"] = NetConfig(**d.get("net", {}))
+        # a config written before a NetConfig field existed computed under that field's value then
+        d["net"] = NetConfig(**{**NET_FIELDS_ADDED, **d.get("net", {})})
         d["controller"] = PhaseControllerConfig(**d.get("controller", {}))
         d["adam_betas"] = tuple(d.get("adam_betas", (0.9, 0.999)))
         d.pop("label", None)
