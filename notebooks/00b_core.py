@@ -278,7 +278,7 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
 #| export
 BACKENDS = ("local", "ray")  # where a sweep trains (appendix 09c)
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
-EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning")  # notebook 09's sweeps
+EXPERIMENTS = ("main", "tricks", "noise", "all", "budget", "gating", "sparse", "tuning", "top2")  # notebook 09's sweeps
 MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseControllerConfig switch (notebook 06)
     "kl_anchor",
     "adam_reset",

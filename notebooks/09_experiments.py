@@ -341,10 +341,25 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
     return specs
 
 
+# The top-2 arm (issue 40): the sparse methods with two of the three experts active per step, in
+# the main experiment's cycling runs, beside their top-1 runs. Their actor reading is the paper's
+# (appendix 05d), pinned, with top_k = 2; the study measured top-2 in a fixed phase ("smoe/paper
+# top-2" of the sparse-actor comparison), this arm asks what it does across phase switches.
+TOP2_METHODS = ("smoe", "pemamoe")
+
+
+def top2_specs(scale: str, seeds=None) -> list:
+    """The top-2 arm's runs: each of TOP2_METHODS x seed at `scale`, tagged "top2"."""
+    seeds = default_seeds(scale) if seeds is None else tuple(seeds)
+    net = {**_PAPERS, "top_k": 2}
+    return [RunSpec(m, s, scale, overrides=tuple(net.items()), tag="top2") for m in TOP2_METHODS for s in seeds]
+
+
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
     sweep), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
-    ("gating", "sparse") or the tuning grid ("tuning"); only the first three are part of "all")."""
+    ("gating", "sparse"), the tuning grid ("tuning") or the top-2 arm ("top2"); only the first
+    three are part of "all")."""
     makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":
@@ -357,6 +372,8 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -
         return sparse_specs(scale, seeds)
     if experiment == "tuning":
         return tuning_specs(scale, seeds, methods)
+    if experiment == "top2":
+        return top2_specs(scale, seeds)
     if experiment not in makers:
         raise ValueError(f"experiment must be one of {', '.join(EXPERIMENTS)}, got {experiment!r}")
     return makers[experiment]()

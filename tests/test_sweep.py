@@ -348,3 +348,19 @@ def test_sweep_help_describes_the_command_and_every_option(capsys):
     for shown in ("{ci,small,medium,paper}", "(default: main)", "(default: small)", "(default: local)",
                   "(default: 2)", "(default: results/)", "(default: records/)"):
         assert shown in out, shown
+
+
+def test_the_top2_arm_runs_the_sparse_methods_with_two_experts_under_the_papers_reading(tmp_path):
+    from pemamoe.sweep import BUDGET_READINGS, TOP2_METHODS
+
+    specs = experiment_specs("top2", "medium")
+    configs = [s.to_config() for s in specs]
+    assert sorted({c.method for c in configs}) == sorted(TOP2_METHODS) == ["pemamoe", "smoe"]
+    assert len(specs) == 6 and all(s.tag == "top2" for s in specs)
+    for c in configs:
+        assert c.net.top_k == 2 and c.fixed_phase is None and c.iterations == configs[0].iterations
+        assert all(getattr(c.net, k) == v for k, v in BUDGET_READINGS["paper"].items() if k != "top_k")
+    main = {s.to_config().run_name() for s in main_specs("medium")}
+    assert not main & {c.run_name() for c in configs}  # runs of their own, not top-1's
+    run_sweep(experiment_specs("top2", "ci", seeds=(0,)), "local", workers=1, results_dir=tmp_path, progress=False)
+    assert all((s.run_dir(tmp_path) / "done.json").is_file() for s in experiment_specs("top2", "ci", seeds=(0,)))
