@@ -141,11 +141,16 @@ def test_gating_settings_leave_an_mlp_run_where_it_is():
         wider = cfg.replace(net=dataclasses.replace(cfg.net, hidden=64))
         assert wider.config_hash() != cfg.config_hash()  # a field the MLP reads still counts
     gated = TrainConfig.for_scale("medium", method="smoe")
-    for field, value in (("load_balance_coef", 0.0), ("expert_heads", "per_expert"), ("update_routing", "current")):
-        assert gated.replace(net=dataclasses.replace(gated.net, **{field: value})).config_hash() != gated.config_hash()
+    for field, values in (("load_balance_coef", (0.0, 0.01)), ("expert_heads", ("per_expert", "shared")),
+                          ("update_routing", ("current", "replay"))):
+        other = next(v for v in values if v != getattr(gated.net, field))  # whichever the default is not
+        assert gated.replace(net=dataclasses.replace(gated.net, **{field: other})).config_hash() != gated.config_hash()
     # fields added later are absent from the identity at the value the earlier runs had
     from pemamoe.train_config import NET_FIELDS_ADDED
-    assert all(getattr(gated.net, k) == v and k not in gated.identity()["net"] for k, v in NET_FIELDS_ADDED.items())
+    earlier = gated.replace(net=dataclasses.replace(gated.net, **NET_FIELDS_ADDED))
+    assert not NET_FIELDS_ADDED.keys() & earlier.identity()["net"].keys()
+    assert TrainConfig.from_dict({**earlier.to_dict(), "net": {k: v for k, v in earlier.to_dict()["net"].items()
+                                                              if k not in NET_FIELDS_ADDED}}) == earlier
     recorded = {p.name.split(".")[0] for p in (ROOT / "records" / "medium").glob("smoe-*.json")}
     assert {TrainConfig.for_scale("medium", method="smoe", seed=s).run_name() for s in range(3)} <= recorded
     # the medium MLP records on disk were made under these values: their names still resolve
