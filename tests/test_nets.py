@@ -45,7 +45,7 @@ def _seed():
 
 @pytest.mark.parametrize("impl", IMPLS)
 def test_paper_parameter_counts_reproduced_exactly(impl):
-    cfg = NetConfig(expert_impl=impl, routing_noise="learned")  # the paper's counts include a noise gate
+    cfg = NetConfig(expert_impl=impl, routing_noise="learned", expert_heads="shared")  # PAPER_NET: a noise gate, one head
     for kind in ACTOR_KINDS:
         actor = make_actor(kind, PAPER_OBS_DIM, 2, cfg)
         assert count_parameters(actor) == PAPER_ACTOR_PARAMS[kind]
@@ -82,7 +82,7 @@ def test_macs_per_step():
 
 def test_pemamoe_matches_smoe_and_noiseless_smoe_matches_moe():
     assert count_parameters(make_actor("pemamoe", 50)) == count_parameters(make_actor("smoe", 50))
-    quiet = make_actor("smoe", PAPER_OBS_DIM, 2, NetConfig(routing_noise="off"))
+    quiet = make_actor("smoe", PAPER_OBS_DIM, 2, NetConfig(routing_noise="off", expert_heads="shared"))
     assert count_parameters(quiet) == PAPER_ACTOR_PARAMS["moe"]
 
 

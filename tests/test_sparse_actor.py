@@ -21,8 +21,13 @@ from pemamoe.nets import NetConfig, PopulationActor, RoutingSample, make_actor, 
 OBS, ACT, HID = 7, 2, 8
 
 
+# Our first reading of the sparse actor (a balance loss, one shared head, replayed routes): the
+# tests below start from it whatever the defaults are, and each names the readings it changes.
+OURS = {"load_balance_coef": 0.01, "expert_heads": "shared", "update_routing": "replay"}
+
+
 def cfg(**kw) -> NetConfig:
-    return NetConfig(hidden=HID, **kw)
+    return NetConfig(hidden=HID, **{**OURS, **kw})
 
 
 def obs(n=64, seed=0):
@@ -146,7 +151,8 @@ def test_rerouting_counts_in_the_ratio_under_current_routing(heads):
     rate = pop.reroute_readings(x.unsqueeze(0), moved.reshape(1, len(x)))["update/reroute_rate"]
     assert rate[0] == pytest.approx(1.0)
     assert pop.reroute_readings(x.unsqueeze(0), acted.reshape(1, len(x)))["update/reroute_rate"][0] == 0.0
-    assert PopulationActor([base]).reroute_readings(x.unsqueeze(0), acted.reshape(1, len(x))) == {}  # replay: not logged
+    replayed = make_actor("smoe", OBS, ACT, cfg(expert_heads=heads, update_routing="replay"))
+    assert PopulationActor([replayed]).reroute_readings(x.unsqueeze(0), acted.reshape(1, len(x))) == {}  # not logged
 
 
 def test_sampling_and_evaluation_route_alike_without_routing_noise():
