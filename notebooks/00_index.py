@@ -52,8 +52,9 @@
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
-# | (appendix to IV-B) the run's configuration, the presets, the return normaliser, checkpoint encoding and logs | `07c_config_and_bookkeeping.py` | `pemamoe/train_config.py`, `pemamoe/bookkeeping.py` | |
+# | (appendix to IV-B) the run's configuration: its fields and checks, its identity, the presets | `07c_train_config.py` | `pemamoe/train_config.py` | |
 # | (appendix to IV-B) populations of runs, resuming and catching up, reading a run back, deterministic evaluation | `07d_populations.py` | `pemamoe/populations.py` | |
+# | (appendix to IV-B) the trainer's bookkeeping: episodes, the log row, the return normaliser, checkpoint encoding | `07e_bookkeeping.py` | `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py`, `pemamoe/analysis.py` | every results figure |

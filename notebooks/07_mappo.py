@@ -19,9 +19,9 @@
 # runs (the four methods MLP, MoE, SMoE and PE-MAMoE, the noise sweep and the tricks ablation).
 #
 # This notebook is the method, to be read top to bottom: the rollout, the advantages, the update
-# and the training loop. The machinery around it is in three appendices: run folders in 07b, the
-# run's configuration and the trainer's bookkeeping (episode accounting, the log row, checkpoint
-# encoding) in 07c, and populations of runs, resuming and reading a run back in 07d.
+# and the training loop. The machinery around it is in four appendices: run folders in 07b, the
+# run's configuration in 07c, populations of runs, resuming and reading a run back in 07d, and the
+# trainer's bookkeeping (episode accounting, the log row, checkpoint encoding) in 07e.
 #
 # **Centralised training, decentralised execution (CTDE).** Each of the $U = 3$ UAVs acts on its
 # *own* local observation: the actor never sees the other UAVs' observations or the global state,
@@ -88,9 +88,9 @@ import pandas as pd
 import torch
 import torch.nn.functional as F
 
-from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
+from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07e
     EpisodeTracker, RowLog, RunningNorm, ValueNorms, explained_variance, merge_env_states, split_env_state)
-from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07c)
+from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07e)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
@@ -345,7 +345,7 @@ _adv.squeeze().tolist()
 # regresses the normalised return $(\hat R - \mu)/\sigma$, and the rollout reads its values back
 # as $\mu + \sigma\,\hat v$ for GAE. Switch it off with `value_norm=False`. The statistics are
 # bookkeeping (`RunningNorm`, a parallel Welford update in float64, checkpointed with the run, and
-# `ValueNorms`, one per member of a population): appendix 07c.
+# `ValueNorms`, one per member of a population): appendix 07e.
 
 # %% [markdown]
 # ## Rollout
@@ -358,7 +358,7 @@ _adv.squeeze().tolist()
 # reason. Actions are stored unclipped (the log-probability belongs to the sampled Gaussian
 # action); the environment clips them to $[-1, 1]^2$ and reports it in `info`.
 #
-# `EpisodeTracker` (appendix 07c) accumulates each environment's running episode (team return and
+# `EpisodeTracker` (appendix 07e) accumulates each environment's running episode (team return and
 # the system metrics) and emits one row per finished episode.
 
 # %%
@@ -746,7 +746,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # moments and step counts, the return normaliser, the phase controller, the random states, the
 # environments' complete state, the current observations, the running episodes and the log rows
 # so far), so a run resumed from it continues bit for bit. How a checkpoint is encoded, the run
-# folder's files and the columns of the per-iteration log row are in appendix 07c; how the loop
+# folder's files and the columns of the per-iteration log row are in appendix 07e; how the loop
 # writes and reads its members' checkpoints (`MemberStates`) and how `train_population` resumes
 # members and lets them catch up, in 07d; how a folder is locked, sealed and checked before it is
 # trusted, in 07b.
@@ -784,7 +784,7 @@ def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
 # the environments and the phase clock, then runs the five steps of an iteration. What a
 # checkpoint stores beyond the population (the running episodes, the log rows) is `MemberStates`'s
 # (appendix 07d), and what the loop reports after each iteration (the log rows with their
-# diagnostics, the progress bar) is `IterationLogger`'s (appendix 07c), so the loop holds the
+# diagnostics, the progress bar) is `IterationLogger`'s (appendix 07e), so the loop holds the
 # algorithm and little else. `max_iterations` stops a run early with a checkpoint (it simulates an
 # interruption; `train(..., resume=True)` continues it).
 
@@ -843,7 +843,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         start, global_step = members.restore(ckpts, venv, obs, state)
         resumed_from = start
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
-    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07c
+    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07e
         for it in range(start, stop):
             # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
             phase = member_phase if fixed else [int(clock.phase_at(it))] * R

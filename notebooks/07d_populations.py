@@ -31,7 +31,7 @@
 # The module does not import `pemamoe.mappo`: `train_population` hands its training loop to
 # `train_members` as an argument, and `pemamoe.mappo` re-exports the names callers import from it
 # (`from pemamoe.mappo import load_run` works, as does `from pemamoe.populations import load_run`).
-# The run folders' rules are in appendix 07b, the configuration and the checkpoint encoding in 07c.
+# The run folders' rules are in appendix 07b, the configuration in 07c, the checkpoint encoding in 07e.
 #
 # ## The run as a tensor axis
 #
@@ -322,7 +322,7 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
 # adds what else a checkpoint stores: the running episodes, each member's log rows, its training
 # seconds before this process and the torch thread counts it ran with. Writing and reading a
 # checkpoint live here rather than in the loop. `save` writes one member's checkpoint (what it
-# holds: appendix 07c), then its `metrics.parquet` and `episodes.parquet`; the last write of a
+# holds: appendix 07e), then its `metrics.parquet` and `episodes.parquet`; the last write of a
 # finished run converts every row at once and releases the rows (the logs `done.json` seals).
 # `restore` loads every member's checkpoint back into the population, in the same order of fields,
 # so that the next iteration reads exactly what it would have read without the interruption. The
@@ -391,7 +391,7 @@ class MemberStates:
         B = pop.configs[r].num_envs
         env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
         actor, critic = pop.member(r)
-        write_checkpoint({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
+        write_checkpoint({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07e)
             "config": pop.configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
             "elapsed": self.seconds(r), "actor": actor.state_dict(), "critic": critic.state_dict(),
             "optimizer": {"actor": pop.actor_opt.member_state(r), "critic": pop.critic_opt.member_state(r)},

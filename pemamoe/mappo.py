@@ -15,9 +15,9 @@ import pandas as pd
 import torch
 import torch.nn.functional as F
 
-from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07c
+from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07e
     EpisodeTracker, RowLog, RunningNorm, ValueNorms, explained_variance, merge_env_states, split_env_state)
-from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07c)
+from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07e)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
@@ -536,7 +536,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
         start, global_step = members.restore(ckpts, venv, obs, state)
         resumed_from = start
     stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
-    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07c
+    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07e
         for it in range(start, stop):
             # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
             phase = member_phase if fixed else [int(clock.phase_at(it))] * R

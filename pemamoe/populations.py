@@ -247,7 +247,7 @@ class MemberStates:
         B = pop.configs[r].num_envs
         env_state = split_env_state(env_state, range(r * B, (r + 1) * B))
         actor, critic = pop.member(r)
-        write_checkpoint({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07c)
+        write_checkpoint({  # stamped with the checkpoint format and TRAINING_NUMERICS, and sealed (appendix 07e)
             "config": pop.configs[r].to_dict(), "iteration": iteration, "global_step": global_step,
             "elapsed": self.seconds(r), "actor": actor.state_dict(), "critic": critic.state_dict(),
             "optimizer": {"actor": pop.actor_opt.member_state(r), "critic": pop.critic_opt.member_state(r)},

@@ -162,7 +162,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
 
 
 # %% notebooks/07b_run_folders.py, cell 8 (line 242)
-SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07c); every later one has it too
+SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07e); every later one has it too
 CHECKPOINT_SEAL = b"pemamoe-sha256:"  # the zip comment of a sealed checkpoint: this, then the 64 hex digits
 
 

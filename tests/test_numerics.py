@@ -5,7 +5,7 @@ code change that moves the numbers a run computes, without a bump of TRAINING_NU
 serve old results as if they came from the new code. This test trains a short population of
 every registered method on the CPU and compares sums of its logged training statistics with
 tests/numerics_fingerprint.json. When it fails after an intended change of the arithmetic: bump
-TRAINING_NUMERICS in notebooks/07c_config_and_bookkeeping.py, export, and run
+TRAINING_NUMERICS in notebooks/07c_train_config.py, export, and run
 `python tests/test_numerics.py --write`. A changed default configuration renames the runs instead
 (their identity hash, stored beside the numbers, moves): --write takes it without a bump. The tolerances (below) sit 25x (policy loss) to 1000x above the float
 noise of another reduction order (2 torch threads instead of 1), which stands in for another CPU.
