@@ -44,9 +44,11 @@
 # | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py`, `pemamoe/env.py` | reward anatomy table |
 # | (appendix to III-E) the compiled step engine, the random streams, the PettingZoo wrappers | `04b_engine.py` | `pemamoe/env_kernel.py`, `pemamoe/streams.py`, `pemamoe/env_wrappers.py` | |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
-# | (appendix to IV-A) the method registry, the expert bank's execution strategies, the run axis, latency | `05b_population_nets.py` | `pemamoe/methods.py`, `pemamoe/popnets.py`, `pemamoe/netcost.py` | |
+# | (appendix to IV-A) the expert bank's execution strategies, the run axis | `05b_population_nets.py` | `pemamoe/popnets.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | (appendix to IV-A) the sparse actor's readings (per-expert heads, balance loss, re-routed ratio, top-2) and why top-1 plateaus lower | `05d_sparse_actor.py` | | `sparse_actor*` |
+# | (appendix to IV-A) the registries of methods and network kinds | `05e_methods.py` | `pemamoe/methods.py` | |
+# | (appendix to IV-A) parameter and compute counts, latency, the cost table's code | `05f_netcost.py` | `pemamoe/netcost.py` | |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
 # | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry), AdamW over the run axis, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/plasticity.py`, `pemamoe/optim.py`, `pemamoe/diagnostics.py` | |
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |

@@ -31,9 +31,9 @@
 # Below: the architecture, read off the paper's parameter counts; the gating (temperature, top-k,
 # noise, the gradient for k = 1, load balancing) in the one code path that a single network and
 # the trainer's population of networks both run; exact PPO ratios under random routing; the four
-# architectures drawn, and the cost table. The machinery around them (registries, the expert
-# bank's storage and execution strategies, the population as one set of tensors, latency) is
-# appendix `05b_population_nets.py`.
+# architectures drawn, and the cost table. The machinery around them is in three appendices: the
+# expert bank's storage and execution strategies and the population as one set of tensors in
+# `05b_population_nets.py`, the registries in `05e_methods.py`, counts and latency in `05f_netcost.py`.
 
 # %%
 #| default_exp nets
@@ -58,8 +58,8 @@ from torch.distributions import Independent, Normal
 from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
-# The machinery of appendix 05b (the network-kind registry, the expert bank, the batched building
-# blocks of the forward, the population), used by the classes below and re-exported from here:
+# The machinery of appendices 05e (the network-kind registry) and 05b (the expert bank, the batched
+# building blocks of the forward, the population), used by the classes below and re-exported here:
 from pemamoe.methods import (ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS, NETWORKS, check_param_groups,  # re-export
                              network_kind, register_network)
 from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationActor, PopulationCritic,  # re-export  # noqa: F401
@@ -783,9 +783,9 @@ class SMoECritic(MoECritic):
 # ## Factories and cost accounting
 #
 # `make_actor` and `make_critic` build a network of a kind registered with `register_network`
-# (appendix 05b) and check its parameter groups (`check_param_groups`: every parameter in exactly
+# (appendix 05e) and check its parameter groups (`check_param_groups`: every parameter in exactly
 # one group, named from `ACTOR_PARAM_GROUPS` or `CRITIC_PARAM_GROUPS`). The cost functions of
-# appendix 05b (module `pemamoe.netcost`) read every number off the modules' own shapes:
+# appendix 05f (module `pemamoe.netcost`) read every number off the modules' own shapes:
 #
 # * `count_parameters(module)`: trainable parameters;
 # * `active_parameters(actor, mode)`: parameters that take part in one agent step.
@@ -858,7 +858,7 @@ print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 # %% [markdown]
 # ### The four architectures
 #
-# Drawn from the modules themselves (`draw_actor_architecture`, appendix 05b): the boxes carry the
+# Drawn from the modules themselves (`draw_actor_architecture`, appendix 05f): the boxes carry the
 # layer shapes and parameter counts of freshly built actors at the paper's observation dimension.
 
 # %%

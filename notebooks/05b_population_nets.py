@@ -11,32 +11,27 @@
 # ---
 
 # %% [markdown]
-# # 05b · Appendix: the machinery behind the networks
+# # 05b · Appendix: the expert bank and the run axis
 #
 # Notebook 05 builds the actors and critics and writes their gate once, with a leading run axis,
-# so that a single network and the trainer's population run the same code. Around that method the
-# experiments need machinery that changes nothing a network computes:
+# so that a single network and the trainer's population run the same code. This appendix holds
+# the machinery under that code, which changes nothing a network computes, in the module
+# `pemamoe.popnets`:
 #
-# * the **registries** (module `pemamoe.methods`): a method pairs a network kind of notebook 05
-#   with a plasticity method of notebook 06 and gives them the label and colour every figure uses;
-#   a network kind names an actor and a critic class, whose parameter groups are checked;
 # * the **expert bank** (`ExpertBank`): the stacked storage of the $E$ trunks and the two ways a
 #   single network can run them besides the batched default: `masked` (genuine conditional
 #   computation) and `loop` (the textbook version), and how `"auto"` picks;
-# * the **run axis** (module `pemamoe.popnets`): the batched building blocks that notebook 05's
-#   `run_gate` calls, and R independent networks of one kind held as one set of tensors, which is
-#   how the trainer of notebook 07 trains a population of runs in one process;
-# * **cost accounting and latency** (module `pemamoe.netcost`): the parameter and
-#   multiply-accumulate counts in the paper's conventions, timing an agent step, the cost table
-#   and the architecture diagram of notebook 05.
+# * the **run axis**: the batched building blocks that notebook 05's `run_gate` calls, and R
+#   independent networks of one kind held as one set of tensors, which is how the trainer of
+#   notebook 07 trains a population of runs in one process.
 #
-# Read it when you add a method or a network kind (the registries and `run_features`), or when you
-# need to know why training runs at the speed it does.
+# The registries of methods and network kinds are appendix 05e's (`pemamoe.methods`), the counts,
+# latency and the cost table appendix 05f's (`pemamoe.netcost`). Read this one when you add a
+# network kind (`run_features`) or need to know why training runs at the speed it does.
 #
-# **Imports.** `pemamoe.methods` and `pemamoe.popnets` import nothing from `pemamoe.nets`, so
-# `pemamoe.nets` imports them and re-exports what callers have always taken from it
-# (`from pemamoe.nets import PopulationActor, RoutingSample` still works). `pemamoe.netcost`
-# builds actors, so it imports `pemamoe.nets`, and nothing in `pemamoe.nets` imports it.
+# **Imports.** `pemamoe.popnets` imports nothing from `pemamoe.nets`, so `pemamoe.nets` imports it
+# and re-exports what callers have always taken from it (`from pemamoe.nets import
+# PopulationActor, RoutingSample` still works).
 
 # %%
 #| default_exp popnets
@@ -45,182 +40,6 @@
 scale = "small"
 figures_dir = "paper_figures"
 seed = 0
-
-# %% [markdown]
-# ## The methods: a network kind plus a plasticity method
-#
-# A *method* in the experiments is a pair: the network kind that computes the policy (notebook 05)
-# and the plasticity method that acts at phase switches (notebook 06). The registry below is the one
-# place that names the methods; the trainer, the sweeps, the figures and the tests read names,
-# labels, colours and dispatch from it. PE-MAMoE is the SMoE network with the Phase Controller;
-# any other pairing (an MLP with the controller's switch-time mechanisms, say) is one more entry
-# with its own label. The paper's cost-table numbers ride along in each entry, for comparison only
-# (notebook 05 reads them as `PAPER_ACTOR_PARAMS` and `PAPER_ACTIVE_PARAMS`).
-
-# %%
-#| export methods
-from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class MethodSpec:
-    """One comparable method: what it trains (network kind) and how it treats plasticity."""
-
-    name: str
-    network: str  # a kind of pemamoe.nets.make_actor / make_critic
-    plasticity: str = "none"  # a name in pemamoe.plasticity.PLASTICITY_METHODS
-    label: str = ""  # display label in figures and tables
-    colour: str = "#333333"
-    proposed: bool = False  # the paper's method (the headline comparisons are against it)
-    paper_actor_params: int | None = None  # the paper's cost table, for comparison only
-    paper_active_params: int | None = None
-    # the plasticity method's preset: (field, value) pairs applied to the run's PhaseControllerConfig
-    # before the scale's rescaling and any override (empty: the defaults of notebook 06)
-    plasticity_preset: tuple = ()
-    # in the experiments' default comparison (`compared_methods()`: the paper's four and, unless
-    # they say otherwise, a plug-in's); False: registered and run by name, in a sweep only when named
-    compared: bool = True
-
-
-METHOD_REGISTRY: dict = {}
-
-
-def register_method(spec: MethodSpec) -> MethodSpec:
-    """Add a method (or replace one of the same name); returns it."""
-    if not isinstance(spec, MethodSpec):
-        raise ValueError(f"register_method needs a MethodSpec, got {type(spec).__name__}")
-    if not spec.name or not isinstance(spec.name, str):
-        raise ValueError(f"MethodSpec.name must be a non-empty string, got {spec.name!r}")
-    METHOD_REGISTRY[spec.name] = spec if spec.label else MethodSpec(**{**spec.__dict__, "label": spec.name})
-    return METHOD_REGISTRY[spec.name]
-
-
-def load_plugins() -> None:
-    """Import the modules named in $PEMAMOE_PLUGINS (comma-separated), once: how methods, network
-    kinds and plasticity methods defined outside the package reach every process of a sweep."""
-    import importlib
-    import os
-
-    for module in filter(None, (m.strip() for m in os.environ.get("PEMAMOE_PLUGINS", "").split(","))):
-        if module not in _LOADED_PLUGINS:
-            _LOADED_PLUGINS.add(module)
-            importlib.import_module(module)
-
-
-_LOADED_PLUGINS: set = set()
-
-
-def method_spec(name: str) -> MethodSpec:
-    if name not in METHOD_REGISTRY:
-        load_plugins()
-    if name not in METHOD_REGISTRY:
-        raise ValueError(f"method must be one of {', '.join(METHOD_REGISTRY)}, got {name!r}")
-    return METHOD_REGISTRY[name]
-
-
-def method_names(proposed_last: bool = True) -> tuple:
-    """Registered method names in registration order (the figures' order)."""
-    return tuple(METHOD_REGISTRY)
-
-
-def compared_methods() -> tuple:
-    """The methods the experiments compare unless told otherwise, in registration order (every
-    registered method except those registered with compared=False)."""
-    return tuple(name for name, spec in METHOD_REGISTRY.items() if spec.compared)
-
-
-def method_label(name: str) -> str:
-    return METHOD_REGISTRY[name].label if name in METHOD_REGISTRY else name
-
-
-def method_colour(name: str) -> str:
-    return METHOD_REGISTRY[name].colour if name in METHOD_REGISTRY else "#333333"
-
-
-def proposed_method() -> str:
-    return next(name for name, spec in METHOD_REGISTRY.items() if spec.proposed)
-
-
-# The paper's four methods, in the order the figures use.
-register_method(MethodSpec("mlp", network="mlp", label="MLP", colour="#7f7f7f",
-                           paper_actor_params=6820, paper_active_params=6820))
-register_method(MethodSpec("moe", network="moe", label="MoE", colour="#1f77b4",
-                           paper_actor_params=20858, paper_active_params=20858))
-register_method(MethodSpec("smoe", network="smoe", label="SMoE", colour="#ff7f0e",
-                           paper_actor_params=21392, paper_active_params=7820))
-register_method(MethodSpec("pemamoe", network="smoe", plasticity="phase_controller", label="PE-MAMoE",
-                           colour="#d62728", proposed=True, paper_actor_params=21392, paper_active_params=7820))
-# Two plasticity baselines from the literature (appendix 06c), each on the MLP and on the SMoE
-# network: run by name (`--methods smoe_redo`), outside the default comparison.
-register_method(MethodSpec("mlp_redo", network="mlp", plasticity="redo", label="MLP + ReDo", colour="#9467bd",
-                           compared=False))
-register_method(MethodSpec("smoe_redo", network="smoe", plasticity="redo", label="SMoE + ReDo", colour="#8c564b",
-                           compared=False))
-register_method(MethodSpec("mlp_snp", network="mlp", plasticity="shrink_and_perturb",
-                           label="MLP + shrink-and-perturb", colour="#e377c2", compared=False))
-register_method(MethodSpec("smoe_snp", network="smoe", plasticity="shrink_and_perturb",
-                           label="SMoE + shrink-and-perturb", colour="#17becf", compared=False))
-
-
-# %% [markdown]
-# ## The network kinds: a registry and its contract
-#
-# A network kind is an actor class and a critic class under one name. `register_network` adds
-# one (notebook 05 registers `mlp`, `moe` and `smoe`; a plugin may add more, see CONTRIBUTING.md);
-# `network_kind` resolves a kind or a method's name. What an actor class writes is listed in
-# notebook 05 ("What a network kind writes"). One part of the contract is checked whenever a
-# network is built: the parameter groups. The optimizer and the phase controller schedule
-# parameters by group name (learning-rate drops, the router freeze), so an actor's
-# `param_groups()` must file every parameter exactly once under one of `ACTOR_PARAM_GROUPS`, a
-# critic's under `CRITIC_PARAM_GROUPS`; `check_param_groups` says which group or parameter breaks
-# it, and which names are allowed.
-
-# %%
-#| export methods
-ACTOR_PARAM_GROUPS = ("router", "experts", "head", "log_std")  # the groups the phase controller schedules
-CRITIC_PARAM_GROUPS = ("critic",)
-NETWORKS: dict = {}  # network kind -> (actor class, critic class)
-
-
-def register_network(kind: str, actor_cls, critic_cls) -> None:
-    """Make a network kind available to make_actor / make_critic (and so to the method registry).
-    The actor subclasses pemamoe.nets.GaussianActor (run_features, trunk_parameters, param_groups
-    over ACTOR_PARAM_GROUPS, cost_parts; see notebook 05); the critic provides forward,
-    run_features and param_groups over CRITIC_PARAM_GROUPS."""
-    if not isinstance(kind, str) or not kind:
-        raise ValueError(f"network kind must be a non-empty string, got {kind!r}")
-    NETWORKS[kind] = (actor_cls, critic_cls)
-
-
-def network_kind(name: str) -> str:
-    """A network kind, or a method name resolved through the method registry."""
-    if name not in NETWORKS and name not in METHOD_REGISTRY:
-        load_plugins()
-    if name in NETWORKS:
-        return name
-    if name in METHOD_REGISTRY:
-        return METHOD_REGISTRY[name].network
-    raise ValueError(f"network kind must be one of {', '.join(NETWORKS)} (or a method: {', '.join(METHOD_REGISTRY)}), "
-                     f"got {name!r}")
-
-
-def check_param_groups(module, allowed: tuple):
-    """`module` if its param_groups() files every parameter once, under names from `allowed`;
-    else a ValueError naming the class, the offending group or parameter, and the allowed groups."""
-    where = f"{type(module).__name__}.param_groups()"
-    seen = {}
-    for group, params in module.param_groups().items():
-        if group not in allowed:
-            raise ValueError(f"{where} has group {group!r}; the groups are {', '.join(allowed)}")
-        for p in params:
-            if id(p) in seen:
-                raise ValueError(f"{where} files a parameter under both {seen[id(p)]!r} and {group!r}")
-            seen[id(p)] = group
-    missing = [name for name, p in module.named_parameters() if id(p) not in seen]
-    if missing:
-        raise ValueError(f"{where} leaves out {', '.join(missing)}; file each under one of {', '.join(allowed)}")
-    return module
-
 
 # %% [markdown]
 # ## The expert bank: storage, and three ways to run it
@@ -804,246 +623,18 @@ def gaussian_kl(mean, log_std, ref_mean, ref_log_std):
 
 
 # %% [markdown]
-# ## Cost accounting, latency and the cost table
-#
-# The counting functions implement the conventions notebook 05 explains, from each kind's
-# `cost_parts()` (its parts' parameters and multiply-accumulates, built with `nets.linear_cost`):
-# `count_parameters` (trainable parameters), `active_parameters(actor, mode)` (what takes part in
-# one agent step: `paper`, `sampling` or `eval`) and `macs_per_step(actor, mode)`. `time_forward`
-# measures an agent step (`act`, sampling, no gradient) and reports the median over repeats in
-# microseconds; `time_train_step` a forward and backward pass of a surrogate loss. `cost_table`
-# assembles, for each method and each named observation dimension, the counts and the measured
-# latency at batch 1 and batch 2048. `draw_actor_architecture` draws notebook 05's diagram of an
-# actor from its modules. All of it lives in module `pemamoe.netcost`, which imports `pemamoe.nets`.
-
-# %%
-#| export netcost
-import statistics
-import time
-
-import torch
-
-from pemamoe.methods import METHOD_REGISTRY
-from pemamoe.nets import PAPER_NET, GaussianActor, NetConfig, make_actor
-
-ACTIVE_MODES = ("paper", "sampling", "eval")
-MAC_MODES = ("sampling", "eval")
-
-
-def count_parameters(module: torch.nn.Module) -> int:
-    """Number of trainable parameters."""
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)
-
-
-def _executed(actor: GaussianActor, mode: str) -> dict:
-    # How many copies of each part run in one agent step under `mode`.
-    sparse = getattr(actor, "sparse", None)
-    if sparse is None:  # MLP
-        return {"router": 0, "noise_gate": 0, "one_expert": 1, "head": 1, "log_std": 1}
-    gate = actor.gate
-    experts = gate.k if sparse else gate.n_experts
-    learned = gate.noise == "learned"  # only learned noise runs a noise gate
-    noise = 0 if (mode == "eval" or not learned) else 1
-    if mode == "paper":
-        noise = 1 if learned else 0
-    head = 0 if (mode == "paper" and sparse) else 1
-    return {"router": 1, "noise_gate": noise, "one_expert": experts, "head": head, "log_std": head}
-
-
-def active_parameters(actor: GaussianActor, mode: str = "paper") -> int:
-    """Parameters taking part in one agent step; mode in ACTIVE_MODES (see notebook 05)."""
-    if mode not in ACTIVE_MODES:
-        raise ValueError(f"active_parameters mode must be one of {', '.join(ACTIVE_MODES)}, got {mode!r}")
-    parts, used = actor.cost_parts(), _executed(actor, mode)
-    return sum(parts[name][0] * n for name, n in used.items())
-
-
-def macs_per_step(actor: GaussianActor, mode: str = "sampling") -> int:
-    """Multiply-accumulates of the linear layers for one agent step; mode in MAC_MODES."""
-    if mode not in MAC_MODES:
-        raise ValueError(f"macs_per_step mode must be one of {', '.join(MAC_MODES)}, got {mode!r}")
-    parts, used = actor.cost_parts(), _executed(actor, mode)
-    return sum(parts[name][1] * n for name, n in used.items())
-
-
-def _median_us(fn, repeats: int, warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter_ns()
-        fn()
-        times.append(time.perf_counter_ns() - t0)
-    return statistics.median(times) / 1e3
-
-
-def time_forward(actor: GaussianActor, batch: int, repeats: int = 50, warmup: int = 5, seed: int = 0) -> float:
-    """Median microseconds of actor.act(obs) (sampling, no gradient) on a (batch, obs_dim) input."""
-    obs = torch.randn(batch, actor.obs_dim, generator=torch.Generator().manual_seed(seed))
-    return _median_us(lambda: actor.act(obs), repeats, warmup)
-
-
-def time_train_step(actor: GaussianActor, batch: int, repeats: int = 20, warmup: int = 3, seed: int = 0) -> float:
-    """Median microseconds of evaluate(obs, action, routing) + backward of a PPO-like loss."""
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(batch, actor.obs_dim, generator=g)
-    action, _, routing = actor.act(obs)
-
-    def step():
-        logp, ent, aux = actor.evaluate(obs, action, routing)
-        loss = -(logp.mean() + 0.01 * ent.mean()) + aux["aux_loss"]
-        actor.zero_grad(set_to_none=True)
-        loss.backward()
-
-    return _median_us(step, repeats, warmup)
-
-
-def cost_table(
-    obs_dims: dict,
-    cfg: NetConfig | None = None,
-    act_dim: int = 2,
-    repeats: int = 50,
-    batch_sizes: tuple = (1, 2048),
-    seed: int = 0,
-    threads: int | None = 1,
-):
-    """Per actor kind and per named observation dimension: parameters, ratio to the MLP, active
-    parameters (paper / sampling / eval conventions), MACs per agent step, and measured `act`
-    latency (median microseconds) at each batch size, timed with `threads` torch threads
-    (None: leave the current setting); cfg None: the paper's reading (nets.PAPER_NET, learned
-    routing noise), whose counts the paper's table reports. Returns a pandas DataFrame."""
-    import pandas as pd
-
-    cfg = cfg or PAPER_NET
-    old_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        return pd.DataFrame(_cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed))
-    finally:
-        torch.set_num_threads(old_threads)
-
-
-def _cost_rows(obs_dims, cfg, act_dim, repeats, batch_sizes, seed):
-    rows = []
-    for label, obs_dim in obs_dims.items():
-        torch.manual_seed(seed)
-        actors = {name: make_actor(spec.network, obs_dim, act_dim, cfg) for name, spec in METHOD_REGISTRY.items()
-                  if spec.compared}
-        mlp_params = count_parameters(actors["mlp"])
-        mlp_macs = macs_per_step(actors["mlp"])
-        for kind, actor in actors.items():
-            row = {
-                "obs": label,
-                "obs_dim": obs_dim,
-                "actor": kind,  # the method's name
-                "params": count_parameters(actor),
-                "params_vs_mlp": round(count_parameters(actor) / mlp_params, 2),
-                "active_params": active_parameters(actor, "paper"),
-                "active_sampling": active_parameters(actor, "sampling"),
-                "active_eval": active_parameters(actor, "eval"),
-                "macs_per_step": macs_per_step(actor, "sampling"),
-                "macs_vs_mlp": round(macs_per_step(actor, "sampling") / mlp_macs, 3),
-                "macs_eval": macs_per_step(actor, "eval"),
-            }
-            for b in batch_sizes:
-                row[f"latency_us_b{b}"] = round(time_forward(actor, b, repeats=repeats, seed=seed), 1)
-            row["torch_threads"] = torch.get_num_threads()
-            rows.append(row)
-    return rows
-
-
-def _box(ax, x, y, w, h, text, color, fontsize=7.5, style="round,pad=0.02"):
-    from matplotlib.patches import FancyBboxPatch  # here: the package does not need matplotlib to load
-
-    ax.add_patch(FancyBboxPatch((x - w / 2, y - h / 2), w, h, boxstyle=style, fc=color, ec="0.25", lw=0.8))
-    ax.text(x, y, text, ha="center", va="center", fontsize=fontsize)
-
-
-def _arrow(ax, x0, y0, x1, y1, dashed=False, color="0.2"):
-    ax.annotate(
-        "", xy=(x1, y1), xytext=(x0, y0),
-        arrowprops=dict(arrowstyle="-|>", lw=0.8, color=color, ls="--" if dashed else "-", shrinkA=1, shrinkB=1),
-    )
-
-
-def draw_actor_architecture(ax, actor, method: str) -> None:
-    """Box diagram of `actor` (the network of `method`) on matplotlib axes `ax`: layer shapes and
-    parameter counts read off the modules (notebook 05's figure `architecture_actors`)."""
-    spec = METHOD_REGISTRY[method]
-    parts = actor.cost_parts()
-    d, h = actor.obs_dim, actor.cfg.hidden
-    ax.set_xlim(0, 11.2), ax.set_ylim(0.2, 10), ax.axis("off")
-    title = f"{spec.label} ({actor.kind} network)"
-    ax.set_title(f"{title}\n{count_parameters(actor):,} params, {active_parameters(actor):,} active (paper conv.)", fontsize=9)
-    _box(ax, 5, 9.4, 3.6, 0.7, f"observation $o$ ({d})", "#eeeeee")
-    head_y, out_y = 2.4, 0.9
-    if actor.kind == "mlp":
-        _box(ax, 5, 6.0, 4.0, 3.2, f"trunk\n{d}→{h}→{h}, ReLU\n{parts['one_expert'][0]:,} params", "#cfe2f3")
-        _arrow(ax, 5, 9.05, 5, 7.6)
-        _arrow(ax, 5, 4.4, 5, head_y + 0.4)
-    else:
-        e = actor.gate.n_experts
-        xs = [2.2 + i * 2.8 for i in range(e)]
-        sparse = actor.gate.sparse
-        for i, x in enumerate(xs):
-            chosen = (not sparse) or i == 1
-            color = "#cfe2f3" if chosen else "#f3f3f3"
-            _box(ax, x, 5.6, 2.4, 1.6, f"expert {i + 1}\n{d}→{h}→{h}\n{parts['one_expert'][0]:,}", color, fontsize=7)
-            _arrow(ax, 5, 9.05, x, 6.4, dashed=not chosen)
-            _arrow(ax, x, 4.8, 5, 4.05, dashed=not chosen)
-        lines = [f"router {d}→{e} ({parts['router'][0]})"]
-        if actor.gate.noise == "learned":
-            lines += [f"noise gate {d}→{e} ({parts['noise_gate'][0]})", "z/τ + ε·softplus(z$_n$)", "softmax, keep top-1"]
-        elif actor.gate.noisy:
-            lines += [f"z/τ + σε ({actor.gate.noise} σ)", "softmax, keep top-1"]
-        elif sparse:
-            lines += ["softmax(z/τ)", "keep top-1"]
-        else:
-            lines += ["softmax(z/τ)", "mix all experts"]
-        _box(ax, 9.5, 8.2, 3.1, 1.7, "\n".join(lines), "#fce5cd", fontsize=6.5)
-        _arrow(ax, 6.8, 9.4, 7.95, 9.0)
-        _box(ax, 5, 3.7, 3.6, 0.7, "Σ$_j$ w$_j$ · features$_j$", "#d9ead3", fontsize=7.5)
-        ax.plot([10.6, 10.6], [7.35, 3.7], color="#b45f06", lw=0.8)
-        _arrow(ax, 10.6, 3.7, 6.8, 3.7, color="#b45f06")
-        ax.text(10.5, 4.9, "gate\nweights", ha="right", va="center", fontsize=6, color="#b45f06")
-        _arrow(ax, 5, 3.35, 5, head_y + 0.4)
-        if spec.plasticity != "none":
-            _box(ax, 9.3, 1.5, 3.1, 1.3, "phase controller\n(0 params): τ, log σ,\nexpert noise, LR, KL", "#ead1dc", fontsize=6)
-            ax.plot([9.3, 9.3], [2.15, 7.35], color="#741b47", lw=0.8, ls="--")
-            _arrow(ax, 7.75, 1.7, 6.85, head_y, dashed=True, color="#741b47")
-    _box(ax, 5, head_y, 3.7, 0.8, f"shared head {h}→2 ({parts['head'][0]})\n+ log σ ({parts['log_std'][0]})", "#d9d2e9", fontsize=7)
-    _arrow(ax, 5, head_y - 0.4, 5, out_y + 0.35)
-    _box(ax, 5, out_y, 3.4, 0.7, "a ~ N(μ, diag σ²)", "#eeeeee")
-
-
-# %% [markdown]
 # ## Demonstration
 #
-# ### The registered methods
-#
-# The paper's four methods, in the order the figures use, with their network kind, plasticity
-# method and the paper's counts.
-
-# %%
-import pandas as pd
-
-from pemamoe.methods import METHOD_REGISTRY, method_names, proposed_method
-from pemamoe.nets import EXPERT_IMPLS, PAPER_OBS_DIM, NetConfig, make_actor, make_critic
-
-torch.manual_seed(seed)
-registry = pd.DataFrame([{k: v for k, v in spec.__dict__.items() if k != "plasticity_preset"}
-                         for spec in METHOD_REGISTRY.values()]).set_index("name")
-print(registry.to_string())
-assert method_names()[:4] == ("mlp", "moe", "smoe", "pemamoe") and proposed_method() == "pemamoe"
-
-# %% [markdown]
 # ### Three expert implementations, one function
 #
 # The same weights give the same outputs under the three execution strategies; the timing
 # comparison is in `benchmarks/bench_nets.py` (`make bench`).
 
 # %%
+from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.nets import EXPERT_IMPLS, PAPER_OBS_DIM, NetConfig, make_actor, make_critic
+
+torch.manual_seed(seed)
 cfg = NetConfig()
 x = torch.randn(64, PAPER_OBS_DIM)
 for kind in [m for m, spec in METHOD_REGISTRY.items() if spec.network != "mlp" and spec.plasticity == "none"]:
@@ -1106,21 +697,3 @@ with torch.no_grad():
     value, value_lb, probs = critics(torch.randn(3, n_rows, state_dim), tau)
 print("PPO ratios before any update, max |log ratio| =", f"{(logp_new - logp).abs().max().item():.1e}")
 print("member load-balance losses:", [round(v, 3) for v in lb.tolist()], "; values", tuple(value.shape))
-
-# %% [markdown]
-# ### Timing an agent step
-#
-# `time_forward` on this machine, at batch 1 (an agent step) and at a rollout-sized batch. The
-# numbers depend on the machine and its load; the cost table of notebook 05 reports them beside the
-# counts.
-
-# %%
-from pemamoe.core import by_scale
-from pemamoe.netcost import time_forward, time_train_step
-
-repeats = by_scale(scale, ci=3, small=20, paper=50)
-for kind in ("mlp", "smoe"):
-    actor = make_actor(kind, PAPER_OBS_DIM, 2, cfg)
-    print(f"{kind:<5} act: batch 1 {time_forward(actor, 1, repeats=repeats):8.1f} us, "
-          f"batch 2048 {time_forward(actor, 2048, repeats=repeats):9.1f} us; "
-          f"train step at 256 rows {time_train_step(actor, 256, repeats=repeats):9.1f} us")

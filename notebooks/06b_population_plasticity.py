@@ -119,7 +119,7 @@ import torch.nn.functional as F
 
 from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
 
-GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
+GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05e), in group_index's order
 
 
 class RunAdamW:
@@ -681,7 +681,7 @@ assert all(torch.equal(method.actor.flat[r], one.actor.flat[0]) for r, one in en
 print(f"{R} members: schedules and switch-time noise equal each member's alone over {demo_base.total_iterations} iterations")
 
 # %% [markdown]
-# **The registry.** The trainer finds a method by the name a `MethodSpec` gives (appendix 05b);
+# **The registry.** The trainer finds a method by the name a `MethodSpec` gives (appendix 05e);
 # an unknown name is an error listing the known ones.
 
 # %%

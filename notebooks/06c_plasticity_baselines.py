@@ -37,7 +37,7 @@
 # population through that member's row only, with draws from the member's own generator, so a
 # member trains bit for bit as it would alone.
 #
-# The registry (appendix 05b) pairs each with the MLP and with the SMoE network: `mlp_redo`,
+# The registry (appendix 05e) pairs each with the MLP and with the SMoE network: `mlp_redo`,
 # `smoe_redo`, `mlp_snp` and `smoe_snp`. They are registered with `compared=False`: a sweep runs
 # them when named (`python -m pemamoe sweep --methods smoe_redo smoe_snp pemamoe`), and the
 # paper's comparison stays the paper's four methods.

@@ -39,7 +39,7 @@ seed = 0
 # that run's own config.
 #
 # Which methods exist, in which order, with which label and colour, comes from the method registry
-# (`pemamoe.methods`, appendix 05b): a method registered by outside code (a plugin) appears in every
+# (`pemamoe.methods`, appendix 05e): a method registered by outside code (a plugin) appears in every
 # figure below without a change here.
 
 # %%

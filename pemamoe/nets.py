@@ -16,8 +16,8 @@ from torch.distributions import Independent, Normal
 from pemamoe.core import require_field
 from pemamoe.methods import METHOD_REGISTRY, load_plugins
 
-# The machinery of appendix 05b (the network-kind registry, the expert bank, the batched building
-# blocks of the forward, the population), used by the classes below and re-exported from here:
+# The machinery of appendices 05e (the network-kind registry) and 05b (the expert bank, the batched
+# building blocks of the forward, the population), used by the classes below and re-exported here:
 from pemamoe.methods import (ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS, NETWORKS, check_param_groups,  # re-export
                              network_kind, register_network)
 from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationActor, PopulationCritic,  # re-export  # noqa: F401

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
 
-GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05b), in group_index's order
+GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05e), in group_index's order
 
 
 class RunAdamW:
