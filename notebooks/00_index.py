@@ -50,8 +50,10 @@
 # | (appendix to IV-A) the registries of methods and network kinds | `05e_methods.py` | `pemamoe/methods.py` | |
 # | (appendix to IV-A) parameter and compute counts, latency, the cost table's code | `05f_netcost.py` | `pemamoe/netcost.py` | |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
-# | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry), AdamW over the run axis, plasticity diagnostics (VI-F) | `06b_population_plasticity.py` | `pemamoe/plasticity.py`, `pemamoe/optim.py`, `pemamoe/diagnostics.py` | |
+# | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry) | `06b_population_plasticity.py` | `pemamoe/plasticity.py` | |
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |
+# | (appendix) AdamW over the run axis: per-member learning rates, moments, resets and freezes | `06d_optim.py` | `pemamoe/optim.py` | |
+# | (appendix) the plasticity diagnostics (VI-F): feature rank, dormant units, routers, mean action | `06e_diagnostics.py` | `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
 # | (appendix to IV-B) the run's configuration: its fields and checks, its identity, the presets | `07c_train_config.py` | `pemamoe/train_config.py` | |
@@ -105,7 +107,7 @@
 # * **Switch Transformer** (Fedus, Zoph and Shazeer, 2022): top-1 routing and the load-balancing
 #   loss that keeps experts in use, the gating of the SMoE and PE-MAMoE actors.
 # * **Dormant neurons** (Sokar et al., 2023, "The Dormant Neuron Phenomenon in Deep RL"): the
-#   τ-dormant score that appendix 06b measures as the plasticity indicator.
+#   τ-dormant score that appendix 06e measures as the plasticity indicator.
 # * **rliable** (Agarwal et al., 2021, "Deep RL at the Edge of the Statistical Precipice"): IQM
 #   with stratified-bootstrap intervals, how notebooks 09 and 10 compare methods across seeds.
 

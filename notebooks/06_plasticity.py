@@ -364,7 +364,7 @@ def expert_parameters(actor, expert: int) -> list:
 # not enough at all: Adam keeps applying its momentum for several steps after the gradient
 # vanishes, and AdamW's decoupled weight decay shrinks a parameter every step whether or not it has
 # a gradient. So while the controller reports `router_frozen`, the trainer passes the optimizer a
-# mask of frozen groups (`RunAdamW.step(lr, stepping, frozen)`, `pemamoe.optim`, appendix 06b):
+# mask of frozen groups (`RunAdamW.step(lr, stepping, frozen)`, `pemamoe.optim`, appendix 06d):
 # the policy router's group (with its noise gate) gets no moment update, no weight decay and no
 # step count, and its gradient is zeroed before the gradient-norm clip, so that it does not take a
 # share of the other parameters' clipping budget. A frozen router still *routes*: the forward pass is

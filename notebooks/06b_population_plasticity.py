@@ -11,27 +11,21 @@
 # ---
 
 # %% [markdown]
-# # 06b · Appendix: plasticity methods for a population of runs, and the plasticity diagnostics
+# # 06b · Appendix: plasticity methods for a population of runs
 #
 # Notebook 06 gives the phase controller's mechanisms and the controller itself, `PhaseController`,
-# read for one run; all of it is one module, `pemamoe/phase_controller.py`. This appendix holds the
-# bookkeeping around it that the trainer of notebook 07 needs, and a reader of the method can skip:
+# read for one run; all of it is one module, `pemamoe/phase_controller.py`. This appendix holds
+# what every plasticity method shares, which the trainer of notebook 07 needs and a reader of the
+# method can skip, in `pemamoe/plasticity.py`: the PPO schedule (`BaseSchedule`), the
+# **interface** every plasticity method implements, the baselines' `NoPlasticity`, the registry
+# (`register_plasticity`, `plasticity_method`) through which the trainer and plug-ins find a
+# method by name, and `population_method`, which builds a method on a population outside the
+# trainer (notebook 06's demonstrations, the theory check of notebook 08, the tests). The
+# optimizer over the run axis (`RunAdamW`) is appendix 06d's, the plasticity diagnostics appendix
+# 06e's.
 #
-# * what every plasticity method shares, in `pemamoe/plasticity.py`: the PPO schedule
-#   (`BaseSchedule`), the **interface** every plasticity method implements, the baselines'
-#   `NoPlasticity`, the registry (`register_plasticity`, `plasticity_method`) through which the
-#   trainer and plug-ins find a method by name, and `population_method`, which builds a method on a
-#   population outside the trainer (notebook 06's demonstrations, the theory check of notebook 08,
-#   the tests);
-# * `RunAdamW`, AdamW over a population's stacked parameters with per-member learning rates,
-#   moments and step counts (so one member's Adam reset or router freeze leaves the others alone),
-#   and `group_index`, which maps each parameter to its optimizer group: `pemamoe/optim.py`;
-# * the **plasticity diagnostics** the paper plots (feature rank, dormant units, router
-#   probabilities, mean action), exported to `pemamoe/diagnostics.py`.
-#
-# The demonstrations check that `RunAdamW` makes AdamW's step, that a member's switch and schedules
-# do not depend on the population it trains in, and show a switch on a real actor with the
-# diagnostics before and after.
+# The demonstrations check that a member's switch and schedules do not depend on the population
+# it trains in, and show a switch on a real actor with the diagnostics before and after.
 
 # %%
 #| default_exp plasticity
@@ -86,179 +80,6 @@ from pemamoe.popnets import PopulationActor, PopulationCritic
 # the nine mechanisms each still switchable for the ablations. A new method subclasses
 # `NoPlasticity`, overrides the hooks it needs and registers itself with `register_plasticity`;
 # CONTRIBUTING.md shows shrink-and-perturb in a dozen lines.
-
-# %% [markdown]
-# ## AdamW for a population
-#
-# The trainer keeps a population's parameters as one (R, P) tensor, so one optimizer step updates
-# every member at once. `RunAdamW` is `torch.optim.AdamW`'s update (decoupled weight decay, bias
-# correction) written over that tensor, with what a plasticity method needs per member: its own
-# learning rate, moments and step counts per parameter group, a `stepping` mask (a member that
-# stopped early on its KL budget does not move), a `frozen` mask per member and group (the router
-# freeze), and `reset(member)` (the Adam reset). Where a member does not step, its parameters,
-# moments and step counts stay bit-identical. `group_index` assigns each parameter of the flat row
-# to the actor's `param_groups()` group. Both are the module `pemamoe.optim`, which knows nothing of
-# plasticity methods.
-#
-# **A partial reset.** `reset(member, mask)` forgets the moments of the masked entries only (ReDo,
-# appendix 06c, resets the weights of a few recycled units). Their bias correction must then start
-# again as well: with the moments at zero and the group's count $t$ kept, the first step would be
-# $\mathrm{lr}\,(1-\beta_1)g / \sqrt{(1-\beta_2)g^2} \approx 3.2\,\mathrm{lr}$, growing to about
-# $6.5\,\mathrm{lr}$ ten steps later, instead of a fresh Adam's $\mathrm{lr}$. So a masked entry
-# gets a clock of its own: `RunAdamW` remembers its group's count at the reset (`clock_offset`)
-# and corrects with the count since then, exactly what a fresh `torch.optim.AdamW` on those
-# entries would do. The group's count is untouched, so the other entries of the group go on as
-# before; only where the mask covers a whole group is that group's count set back to zero (a
-# reset of everything is the plain Adam reset). Until the first partial reset there is no clock
-# offset, and the update is the one above, bit for bit.
-
-# %%
-#| export optim
-import torch
-import torch.nn.functional as F
-
-from pemamoe.methods import ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS
-
-GROUP_NAMES = ACTOR_PARAM_GROUPS + CRITIC_PARAM_GROUPS  # the networks' declared groups (05e), in group_index's order
-
-
-class RunAdamW:
-    """AdamW over a population's flat parameters (R, P), every member with its own learning
-    rate, step counts and moments; same update as torch.optim.AdamW (decoupled weight decay).
-
-    `group_of` (P,) assigns each parameter to one of G groups (step counts are per member and
-    group, as torch keeps them per parameter). `step(lr, stepping, frozen)` updates member r only
-    where stepping[r] and the group is not frozen[r, g]; elsewhere parameters, moments and step
-    counts stay bit-identical. `reset(r, mask)` forgets member r's moments where `mask` is True and
-    restarts their bias correction there (see `reset`).
-    """
-
-    def __init__(self, flat: torch.Tensor, group_of: torch.Tensor, n_groups: int, betas=(0.9, 0.999),
-                 eps: float = 1e-5, weight_decay: float = 0.0):
-        self.flat = flat
-        self.group_of = group_of.to(flat.device)
-        self.n_groups = int(n_groups)
-        self.beta1, self.beta2 = float(betas[0]), float(betas[1])
-        self.eps, self.weight_decay = float(eps), float(weight_decay)
-        R = flat.shape[0]
-        self.exp_avg = torch.zeros_like(flat, requires_grad=False)
-        self.exp_avg_sq = torch.zeros_like(flat, requires_grad=False)
-        self.steps = torch.zeros(R, self.n_groups, dtype=flat.dtype, device=flat.device)
-        # (R, P): the group's step count at each entry's last partial reset (None until one happens)
-        self.clock_offset = None
-
-    @torch.no_grad()
-    def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
-        """lr (R,), stepping (R,) bool, frozen (R, G) bool or None. Uses and clears flat.grad."""
-        p, grad = self.flat, self.flat.grad
-        lr = lr.to(p.dtype).unsqueeze(1)
-        active_g = stepping.unsqueeze(1).expand(-1, self.n_groups)
-        if frozen is not None:
-            active_g = active_g & ~frozen
-        steps = self.steps + active_g.to(self.steps.dtype)
-        cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
-        if self.clock_offset is not None:  # entries reset on their own count from their reset (see reset)
-            onehot = self._onehot()
-            active = (active_g.to(p.dtype) @ onehot) > 0.5
-            safe = (steps.to(p.dtype) @ onehot - self.clock_offset).clamp(min=1)
-            step_size = lr / (1 - self.beta1 ** safe)
-            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
-        elif self.n_groups == 1 or (cpu and frozen is None and bool((steps == steps[:, :1]).all())):
-            # every group of a member has the same step count: (R, 1) factors broadcast
-            active = stepping.unsqueeze(1)
-            safe = steps[:, :1].clamp(min=1)
-            step_size = lr / (1 - self.beta1 ** safe)
-            bc2_sqrt = (1 - self.beta2 ** safe).sqrt()
-        else:  # per-element factors: group values spread by a one-hot product (exact: x * 1 + 0)
-            onehot = self._onehot()
-            active = (active_g.to(p.dtype) @ onehot) > 0.5
-            safe = steps.clamp(min=1)
-            step_size = (lr / (1 - self.beta1 ** safe)).to(p.dtype) @ onehot
-            bc2_sqrt = (1 - self.beta2 ** safe).sqrt().to(p.dtype) @ onehot
-        if cpu and frozen is None and bool(stepping.all()):
-            # the usual case, in place (on the CPU the check costs nothing; on a GPU it would sync)
-            p.mul_(1 - lr * self.weight_decay)
-            self.exp_avg.lerp_(grad, 1 - self.beta1)
-            self.exp_avg_sq.mul_(self.beta2).add_((1 - self.beta2) * grad * grad)
-            p.sub_(step_size * self.exp_avg / (self.exp_avg_sq.sqrt() / bc2_sqrt + self.eps))
-        else:
-            m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
-            v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
-            new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
-            p.copy_(torch.where(active, new, p))
-            self.exp_avg, self.exp_avg_sq = m, v
-        self.steps = steps
-        self.flat.grad = None
-
-    def _onehot(self) -> torch.Tensor:
-        if getattr(self, "_onehot_cache", None) is None:
-            self._onehot_cache = F.one_hot(self.group_of, self.n_groups).T.to(self.flat.dtype).contiguous()
-        return self._onehot_cache
-
-    @torch.no_grad()
-    def reset(self, member: int, mask: torch.Tensor | None = None) -> None:
-        """The Adam reset of a plasticity method, for one member; the other members stay bit-identical.
-
-        mask None: forget all of member's moments and step counts. mask (P,) bool, or a tensor of
-        flat indices: forget the moments of those entries only, and restart their bias correction
-        (they count their steps from now, as a fresh AdamW would); a group's step count is set
-        back to zero only where the mask covers the whole group, so the group's other entries go
-        on exactly as before."""
-        if mask is None:
-            self.exp_avg[member].zero_()
-            self.exp_avg_sq[member].zero_()
-            self.steps[member].zero_()
-            if self.clock_offset is not None:
-                self.clock_offset[member].zero_()
-            return
-        mask = torch.as_tensor(mask, device=self.flat.device)
-        if mask.dtype != torch.bool:  # flat indices
-            mask = torch.zeros(self.flat.shape[1], dtype=torch.bool, device=self.flat.device).index_fill_(0, mask.reshape(-1), True)
-        if mask.shape != self.flat.shape[1:]:
-            raise ValueError(f"RunAdamW.reset: mask must have shape ({self.flat.shape[1]},), got {tuple(mask.shape)}")
-        self.exp_avg[member].masked_fill_(mask, 0.0)
-        self.exp_avg_sq[member].masked_fill_(mask, 0.0)
-        hit = torch.bincount(self.group_of[mask], minlength=self.n_groups)
-        whole = hit == torch.bincount(self.group_of, minlength=self.n_groups)
-        self.steps[member, whole] = 0.0
-        partial = mask & ~whole[self.group_of]
-        if self.clock_offset is None and bool(partial.any()):
-            self.clock_offset = torch.zeros_like(self.exp_avg)
-        if self.clock_offset is not None:
-            self.clock_offset[member, whole[self.group_of]] = 0.0
-            self.clock_offset[member, partial] = self.steps[member][self.group_of[partial]]
-
-    def member_state(self, r: int) -> dict:
-        state = {"exp_avg": self.exp_avg[r].detach().cpu().clone(), "exp_avg_sq": self.exp_avg_sq[r].detach().cpu().clone(),
-                 "steps": self.steps[r].detach().cpu().clone()}
-        if self.clock_offset is not None:  # only after a partial reset: other checkpoints keep their keys
-            state["clock_offset"] = self.clock_offset[r].detach().cpu().clone()
-        return state
-
-    @torch.no_grad()
-    def load_member_state(self, r: int, state: dict) -> None:
-        if "clock_offset" in state and self.clock_offset is None:
-            self.clock_offset = torch.zeros_like(self.exp_avg)
-        if self.clock_offset is not None and "clock_offset" not in state:
-            self.clock_offset[r].zero_()
-        for name in ("exp_avg", "exp_avg_sq", "steps") + (("clock_offset",) if "clock_offset" in state else ()):
-            target = getattr(self, name)[r]
-            if tuple(state[name].shape) != tuple(target.shape):
-                raise ValueError(f"optimizer state {name!r} has shape {tuple(state[name].shape)}, expected {tuple(target.shape)}")
-            target.copy_(state[name].to(target.device))
-
-
-def group_index(module, layout, group_names=GROUP_NAMES) -> tuple:
-    """(group_of (P,) long, names): each parameter of `module` to its param_groups() group."""
-    by_id = {id(p): g for g, params in module.param_groups().items() for p in params}
-    names = [g for g in group_names if any(by_id.get(id(p)) == g for p in module.parameters())]
-    group_of = torch.zeros(layout.size, dtype=torch.long)
-    params = dict(module.named_parameters())
-    for name in layout.names:
-        a, b = layout.span(name)
-        group_of[a:b] = names.index(by_id[id(params[name])])
-    return group_of, names
-
 
 # %% [markdown]
 # ## The shared PPO schedule
@@ -607,29 +428,6 @@ def population():
     return singles, actor, critic, actor_opt, critic_opt, names
 
 # %% [markdown]
-# **`RunAdamW` makes AdamW's step.** Member 0 against `torch.optim.AdamW` on a copy of its actor,
-# fed the same gradients; member 2 does not step and must stay bit-identical.
-
-# %%
-singles, actor, critic, actor_opt, critic_opt, names = population()
-single = copy.deepcopy(singles[0][0])
-torch_opt = torch.optim.AdamW(single.parameters(), lr=1e-3, eps=1e-5, weight_decay=1e-4)
-start = actor.flat.detach().clone()
-g = torch.Generator().manual_seed(seed)
-for _ in range(5):
-    grad = torch.randn(actor.flat.shape, generator=g)
-    actor.flat.grad = grad.clone()
-    actor_opt.step(torch.full((R,), 1e-3, dtype=torch.float64), torch.tensor([True, True, False]))
-    for name, p in single.named_parameters():
-        a, b = actor.layout.span(name)
-        p.grad = grad[0, a:b].reshape(p.shape).clone()
-    torch_opt.step()
-gap = float((actor.flat[0].detach() - actor.layout.flatten([single])[0]).abs().max())
-print(f"largest difference to torch.optim.AdamW after 5 steps: {gap:.2e}; step counts per group {actor_opt.steps.tolist()}")
-assert gap < 1e-6
-assert torch.equal(actor.flat[2].detach(), start[2]) and actor_opt.steps[2].sum() == 0
-
-# %% [markdown]
 # **A switch acts on its own member only.** The moments are filled with ones and the log-stds
 # narrowed first, so that the resets show; then one switch.
 
@@ -695,190 +493,6 @@ else:
     raise AssertionError("an unknown plasticity method must be refused")
 
 # %% [markdown]
-# ## Plasticity diagnostics
-#
-# The paper reads plasticity off two signals, the rank of the expert features and the fraction
-# of dormant units, and it plots the routers' expert probabilities and the mean action around the
-# switches. All are computed on a **fixed probe batch** (the same observations every time), so a
-# change in a curve is a change in the network, not in the data.
-#
-# **Feature rank.** For expert $j$, stack its last hidden layer (post-ReLU, the 32 features it
-# hands to the head) over the $B$ probe observations into $A \in \mathbb R^{B\times 32}$, with
-# singular values $\sigma_1 \ge \sigma_2 \ge \dots$. Every expert sees every probe row, whether or
-# not the router would pick it, so that the rank measures what the expert *can* represent. Three
-# summaries:
-#
-# * stable rank $\|A\|_F^2 / \|A\|_2^2 = \sum_i \sigma_i^2 / \sigma_1^2$: smooth, dominated by the
-#   largest directions;
-# * effective rank (Roy & Vetterli, 2007) $\exp\big(-\sum_i p_i \log p_i\big)$ with
-#   $p_i = \sigma_i / \sum_k \sigma_k$;
-# * $\mathrm{srank}_\delta$ (Kumar et al., 2021): the smallest $k$ with
-#   $\sum_{i\le k}\sigma_i \ge (1-\delta)\sum_i \sigma_i$, $\delta = 0.01$.
-#
-# All three equal $n$ for an $n\times n$ identity and 1 for a rank-one matrix (for srank with
-# $\delta = 0.01$, the identity reaches $n$ only while $n < 100$: beyond, dropping one of $n$ equal
-# values keeps 99 % of the sum). A zero matrix gets rank 0. The features are not centred.
-#
-# **Dormant units.** Two definitions, per layer of each expert:
-#
-# * *the paper's DNF*: unit $u$ is dormant when its mean absolute **pre-activation** over the
-#   batch is below a small $\delta$. The paper gives no $\delta$; we use $\delta = 0.01$, about 1 %
-#   of a typical pre-activation at initialisation. Note what this does and does not catch: a unit
-#   whose pre-activation sits near zero for every input, yes; a ReLU unit that is "dead" because its
-#   pre-activation is strongly *negative* for every input, no (its mean $|a|$ is large). So the
-#   paper's DNF is a measure of collapsed units rather than of dead ReLUs.
-# * *the $\tau$-dormant score* (Sokar et al., 2023), on the **post-activation** $h_u$:
-#   $s_u = \mathbb E|h_u| \,/\, \big(\tfrac1d\sum_k \mathbb E|h_k|\big)$, dormant when
-#   $s_u \le \tau = 0.025$. A dead ReLU has $s_u = 0$ and counts; the score is scale-free. A layer
-#   whose units are all silent counts as fully dormant.
-#
-# **Routers and actions.** Mean router probability per expert over the probe batch (noiseless
-# gating), for the policy router and, given probe global states, for the value router; also the
-# share of probe rows whose top choice is each expert. The MLP has one "expert" with probability 1.
-# The mean action is the policy mean $\mu(o)$ averaged over the probe batch (before the
-# environment clips actions to $[-1,1]$), per coordinate, with the policy's standard deviation
-# beside it.
-
-# %%
-#| export diagnostics
-import math
-
-import numpy as np
-import torch
-
-DORMANT_PAPER_DELTA = 0.01
-DORMANT_TAU = 0.025
-SRANK_DELTA = 0.01
-_AXES = ("x", "y", "z")
-
-
-def singular_values(a) -> np.ndarray:
-    """Singular values (descending, float64) of a 2-D matrix (tensor or array)."""
-    if isinstance(a, torch.Tensor):
-        a = a.detach().cpu().double().numpy()
-    a = np.asarray(a, dtype=float)
-    if a.ndim != 2:
-        raise ValueError(f"rank measures need a 2-D matrix (batch, features), got shape {a.shape}")
-    return np.linalg.svd(a, compute_uv=False)
-
-
-def stable_rank(a) -> float:
-    """||A||_F^2 / ||A||_2^2 (0 for a zero matrix)."""
-    s = singular_values(a)
-    return 0.0 if s.size == 0 or s[0] == 0 else float(np.sum(s**2) / s[0] ** 2)
-
-
-def effective_rank(a) -> float:
-    """Roy & Vetterli: exp of the entropy of the normalised singular values (0 for a zero matrix)."""
-    s = singular_values(a)
-    total = s.sum()
-    if total == 0:
-        return 0.0
-    p = s[s > 0] / total
-    return float(np.exp(-np.sum(p * np.log(p))))
-
-
-def srank(a, delta: float = SRANK_DELTA) -> int:
-    """Kumar et al.: smallest k with sum of the top-k singular values >= (1 - delta) * their total."""
-    if not 0 <= delta < 1:
-        raise ValueError(f"srank delta must be in [0, 1), got {delta!r}")
-    s = singular_values(a)
-    total = s.sum()
-    if total == 0:
-        return 0
-    cum = np.cumsum(s)
-    return int(np.searchsorted(cum, (1 - delta) * total * (1 - 1e-12)) + 1)
-
-
-def dormant_fraction_paper(preact, delta: float = DORMANT_PAPER_DELTA) -> float:
-    """The paper's DNF: share of units whose mean |pre-activation| over the batch is < delta. preact (B, d)."""
-    m = torch.as_tensor(preact).abs().double().mean(0)
-    return float((m < delta).double().mean())
-
-
-def dormant_fraction_tau(act, tau: float = DORMANT_TAU) -> float:
-    """Sokar et al.: share of units with E|h_u| / mean_k E|h_k| <= tau. act (B, d) post-activation."""
-    m = torch.as_tensor(act).abs().double().mean(0)
-    layer_mean = m.mean()
-    if layer_mean == 0:
-        return 1.0
-    return float((m / layer_mean <= tau).double().mean())
-
-
-def _axis(i: int, n: int) -> str:
-    return _AXES[i] if n <= len(_AXES) else str(i)
-
-
-@torch.no_grad()
-def plasticity_diagnostics(actor, critic=None, probe_obs=None, probe_state=None, temperature=None) -> dict:
-    """Flat {name: float} of rank, dormant, router and action statistics on fixed probe batches.
-
-    probe_obs (B, obs_dim) for the actor; probe_state (B, state_dim) for the value router (optional).
-    Names: rank/{stable,effective,srank}/expert{j} and /mean; dormant/{paper,tau}/expert{j}/layer{l},
-    /layer{l} (mean over experts) and /mean; router/policy/p{j}, router/policy/top{j};
-    router/value/p{j}, router/value/top{j}; action/mean_{x,y}, action/std_{x,y}.
-    """
-    if probe_obs is None:
-        raise ValueError("plasticity_diagnostics needs probe_obs")
-    out = {}
-    probe = actor.probe(probe_obs, temperature)
-    acts, pres = probe["act"], probe["preact"]  # per layer (E, B, hidden)
-    n_exp, n_layers = acts[0].shape[0], len(acts)
-    for name, fn in (("stable", stable_rank), ("effective", effective_rank), ("srank", srank)):
-        vals = [float(fn(acts[-1][j])) for j in range(n_exp)]
-        for j, v in enumerate(vals):
-            out[f"rank/{name}/expert{j}"] = v
-        out[f"rank/{name}/mean"] = float(np.mean(vals))
-    for name, fn, layers in (("paper", dormant_fraction_paper, pres), ("tau", dormant_fraction_tau, acts)):
-        per = np.array([[fn(layers[l][j]) for l in range(n_layers)] for j in range(n_exp)])
-        for j in range(n_exp):
-            for l in range(n_layers):
-                out[f"dormant/{name}/expert{j}/layer{l + 1}"] = float(per[j, l])
-        for l in range(n_layers):
-            out[f"dormant/{name}/layer{l + 1}"] = float(per[:, l].mean())
-        out[f"dormant/{name}/mean"] = float(per.mean())
-    _router_stats(out, "policy", probe["router_probs"], n_exp)
-    if critic is not None and probe_state is not None:
-        _, aux = critic(probe_state, temperature, None, deterministic_gate=True)
-        _router_stats(out, "value", aux["router_probs"], 1 if aux["router_probs"] is None else aux["router_probs"].shape[-1])
-    mean = probe["mean"].reshape(-1, probe["mean"].shape[-1])
-    std = actor.log_std.exp()
-    for i in range(mean.shape[-1]):
-        out[f"action/mean_{_axis(i, mean.shape[-1])}"] = float(mean[:, i].mean())
-        out[f"action/std_{_axis(i, mean.shape[-1])}"] = float(std[i])
-    return out
-
-
-def _router_stats(out: dict, which: str, probs, n_exp: int) -> None:
-    if probs is None:  # MLP: a single "expert" takes every row
-        out[f"router/{which}/p0"] = 1.0
-        out[f"router/{which}/top0"] = 1.0
-        return
-    probs = probs.reshape(-1, probs.shape[-1]).double()
-    mean = probs.mean(0)
-    top = torch.bincount(probs.argmax(-1), minlength=n_exp).double() / probs.shape[0]
-    for j in range(n_exp):
-        out[f"router/{which}/p{j}"] = float(mean[j])
-        out[f"router/{which}/top{j}"] = float(top[j])
-
-
-# %% [markdown]
-# Hand checks of the rank measures and dormant fractions against the statements above: an identity
-# has every rank equal to its size, a rank-one matrix 1, a zero matrix 0; a unit whose
-# pre-activation is strongly negative is not dormant for the paper's DNF but is for the
-# $\tau$-dormant score.
-
-# %%
-from pemamoe import diagnostics as dg
-
-eye, one = np.eye(8), np.outer(np.arange(1.0, 7.0), np.ones(5))
-for f in (dg.stable_rank, dg.effective_rank, dg.srank):
-    assert math.isclose(f(eye), 8) and math.isclose(f(one), 1) and f(np.zeros((4, 3))) == 0
-pre = torch.tensor([[-5.0, 1.0], [-4.0, 2.0]])  # unit 0: dead ReLU (always negative)
-print("dead ReLU unit -> paper DNF", dg.dormant_fraction_paper(pre), " tau-dormant", dg.dormant_fraction_tau(pre.relu()))
-assert dg.dormant_fraction_paper(pre) == 0.0 and dg.dormant_fraction_tau(pre.relu()) == 0.5
-
-# %% [markdown]
 # ## A switch on a real actor, and the diagnostics around it
 #
 # A fresh actor and critic from notebook 05 as a population of one, random probe observations, a
@@ -887,6 +501,8 @@ assert dg.dormant_fraction_paper(pre) == 0.0 and dg.dormant_fraction_tau(pre.rel
 # $\log 0.3$) and compare the diagnostics before and after.
 
 # %%
+from pemamoe import diagnostics as dg
+
 cfg = PhaseControllerConfig()
 g = torch.Generator().manual_seed(seed)
 n_probe = by_scale(scale, ci=256, small=1024, paper=2048)
@@ -971,15 +587,3 @@ print(table.to_string(float_format=lambda v: f"{v:.4g}"))
 # these perturbations do *over training* (rank peaks and dormant-fraction oscillations in sync with
 # the switches); that is measured by the trainer, which logs `plasticity_diagnostics` every
 # iteration, in notebooks 07 and 09.
-#
-# A last check across the network kinds: the diagnostics return the same kind of keys for all
-# (the MLP as a single expert).
-
-# %%
-from pemamoe.nets import NETWORKS
-
-for kind in NETWORKS:
-    a, c = make_actor(kind, obs_dim), make_critic(kind, state_dim)
-    d = dg.plasticity_diagnostics(a, c, probe_obs, probe_state)
-    print(f"{kind:8s} {len(d):3d} metrics  stable rank {d['rank/stable/mean']:.2f}  effective {d['rank/effective/mean']:.2f}"
-          f"  srank {d['rank/srank/mean']:.1f}  dormant(paper) {d['dormant/paper/mean']:.3f}  dormant(tau) {d['dormant/tau/mean']:.3f}")

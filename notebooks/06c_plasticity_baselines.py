@@ -21,7 +21,7 @@
 # * **ReDo** (Sokar et al., 2023, "The Dormant Neuron Phenomenon in Deep RL") recycles the units
 #   that have gone quiet. At every switch it measures, on a batch of recent observations, each
 #   hidden unit's $\tau$-dormant score $s_u = \mathbb E|h_u| / \big(\tfrac1d\sum_k \mathbb E|h_k|\big)$
-#   (the score that appendix 06b logs as `dormant/tau`), and for every unit with $s_u \le \tau$ it
+#   (the score that appendix 06e defines and the trainer logs as `dormant/tau`), and for every unit with $s_u \le \tau$ it
 #   re-initialises the unit's incoming weights and bias, zeroes its outgoing weights, and resets
 #   the Adam moments of both. The zeroed outgoing weights leave the network's output as it was at
 #   the moment of recycling; the fresh incoming weights let the unit learn again.
@@ -170,7 +170,7 @@ def dormant_units(act: torch.Tensor, tau: float) -> torch.Tensor:
 # actor drawn from the member's own generator. Re-initialised entries are written first and zeroed
 # ones last, so an `fc2` weight that is both the outgoing weight of a recycled layer-1 unit and an
 # incoming weight of a recycled layer-2 unit ends at zero. `RunAdamW.reset(r, mask)` forgets the
-# moments of every entry touched and restarts their bias correction (appendix 06b).
+# moments of every entry touched and restarts their bias correction (appendix 06d).
 
 # %%
 #| export

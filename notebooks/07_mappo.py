@@ -484,7 +484,7 @@ def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps:
 # Stable-Baselines3. CleanRL checks the same quantity only at epoch ends; checking every minibatch
 # keeps the policy inside the trust region at a finer grain.
 #
-# **Parameter groups.** `RunAdamW` (appendix 06b, `pemamoe.optim`) knows five named groups,
+# **Parameter groups.** `RunAdamW` (appendix 06d, `pemamoe.optim`) knows five named groups,
 # `router`, `experts`, `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller
 # sets each group's learning rate every iteration (the LR drop and warm-up after a switch, a frozen
 # router), clears Adam's moments at a switch and perturbs the experts; the trainer never sets a
@@ -737,7 +737,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # %% [markdown]
 # ## Probe batch, checkpoints and the training loop
 #
-# The plasticity diagnostics of appendix 06b need a **fixed** probe batch, so that a change in
+# The plasticity diagnostics of appendix 06e need a **fixed** probe batch, so that a change in
 # expert rank or dormant fraction reflects the network and not the data. `collect_probe` draws it
 # once per run from a separate copy of the environment (its own seed, random actions, a third of
 # the rows from each phase); it depends only on the config, so a resumed run rebuilds the same one.

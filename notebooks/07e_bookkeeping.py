@@ -57,7 +57,7 @@ from pemamoe.train_config import TrainConfig
 # rate of every parameter group and the schedule the phase controller handed out, the log-std and
 # the value normaliser's mean and standard deviation, and, for sparse gating, the share of rollout
 # rows routed to each expert. Then come the plasticity method's own columns (a method may not
-# reuse a trainer column: that is an error naming them), the diagnostics of appendix 06b on the
+# reuse a trainer column: that is an error naming them), the diagnostics of appendix 06e on the
 # iterations that take them (every `diag_every`-th, each switch and the last) and the timing
 # columns. The row joins the member's log, and the episodes that ended join its episode log. For
 # the population as a whole it keeps a `Progress` report (appendix 00b: a bar in a terminal, plain

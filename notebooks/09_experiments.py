@@ -442,7 +442,7 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
 # ## Plasticity indicators
 #
 # Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
-# trunk), and the dormant-neuron fraction under both definitions of appendix 06b, averaged over
+# trunk), and the dormant-neuron fraction under both definitions of appendix 06e, averaged over
 # layers and experts: the **paper's** (a unit whose mean absolute pre-activation is below
 # δ = 0.01) and **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025). They
 # measure different things (collapsed units versus silent ones), so the figure shows both.
