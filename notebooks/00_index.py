@@ -40,9 +40,13 @@
 # |---|---|---|---|
 # | III-B channel model | `01_channel.py` | `pemamoe/channel.py` | `channel_*` figures |
 # | III-C energy model | `02_energy.py` | `pemamoe/energy.py` | `energy_power_vs_speed` |
-# | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py`, `pemamoe/phases.py` | `mobility_*`, `phases_schedules` |
-# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py`, `pemamoe/env.py` | reward anatomy table |
-# | (appendix to III-E) the compiled step engine, the random streams, the PettingZoo wrappers | `04b_engine.py` | `pemamoe/env_kernel.py`, `pemamoe/streams.py`, `pemamoe/env_wrappers.py` | |
+# | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py` | `mobility_*`, `phases_schedules` |
+# | (appendix to III-D) the phase table and the phase clock in code | `03b_phases.py` | `pemamoe/phases.py` | |
+# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py` | reward anatomy table |
+# | (appendix to III-E) the compiled step engine | `04b_engine.py` | `pemamoe/env_kernel.py` | |
+# | (appendix to III-E) one random stream per environment, read as a batch | `04c_streams.py` | `pemamoe/streams.py` | |
+# | (appendix to III-E) the vector and PettingZoo wrappers, rendering, reference policies | `04d_env_wrappers.py` | `pemamoe/env_wrappers.py` | |
+# | (appendix to III-E) `pemamoe.env`, the module outside code imports | `04e_env.py` | `pemamoe/env.py` | |
 # | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
 # | (appendix to IV-A) the expert bank's execution strategies, the run axis | `05b_population_nets.py` | `pemamoe/popnets.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |

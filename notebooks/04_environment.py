@@ -39,9 +39,10 @@
 # * **Randomness.** Every environment owns its random streams. A batch of B environments stepped at
 #   once draws, for environment b, exactly the numbers a single environment with the same seed would
 #   draw, so the batched environment the trainer uses and the PettingZoo environment are the same
-#   dynamics, bit for bit. The streams (`BatchRandom`), the compiled engine and the wrappers that
-#   turn the batched core into the public environments live in the appendix notebook
-#   `04b_engine.py`; this notebook only calls them.
+#   dynamics, bit for bit. The streams (`BatchRandom`, appendix `04c_streams.py`), the compiled
+#   engine (`04b_engine.py`), the wrappers that turn the batched core into the public environments
+#   (`04d_env_wrappers.py`) and the module outside code imports (`04e_env.py`) are appendices;
+#   this notebook only calls them.
 
 # %%
 #| default_exp env_model
@@ -75,7 +76,7 @@ from pemamoe.core import config_error, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
-from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04b)
+from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04c)
 
 # %% [markdown]
 # ## One configuration object
@@ -639,11 +640,11 @@ class UAVBatchCore:
 # %% [markdown]
 # ## The environments the trainer and outside code use
 #
-# Two thin wrappers of the core are the public environments. Both live in appendix 04b (module
+# Two thin wrappers of the core are the public environments. Both live in appendix 04d (module
 # `pemamoe.env_wrappers`), with the renderer, `compile_step_kernels` and the reference policies
-# (`HEURISTICS`, `rollout_heuristic`). The cells above export the model to `pemamoe.env_model`; the
-# cell below is the module `pemamoe.env`, the one outside code imports: it sits on top of the model
-# and the wrappers, re-exports both, and builds the two environments:
+# (`HEURISTICS`, `rollout_heuristic`). The cells above export the model to `pemamoe.env_model`;
+# outside code imports `pemamoe.env` (appendix 04e), which sits on top of the model and the
+# wrappers, re-exports both, and builds the two environments:
 #
 # * `make_vector_env(num_envs, seed)` returns a `UAVVectorEnv`, the batched environment the trainer
 #   uses: B environments stepped in one process (obs `(B, U, obs_dim)`, state `(B, state_dim)`),
@@ -656,47 +657,7 @@ class UAVBatchCore:
 #   (alias `raw_env`) is the same environment as an AEC env, through PettingZoo's `parallel_to_aec`.
 #
 # Only the second needs PettingZoo and Gymnasium: `pemamoe.env`, and with it the trainer, imports
-# without them (appendix 04b says how), and `make_env` says what to install where they are missing.
-
-# %%
-#| export env
-from pemamoe.core import require
-from pemamoe.env_model import (  # re-export: the model above
-    STEP_ENGINES, EnvConfig, Schedule, UAVBatchCore, build_observations, colour_weights, observation_dim,
-    observation_layout, pair_distances, realised_rates, reward_terms, schedule_users, slot_draws, state_dim)
-from pemamoe.env_wrappers import (  # re-export: the public environments, rendering, reference policies (appendix 04b)
-    HEURISTICS, UAVParallelEnv, UAVVectorEnv, compile_step_kernels, hover_policy, kmeans_policy, random_policy,
-    render_frame, rollout_heuristic, vector_seeds)
-from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04b)
-
-
-def make_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
-    """The PettingZoo ParallelEnv, with any EnvConfig value overridden by keyword."""
-    return UAVParallelEnv(EnvConfig.from_overrides(**overrides), render_mode=render_mode)
-
-
-def parallel_env(render_mode: str | None = None, **overrides) -> UAVParallelEnv:
-    """PettingZoo's name for the parallel constructor: the same as make_env."""
-    return make_env(render_mode, **overrides)
-
-
-def aec_env(render_mode: str | None = None, **overrides):
-    """The environment as a PettingZoo AEC env (agents act in turn), via PettingZoo's parallel_to_aec."""
-    from pettingzoo.utils.conversions import parallel_to_aec  # here, not at load: the trainer needs no PettingZoo
-
-    return parallel_to_aec(make_env(render_mode, **overrides))
-
-
-raw_env = aec_env  # PettingZoo's usual name for the AEC constructor
-
-
-def make_vector_env(num_envs: int = 16, seed: int | None = 0, **overrides) -> UAVVectorEnv:
-    """B environments in one process; member i behaves as make_env(...) reset with seed + i.
-
-    seed: a non-negative integer, or None for fresh entropy."""
-    num_envs = require("make_vector_env", "num_envs", num_envs, "int", ge=1)
-    seed = require("make_vector_env", "seed", seed, "int", ge=0, optional=True)
-    return UAVVectorEnv(num_envs, seed, **overrides)
+# without them (appendix 04d says how), and `make_env` says what to install where they are missing.
 
 
 # %% [markdown]
@@ -709,6 +670,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from pemamoe.core import by_scale, save_figure, write_table
+from pemamoe.env import make_env, rollout_heuristic
 
 env = make_env(render_mode="rgb_array")
 obs, infos = env.reset(seed=seed)
@@ -739,7 +701,7 @@ plt.show()
 # others by accident. The table gives the per-slot mean and standard deviation of each term and
 # metric under the random policy and the k-means heuristic, in each phase (the phase is held fixed
 # per row with `phase_clock="external"`).
-# The policies are the three non-learning references of appendix 04b: `random` (uniform
+# The policies are the three non-learning references of appendix 04d: `random` (uniform
 # actions), `hover` (stay put) and `kmeans`, which flies each UAV toward the centroid of the
 # users nearest to it, as a wireless engineer would place them first.
 

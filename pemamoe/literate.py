@@ -9,8 +9,8 @@ Directives use nbdev's syntax, on the first lines of a code cell:
 ``#| default_exp channel``  once per notebook: the module this notebook exports to.
 ``#| export``               the cell goes to the module; its public names go to ``__all__``.
 ``#| exporti``              the cell goes to the module, nothing of it goes to ``__all__``.
-``#| export phases``        either form with a module name sends the cell to that module instead
-                            (one notebook may explain two closely related modules).
+``#| export phases``        either form may name the module, which must then be the notebook's
+                            own: a notebook exports one module (a second idea gets a notebook).
 
 The public names of an ``#| export`` cell are the names it defines at top level (functions,
 classes, assignments) that do not start with ``_``. Imported names are not public, with one
@@ -146,6 +146,9 @@ def cells_by_module(cells: list[Cell], origin: str) -> dict[str, list[Cell]]:
                 "and no module named in the directive"
             )
         groups.setdefault(_check_module(target, origin), []).append(cell)
+    if len(groups) > 1:
+        raise ExportError(f"{origin}: exports to {len(groups)} modules ({', '.join(groups)}); a notebook exports one "
+                          "module, its '#| default_exp': give each other module a notebook of its own")
     return groups
 
 
