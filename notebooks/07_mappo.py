@@ -54,15 +54,12 @@
 #
 # ## The run as a tensor axis
 #
-# A paper-scale comparison is dozens of runs, and each run's networks are tiny, so a minibatch
-# step spends most of its time in fixed per-call costs rather than arithmetic. The trainer
-# therefore trains a **population** of R runs in one process: `train_population(configs,
-# run_dirs)` steps R x B environments and updates R networks with one set of tensor operations
-# whose leading axis is the run, and `train(config, run_dir)` is the population of one. That is
-# the leading axis R of the tensors below. Every member's result is bit-identical to training its
-# config alone. Which settings members may differ in, why a member's numbers do not depend on its
-# neighbours, what the population buys in speed, and how members resume from checkpoints (and
-# catch up with each other) is machinery a reader of the method can skip: it is in appendix 07d.
+# A comparison is dozens of runs of tiny networks, whose minibatch steps cost mostly fixed per-call
+# overhead. So the trainer trains a **population** of R runs in one process, the leading axis R of
+# the tensors below: `train_population(configs, run_dirs)` steps R x B environments and updates R
+# networks with one set of tensor operations, and `train(config, run_dir)` is the population of
+# one. Every member's result is bit-identical to training its config alone; how, and how members
+# resume and catch up, is appendix 07d's.
 
 # %%
 #| default_exp mappo
@@ -89,7 +86,8 @@ import torch
 import torch.nn.functional as F
 
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07e
-    EpisodeTracker, RowLog, RunningNorm, ValueNorms, explained_variance, merge_env_states, split_env_state)
+    EpisodeTracker, RowLog, RunningNorm, ValueNorms, collect_probe, explained_variance, merge_env_states,
+    split_env_state)
 from pemamoe.bookkeeping import IterationLogger  # the log rows, progress bar and verbose line (appendix 07e)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
 from pemamoe.methods import METHOD_REGISTRY, method_spec
@@ -100,8 +98,8 @@ from pemamoe.plasticity import BaseSchedule, plasticity_method
 import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
-    EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, RunResult, check_population, evaluate_policy, load_run,
-    member_networks, plasticity_name, population_key, train_members)
+    EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, Population, RunResult, build_population, check_population,
+    evaluate_policy, load_run, member_networks, plasticity_name, population_key, train_members)
 from pemamoe.runs import write_done
 # the configuration (appendix 07c): callers import TrainConfig and the presets from here
 from pemamoe.train_config import (  # re-export (public names only)
@@ -111,28 +109,8 @@ from pemamoe.train_config import (  # re-export (public names only)
 # %% [markdown]
 # ## What the paper fixes, and what we had to choose
 #
-# The paper's training table gives most of the numbers; the rest are ours, each a field of
-# `TrainConfig` so that nothing is hidden in the code.
-#
-# | quantity | paper | our value / reading |
-# |---|---|---|
-# | total steps, rollout | 22,118,400 steps, rollout 2048 | 2048 **environment** steps per iteration (64 envs × 32 slots, one episode each), 10,800 iterations |
-# | phases | 3 phases × 3 cycles; Algorithm 1 switches at "iteration mod L" | $L = 10{,}800 / 9 = 1200$ iterations |
-# | epochs, minibatches | 8, 32 | 8, 32; a minibatch is 1/32 of the **environment steps** with all $U$ agents of each step |
-# | optimiser | Adam, weight decay $10^{-4}$, betas (0.9, 0.999) | **AdamW** (decoupled decay), $\epsilon = 10^{-5}$ (CleanRL's PPO value) |
-# | lr, annealing | $3\times10^{-4}$, no annealing | same; `anneal_lr=True` gives CleanRL's linear decay for experiments |
-# | $\gamma$, $\lambda$, clip | 0.99, 0.95, 0.15 | same |
-# | value loss | $\lambda_V\,\mathbb E[(V-\hat V)^2]$, $\lambda_V = 2$ | the same squared error (no ½), **no value clipping** by default, on **normalised** returns |
-# | entropy | 0.01 → 0.003 over the first 30 % | same for the baselines; PE-MAMoE re-anneals within each phase (notebook 06) |
-# | target KL | 0.1 | checked on **every minibatch** before its gradient step; exceeding it ends the update |
-# | grad norm | 0.5 | clipped separately for the actor and for the critic (MAPPO's two optimisers) |
-# | advantages | – | normalised per minibatch (CleanRL) |
-#
-# **Adam or AdamW?** The table lists "Adam" and "weight decay" side by side. PyTorch's `Adam`
-# would add the decay to the gradient (an L2 penalty), which Adam's per-parameter scaling then
-# distorts; `AdamW` shrinks the weights directly. We take AdamW, the usual meaning of "weight
-# decay" with Adam today. At $\text{lr}\times\text{wd} = 3\times10^{-8}$ per step the decay is
-# tiny either way; it also applies to the log-std, pulling it towards 0 by a negligible amount.
+# The paper's training table gives most numbers; the rest are ours, each a `TrainConfig` field.
+# Appendix 07c sets the two side by side and says why "Adam with weight decay" is AdamW here.
 #
 # **Separate gradient clipping.** With one optimiser over actor and critic, a single global norm
 # clip would let the critic's gradient eat the actor's budget (or the reverse). MAPPO keeps two
@@ -150,18 +128,11 @@ from pemamoe.train_config import (  # re-export (public names only)
 # the four side by side, and the code of `TrainConfig` (its checks, `config.json`, the hash that
 # names a run's folder) are in appendix 07c (`pemamoe.train_config`); this module re-exports them.
 #
-# **Time-compressed schedules.** The phase controller's windows are counted in iterations
-# (LR warm-up 200, conservative window 80, router freeze 30, KL-anchor decay 0.985 per iteration,
-# temperature decay rate $\beta = 0.05$ per iteration) or in update epochs (noise for 30 epochs),
-# all relative to a 1200-iteration phase of 8-epoch updates. A small run with 60-iteration phases
-# would otherwise spend several phases in one LR warm-up. `for_scale` therefore rescales each
-# window by the ratio of phase lengths (at least one iteration or epoch when the paper's window is
-# non-zero), so a window covers the same *fraction of a phase* as in the paper. Explicit
-# overrides win over the rescaling.
-#
-# The controller runs only for `method="pemamoe"`; `force_controller=True` runs it for a baseline
-# as well (the noise sweep's "MoE with expert noise alone" uses it). A baseline's controller
-# settings are left out of its config hash, since they cannot change its run.
+# **Time-compressed schedules.** The phase controller's windows (LR warm-up, conservative window,
+# router freeze, KL-anchor decay, noise epochs) are counted relative to the paper's 1200-iteration
+# phases of 8-epoch updates; `for_scale` rescales them so that each covers the same fraction of a
+# phase at every scale (appendix 07c). The controller runs only for `method="pemamoe"` unless
+# `force_controller=True` (the noise sweep's "MoE with expert noise alone").
 
 # %% [markdown]
 # ## The phase clock
@@ -184,84 +155,13 @@ def phase_schedule(config: TrainConfig) -> PhaseSchedule:
 #
 # Everything that learns, and everything the update reads, is built once by
 # `build_population(configs)` and kept in one object, a `Population`, the way CleanRL builds its
-# agent and optimiser at the top of its script:
-#
-# * each member's actor and critic, initialised from its own seed alone (`member_networks`,
-#   appendix 07d), then stacked into a `PopulationActor` and a `PopulationCritic` (notebook 05b)
-#   whose parameters are the rows of one flat (R, P) tensor per network;
-# * one `RunAdamW` per network, with a learning rate, moments and step counts per member. The
-#   actor's parameters are in named groups (`router`, `experts`, `head`, `log_std`) so that the
-#   phase controller can set, freeze and reset each group on its own; the critic's are one group;
-# * the members' plasticity method (the phase controller of notebook 06, ReDo or
-#   shrink-and-perturb of appendix 06c, or none), and each member's return normaliser;
-# * each member's random streams: a torch generator for the actions and the gate noise, and a
-#   numpy generator for the minibatch permutations.
-#
-# The update, `ppo_update(population, settings, data)`, reads it whole. The training loop adds what
-# does not learn: the environments, the phase clock, the running episodes and the logs. The tests
-# build their populations the same way.
-
-# %%
-#| export
-@dataclasses.dataclass
-class Population:
-    """What learns in a population of R runs, and what the update reads (see `build_population`)."""
-
-    configs: list  # one TrainConfig per member; they share every field but MEMBER_FIELDS
-    singles: list  # per member its (actor, critic) single-run modules: a row's layout, what a checkpoint holds
-    actor: PopulationActor  # every member's actor, parameters in actor.flat (R, P)
-    critic: PopulationCritic  # every member's critic, parameters in critic.flat (R, Q)
-    actor_opt: RunAdamW  # AdamW per member over actor.flat, the parameters in named groups (group_names)
-    critic_opt: RunAdamW  # AdamW per member over critic.flat, one group
-    group_names: list  # the actor's parameter groups in actor_opt's order, e.g. ["router", "experts", ...]
-    plasticity: object  # the members' plasticity method (NoPlasticity, PhaseController, ReDo, ...)
-    norms: ValueNorms  # each member's return normaliser
-    generators: list  # each member's torch generator: actions and gate noise
-    rngs: list  # each member's numpy generator: minibatch permutations
-    device: torch.device  # where the networks, the optimisers and the update live
-
-    @property
-    def config(self) -> TrainConfig:
-        """The settings every member shares (the first member's config)."""
-        return self.configs[0]
-
-    def member(self, r: int) -> tuple:
-        """Member r's (actor, critic) as single-run modules holding its current parameters."""
-        actor, critic = self.singles[r]
-        return self.actor.member(r, actor), self.critic.member(r, critic)
-
-    def frozen_groups(self, sched) -> torch.Tensor | None:
-        """(R, G) True where a member's parameter group takes no step this iteration (a router the
-        phase controller froze), or None when nothing is frozen."""
-        if "router" not in self.group_names or not bool(sched.router_frozen.any()):
-            return None
-        frozen = torch.zeros(len(self.configs), len(self.group_names), dtype=torch.bool, device=self.device)
-        frozen[:, self.group_names.index("router")] = sched.router_frozen.to(self.device)
-        return frozen
-
-
-def build_population(configs: list) -> Population:
-    """The population of `configs` (TrainConfigs that may differ only in MEMBER_FIELDS), every member
-    built from its own config and seed alone, on the device the configs name."""
-    check_population(configs)
-    c0 = configs[0]
-    device = resolve_device(c0.device)
-    singles = [member_networks(c) for c in configs]
-    actor = PopulationActor([a for a, _ in singles]).to(device)
-    critic = PopulationCritic([c for _, c in singles]).to(device)
-    group_of, group_names = group_index(singles[0][0], actor.layout)
-    actor_opt = RunAdamW(actor.flat, group_of, len(group_names), c0.adam_betas, c0.adam_eps, c0.weight_decay)
-    critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
-                          c0.adam_eps, c0.weight_decay)
-    names = {plasticity_name(c) for c in configs}
-    # check_population lets only "none" and "phase_controller" mix; the controller serves both
-    # (a member with the controller off behaves exactly as NoPlasticity)
-    method = plasticity_method(names.pop() if len(names) == 1 else "phase_controller")
-    plasticity = method(configs, actor, critic, actor_opt, critic_opt)
-    generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
-    rngs = [np.random.default_rng(int(c.seed)) for c in configs]
-    return Population(list(configs), singles, actor, critic, actor_opt, critic_opt, group_names, plasticity,
-                      ValueNorms(configs), generators, rngs, device)
+# agent and optimiser at the top of its script: every member's actor and critic (from its own
+# seed alone) stacked into a `PopulationActor` and a `PopulationCritic` (appendix 05b), one
+# `RunAdamW` per network with named parameter groups the phase controller can set, freeze and
+# reset (appendix 06d), the members' plasticity method, each member's return normaliser and random
+# streams. Its code is appendix 07d's (`pemamoe.populations`). The update,
+# `ppo_update(population, settings, data)`, reads it whole; the training loop adds what does not
+# learn: the environments, the phase clock, the running episodes and the logs.
 
 # %% [markdown]
 # ## GAE, truncation and termination
@@ -388,18 +288,29 @@ def _member_view(x, R: int):
     return t.reshape(R, t.shape[0] // R, *t.shape[1:])
 
 
+def routing_noise_stds(population, iteration: int) -> torch.Tensor | None:
+    """Per member the sigma of fixed or annealed routing noise at `iteration` (R,), or None (no
+    routing noise, or a learned scale, which is the network's own)."""
+    if population.actor.noise_mode not in ("fixed", "annealed"):
+        return None
+    return torch.tensor([routing_noise_std(c.net, iteration, c.iterations) for c in population.configs],
+                        device=population.device)
+
+
 @torch.no_grad()
-def collect_rollout(venv, actor, critic, norms: "ValueNorms", obs, state, steps: int, sched, tracker: EpisodeTracker,
-                    iteration: int, generators, device=None, noise_std=None):
-    """Run `steps` slots of every environment of a population of R = actor.R members.
+def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker, iteration: int,
+                    steps: int | None = None):
+    """Run `steps` (default: the config's rollout_steps) slots of every environment of a population.
 
     venv holds R*B environments, member r's in rows r*B..(r+1)*B-1. Values come from the critic
     with noiseless gating (they enter GAE; see above). Returns (Rollout, next obs, next state,
     per-member step statistics {key: (R,) array}, per-member lists of finished-episode rows).
     """
+    actor, critic, norms, generators = population.actor, population.critic, population.norms, population.generators
+    device, steps = population.device, population.config.rollout_steps if steps is None else steps
+    noise_std = routing_noise_stds(population, iteration)
     R, U = actor.R, venv.n_agents
     B = venv.num_envs // R
-    device = device or actor.flat.device
     tau_pi, tau_v = sched.policy_temperature.to(device), sched.value_temperature.to(device)
     buf = {k: [] for k in ("obs", "states", "actions", "logprobs", "values", "rewards", "dones", "final")}
     routes, episode_rows = [], [[] for _ in range(R)]
@@ -738,9 +649,8 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # ## Probe batch, checkpoints and the training loop
 #
 # The plasticity diagnostics of appendix 06e need a **fixed** probe batch, so that a change in
-# expert rank or dormant fraction reflects the network and not the data. `collect_probe` draws it
-# once per run from a separate copy of the environment (its own seed, random actions, a third of
-# the rows from each phase); it depends only on the config, so a resumed run rebuilds the same one.
+# expert rank or dormant fraction reflects the network and not the data: `collect_probe`
+# (appendix 07e) draws it once per run, from the config alone, so a resumed run rebuilds the same.
 #
 # A **checkpoint** holds everything the next iteration reads (both networks, the optimiser's
 # moments and step counts, the return normaliser, the phase controller, the random states, the
@@ -750,32 +660,6 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # writes and reads its members' checkpoints (`MemberStates`) and how `train_population` resumes
 # members and lets them catch up, in 07d; how a folder is locked, sealed and checked before it is
 # trusted, in 07b.
-
-# %%
-#| export
-def collect_probe(config: TrainConfig, steps_per_phase: int | None = None):
-    """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
-
-    Random-action rollouts of a separate 8-environment copy (seed + 1_000_003), a third of the
-    steps in each phase; P = probe_size agent rows, Q = min(probe_size, steps) global states.
-    """
-    env_cfg = config.env_config()
-    n_env = 8
-    venv = UAVVectorEnv(n_env, config.seed + 1_000_003, cfg=env_cfg)
-    rng = np.random.default_rng(config.seed + 1_000_003)
-    per_phase = math.ceil(config.probe_size / config.n_phases)
-    steps = steps_per_phase or max(1, math.ceil(per_phase / (n_env * venv.n_agents)))
-    obs_rows, state_rows = [], []
-    for phase in range(config.n_phases):
-        venv.set_phase(phase)
-        venv.reset()
-        for _ in range(steps):
-            obs, state, *_ = venv.step(rng.uniform(-1, 1, size=(n_env, venv.n_agents, 2)))
-            obs_rows.append(obs.reshape(-1, venv.obs_dim)), state_rows.append(state)
-    obs_all, state_all = np.concatenate(obs_rows), np.concatenate(state_rows)
-    pick_o = np.sort(rng.permutation(len(obs_all))[:config.probe_size])
-    pick_s = np.sort(rng.permutation(len(state_all))[:min(config.probe_size, len(state_all))])
-    return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
 
 # %% [markdown]
 # ### `train`
@@ -861,13 +745,7 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
 
             # --- 2. rollout of every member's environments -------------------------------------------
             t0 = time.perf_counter()
-            noise_std = None  # sigma of fixed or annealed routing noise, per member (a learned scale is the network's)
-            if pop.actor.noise_mode in ("fixed", "annealed"):
-                noise_std = torch.tensor([routing_noise_std(c.net, it, c.iterations) for c in configs],
-                                         device=pop.device)
-            ro, obs, state, step_stats, new_episodes = collect_rollout(
-                venv, pop.actor, pop.critic, pop.norms, obs, state, c0.rollout_steps, sched, tracker, it,
-                pop.generators, pop.device, noise_std)
+            ro, obs, state, step_stats, new_episodes = collect_rollout(pop, venv, obs, state, sched, tracker, it)
             global_step += c0.batch_env_steps
             rollout_time = time.perf_counter() - t0
 
@@ -897,40 +775,14 @@ def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, ver
                        update_time)
             out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
             if (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time:
-                _save_members(members, run_dirs, venv, it + 1, global_step, obs, state)
+                members.save_all(run_dirs, venv, it + 1, global_step, obs, state)
             if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
                 stop = it + 1
                 break
     finished = stop == c0.iterations
     if finished and start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
-        _save_members(members, run_dirs, venv, stop, global_step, obs, state)
-    return _group_results(members, run_dirs, finished, global_step, resumed_from)
-
-
-def _save_members(members, run_dirs, venv, iteration, global_step, obs, state) -> None:
-    """Every member's checkpoint and logs at `iteration`, in its folder (none without one)."""
-    if any(d is not None for d in run_dirs):
-        env_state = venv.state_dict()  # the whole population's, taken once per checkpoint
-        for r, run_dir in enumerate(run_dirs):
-            if run_dir is not None:
-                members.save(r, run_dir, iteration, global_step, env_state, obs, state)
-
-
-def _group_results(members, run_dirs, finished, global_step, resumed_from) -> list:
-    """One RunResult per member; each member that finished gets its done.json."""
-    pop = members.population
-    results = []
-    for r, (config, run_dir) in enumerate(zip(pop.configs, run_dirs)):
-        if run_dir is not None and finished:
-            final = pd.DataFrame(members.metrics_rows[r])
-            write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(members.torch_threads[r]),
-                       wall_time_s=members.seconds(r),
-                       final_episode_return=float(final["episode_return"].tail(config.phase_length_iters).mean()))
-        actor, critic = pop.member(r)
-        results.append(RunResult(config, pd.DataFrame(members.metrics_rows[r]), pd.DataFrame(members.episode_rows[r]),
-                                 actor, critic, run_dir, finished=finished, resumed_from=resumed_from))
-    return results
-
+        members.save_all(run_dirs, venv, stop, global_step, obs, state)
+    return members.results(run_dirs, finished, global_step, resumed_from)
 
 # %% [markdown]
 # ## Demonstration: one PE-MAMoE run and one MLP run
@@ -1007,15 +859,6 @@ plt.show()
 
 # %% [markdown]
 # ![MAPPO training curves, one seed per method, medium scale](../paper_figures/mappo_training_curves.png)
-
-# %% [markdown]
-# The logged columns of one row (PE-MAMoE, the last iteration, or the last block of them when
-# read from a long run's record):
-
-# %%
-_m = results["pemamoe"].metrics
-pd.set_option("display.max_rows", 200)
-pd.DataFrame({"column": _m.columns, "last value": [_m[c].iloc[-1] for c in _m.columns]})
 
 # %% [markdown]
 # A per-phase summary of the two runs (mean over the iterations of each phase occurrence):

@@ -35,6 +35,32 @@ figures_dir = "paper_figures"
 seed = 0
 
 # %% [markdown]
+# ## The paper's training table, and what we had to choose
+#
+# The paper's training table gives most of the numbers; the rest are ours, each a field of
+# `TrainConfig` so that nothing is hidden in the code.
+#
+# | quantity | paper | our value / reading |
+# |---|---|---|
+# | total steps, rollout | 22,118,400 steps, rollout 2048 | 2048 **environment** steps per iteration (64 envs × 32 slots, one episode each), 10,800 iterations |
+# | phases | 3 phases × 3 cycles; Algorithm 1 switches at "iteration mod L" | $L = 10{,}800 / 9 = 1200$ iterations |
+# | epochs, minibatches | 8, 32 | 8, 32; a minibatch is 1/32 of the **environment steps** with all $U$ agents of each step |
+# | optimiser | Adam, weight decay $10^{-4}$, betas (0.9, 0.999) | **AdamW** (decoupled decay), $\epsilon = 10^{-5}$ (CleanRL's PPO value) |
+# | lr, annealing | $3\times10^{-4}$, no annealing | same; `anneal_lr=True` gives CleanRL's linear decay for experiments |
+# | $\gamma$, $\lambda$, clip | 0.99, 0.95, 0.15 | same |
+# | value loss | $\lambda_V\,\mathbb E[(V-\hat V)^2]$, $\lambda_V = 2$ | the same squared error (no ½), **no value clipping** by default, on **normalised** returns |
+# | entropy | 0.01 → 0.003 over the first 30 % | same for the baselines; PE-MAMoE re-anneals within each phase (notebook 06) |
+# | target KL | 0.1 | checked on **every minibatch** before its gradient step; exceeding it ends the update |
+# | grad norm | 0.5 | clipped separately for the actor and for the critic (MAPPO's two optimisers) |
+# | advantages | – | normalised per minibatch (CleanRL) |
+#
+# **Adam or AdamW?** The table lists "Adam" and "weight decay" side by side. PyTorch's `Adam`
+# would add the decay to the gradient (an L2 penalty), which Adam's per-parameter scaling then
+# distorts; `AdamW` shrinks the weights directly. We take AdamW, the usual meaning of "weight
+# decay" with Adam today. At $\text{lr}\times\text{wd} = 3\times10^{-8}$ per step the decay is
+# tiny either way; it also applies to the log-std, pulling it towards 0 by a negligible amount.
+
+# %% [markdown]
 # ## `TrainConfig`: one frozen object per run
 #
 # A run is a function of its `TrainConfig` and nothing else. The fields carry the paper's training
@@ -120,8 +146,20 @@ from pemamoe.plasticity import BaseSchedule
 #   is entered cold, left, and entered again.
 # * **ci**: a handful of iterations crossing two phase switches, seconds per run.
 #
-# Notebook 07 explains the rescaling of the phase controller's windows to the shorter phases
-# (`scale_controller`), and a table at the end of this section compares the presets.
+# **Time-compressed schedules.** The phase controller's windows are counted in iterations
+# (LR warm-up 200, conservative window 80, router freeze 30, KL-anchor decay 0.985 per iteration,
+# temperature decay rate $\beta = 0.05$ per iteration) or in update epochs (noise for 30 epochs),
+# all relative to a 1200-iteration phase of 8-epoch updates. A small run with 60-iteration phases
+# would otherwise spend several phases in one LR warm-up. `for_scale` therefore rescales each
+# window by the ratio of phase lengths (at least one iteration or epoch when the paper's window is
+# non-zero), so a window covers the same *fraction of a phase* as in the paper. Explicit
+# overrides win over the rescaling.
+#
+# The controller runs only for `method="pemamoe"`; `force_controller=True` runs it for a baseline
+# as well (the noise sweep's "MoE with expert noise alone" uses it). A baseline's controller
+# settings are left out of its config hash, since they cannot change its run.
+#
+# A table at the end of this section compares the presets.
 
 # %%
 #| export

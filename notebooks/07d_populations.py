@@ -104,13 +104,18 @@ import pandas as pd
 import torch
 import torch.nn as nn
 
-from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, decode_arrays, encode_arrays,
-                                  merge_env_states, split_env_state, write_checkpoint, write_rows_parquet)
+import pemamoe.phase_controller  # noqa: F401  registers PhaseController (notebook 06)
+import pemamoe.plasticity_baselines  # noqa: F401  registers ReDo and shrink-and-perturb (appendix 06c)
+from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, ValueNorms, decode_arrays,
+                                  encode_arrays, merge_env_states, split_env_state, write_checkpoint,
+                                  write_rows_parquet)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
-from pemamoe.nets import make_actor, make_critic
+from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
+from pemamoe.optim import RunAdamW, group_index
+from pemamoe.plasticity import plasticity_method
 from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
-                          verify_done)
-from pemamoe.train_config import TrainConfig
+                          verify_done, write_done)
+from pemamoe.train_config import TrainConfig, resolve_device
 
 # %% [markdown]
 # ## Who may share a population
@@ -177,8 +182,8 @@ def plasticity_name(config: TrainConfig) -> str:
 # networks as single-run modules. `load_run` rebuilds the same object from a finished folder
 # (`from_cache=True`): the networks come from the last checkpoint, and the folder counts as
 # finished only when its `done.json` verifies (appendix 07b). `member_networks` makes one member's
-# actor and critic from its seed alone; the trainer's `build_population` (notebook 07) builds every
-# member with it before stacking them into a population.
+# actor and critic from its seed alone; `build_population` (below) builds every member with it
+# before stacking them into a population.
 
 # %%
 #| export
@@ -220,6 +225,79 @@ def load_run(run_dir) -> RunResult:
     critic.load_state_dict(ckpt["critic"])
     return RunResult(config, read_parquet(run_dir / "metrics.parquet"), read_parquet(run_dir / "episodes.parquet"),
                      actor, critic, run_dir, finished=done is not None, from_cache=True)
+
+# %% [markdown]
+# ## What learns: `Population` and `build_population`
+#
+# The trainer of notebook 07 keeps everything that learns in one `Population` (notebook 07 lists
+# what it holds), built by `build_population` from every member's own config and seed:
+# `member_networks` per member, stacked; a `RunAdamW` per network; the members' plasticity method
+# (the controller serves a population that mixes members with and without it, since a member with
+# the controller off behaves exactly as `NoPlasticity`); the return normalisers; each member's
+# random streams.
+
+# %%
+#| export
+@dataclasses.dataclass
+class Population:
+    """What learns in a population of R runs, and what the update reads (see `build_population`)."""
+
+    configs: list  # one TrainConfig per member; they share every field but MEMBER_FIELDS
+    singles: list  # per member its (actor, critic) single-run modules: a row's layout, what a checkpoint holds
+    actor: PopulationActor  # every member's actor, parameters in actor.flat (R, P)
+    critic: PopulationCritic  # every member's critic, parameters in critic.flat (R, Q)
+    actor_opt: RunAdamW  # AdamW per member over actor.flat, the parameters in named groups (group_names)
+    critic_opt: RunAdamW  # AdamW per member over critic.flat, one group
+    group_names: list  # the actor's parameter groups in actor_opt's order, e.g. ["router", "experts", ...]
+    plasticity: object  # the members' plasticity method (NoPlasticity, PhaseController, ReDo, ...)
+    norms: ValueNorms  # each member's return normaliser
+    generators: list  # each member's torch generator: actions and gate noise
+    rngs: list  # each member's numpy generator: minibatch permutations
+    device: torch.device  # where the networks, the optimisers and the update live
+
+    @property
+    def config(self) -> TrainConfig:
+        """The settings every member shares (the first member's config)."""
+        return self.configs[0]
+
+    def member(self, r: int) -> tuple:
+        """Member r's (actor, critic) as single-run modules holding its current parameters."""
+        actor, critic = self.singles[r]
+        return self.actor.member(r, actor), self.critic.member(r, critic)
+
+    def frozen_groups(self, sched) -> torch.Tensor | None:
+        """(R, G) True where a member's parameter group takes no step this iteration (a router the
+        phase controller froze), or None when nothing is frozen."""
+        if "router" not in self.group_names or not bool(sched.router_frozen.any()):
+            return None
+        frozen = torch.zeros(len(self.configs), len(self.group_names), dtype=torch.bool, device=self.device)
+        frozen[:, self.group_names.index("router")] = sched.router_frozen.to(self.device)
+        return frozen
+
+
+def build_population(configs: list) -> Population:
+    """The population of `configs` (TrainConfigs that may differ only in MEMBER_FIELDS), every member
+    built from its own config and seed alone, on the device the configs name."""
+    check_population(configs)
+    c0 = configs[0]
+    device = resolve_device(c0.device)
+    singles = [member_networks(c) for c in configs]
+    actor = PopulationActor([a for a, _ in singles]).to(device)
+    critic = PopulationCritic([c for _, c in singles]).to(device)
+    group_of, group_names = group_index(singles[0][0], actor.layout)
+    actor_opt = RunAdamW(actor.flat, group_of, len(group_names), c0.adam_betas, c0.adam_eps, c0.weight_decay)
+    critic_opt = RunAdamW(critic.flat, torch.zeros(critic.layout.size, dtype=torch.long), 1, c0.adam_betas,
+                          c0.adam_eps, c0.weight_decay)
+    names = {plasticity_name(c) for c in configs}
+    # check_population lets only "none" and "phase_controller" mix; the controller serves both
+    # (a member with the controller off behaves exactly as NoPlasticity)
+    method = plasticity_method(names.pop() if len(names) == 1 else "phase_controller")
+    plasticity = method(configs, actor, critic, actor_opt, critic_opt)
+    generators = [torch.Generator(device=device).manual_seed(int(c.seed)) for c in configs]
+    rngs = [np.random.default_rng(int(c.seed)) for c in configs]
+    return Population(list(configs), singles, actor, critic, actor_opt, critic_opt, group_names, plasticity,
+                      ValueNorms(configs), generators, rngs, device)
+
 
 # %% [markdown]
 # ## Resume and catch-up
@@ -408,6 +486,29 @@ class MemberStates:
         write_rows_parquet(self.episode_rows[r], run_dir / "episodes.parquet", final)
         if final:
             self.metrics_rows[r].release(), self.episode_rows[r].release()
+
+    def save_all(self, run_dirs, venv, iteration, global_step, obs, state) -> None:
+        """Every member's checkpoint and logs at `iteration`, in its folder (none without one)."""
+        if any(d is not None for d in run_dirs):
+            env_state = venv.state_dict()  # the whole population's, taken once per checkpoint
+            for r, run_dir in enumerate(run_dirs):
+                if run_dir is not None:
+                    self.save(r, run_dir, iteration, global_step, env_state, obs, state)
+
+    def results(self, run_dirs, finished: bool, global_step: int, resumed_from) -> list:
+        """One RunResult per member; each member that finished gets its done.json."""
+        pop = self.population
+        results = []
+        for r, (config, run_dir) in enumerate(zip(pop.configs, run_dirs)):
+            metrics = pd.DataFrame(self.metrics_rows[r])
+            if run_dir is not None and finished:
+                write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(self.torch_threads[r]),
+                           wall_time_s=self.seconds(r),
+                           final_episode_return=float(metrics["episode_return"].tail(config.phase_length_iters).mean()))
+            actor, critic = pop.member(r)
+            results.append(RunResult(config, metrics, pd.DataFrame(self.episode_rows[r]), actor, critic, run_dir,
+                                     finished=finished, resumed_from=resumed_from))
+        return results
 
 # %% [markdown]
 # ## Deterministic evaluation

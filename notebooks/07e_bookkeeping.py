@@ -69,6 +69,7 @@ from pemamoe.train_config import TrainConfig
 # %%
 #| export
 import io
+import math
 import os
 import pickle
 import shutil
@@ -81,6 +82,7 @@ import torch
 
 from pemamoe.core import Progress, atomic_path
 from pemamoe.diagnostics import plasticity_diagnostics
+from pemamoe.env import UAVVectorEnv
 from pemamoe.runs import seal_checkpoint
 from pemamoe.train_config import TRAINING_NUMERICS
 
@@ -290,6 +292,51 @@ for _ in range(40):
 assert all([row["episode"] for row in rows] == list(range(len(rows))) for rows in _rows)
 assert all(row["env"] in (0, 1) for rows in _rows for row in rows)
 pd.DataFrame(_rows[1])[["episode", "env", "phase", "return", "length", "terminated", "truncated"]]
+
+# %% [markdown]
+# ## The probe batch of the diagnostics
+#
+# The plasticity diagnostics of appendix 06e need a **fixed** probe batch, so that a change in
+# expert rank or dormant fraction reflects the network and not the data. `collect_probe` draws it
+# once per run from a separate copy of the environment (its own seed, random actions, a third of
+# the rows from each phase); it depends only on the config, so a resumed run rebuilds the same one.
+
+# %%
+#| export
+def collect_probe(config, steps_per_phase: int | None = None):
+    """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
+
+    Random-action rollouts of a separate 8-environment copy (seed + 1_000_003), a third of the
+    steps in each phase; P = probe_size agent rows, Q = min(probe_size, steps) global states.
+    """
+    env_cfg = config.env_config()
+    n_env = 8
+    venv = UAVVectorEnv(n_env, config.seed + 1_000_003, cfg=env_cfg)
+    rng = np.random.default_rng(config.seed + 1_000_003)
+    per_phase = math.ceil(config.probe_size / config.n_phases)
+    steps = steps_per_phase or max(1, math.ceil(per_phase / (n_env * venv.n_agents)))
+    obs_rows, state_rows = [], []
+    for phase in range(config.n_phases):
+        venv.set_phase(phase)
+        venv.reset()
+        for _ in range(steps):
+            obs, state, *_ = venv.step(rng.uniform(-1, 1, size=(n_env, venv.n_agents, 2)))
+            obs_rows.append(obs.reshape(-1, venv.obs_dim)), state_rows.append(state)
+    obs_all, state_all = np.concatenate(obs_rows), np.concatenate(state_rows)
+    pick_o = np.sort(rng.permutation(len(obs_all))[:config.probe_size])
+    pick_s = np.sort(rng.permutation(len(state_all))[:min(config.probe_size, len(state_all))])
+    return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
+
+
+# %% [markdown]
+# The logged columns of one row: a two-iteration MLP run at the ci scale, its last row.
+
+# %%
+from pemamoe.mappo import train
+
+_m = train(TrainConfig.for_scale("ci", method="mlp", seed=seed, iterations=2)).metrics
+pd.set_option("display.max_rows", 200)
+pd.DataFrame({"column": _m.columns, "last value": [_m[c].iloc[-1] for c in _m.columns]})
 
 # %% [markdown]
 # ## The return normaliser

@@ -56,18 +56,17 @@ def test_gae_hand_computed_with_truncation_and_termination():
 
 def _population_of_one(cfg):
     venv = mappo.UAVVectorEnv(cfg.num_envs, 0, cfg=cfg.env_config())
-    pop = mappo.build_population([cfg])
-    return venv, pop.actor, pop.critic, pop.plasticity
+    return venv, mappo.build_population([cfg])
 
 
 def test_rollout_bootstraps_truncation_from_final_state():
     # episodes of 3 slots, rollout of 5: truncation at steps 2 of every env; an MLP critic is deterministic
     cfg = ci("mlp", env_overrides={"episode_steps": 3}, rollout_steps=5, num_minibatches=5)
-    venv, actor, critic, plasticity = _population_of_one(cfg)
-    norms = mappo.ValueNorms([cfg])
+    venv, pop = _population_of_one(cfg)
+    critic, norms = pop.critic, pop.norms
     norms.update(torch.tensor([[0.0, 10.0, 20.0]]))
     obs, state, _ = venv.reset()
-    sched = plasticity.begin_iteration(0)
+    sched = pop.plasticity.begin_iteration(0)
     finals = []
     real_step = venv.step
 
@@ -78,8 +77,7 @@ def test_rollout_bootstraps_truncation_from_final_state():
         return out
 
     venv.step = spy
-    ro, *_ = collect_rollout(venv, actor, critic, norms, obs, state, 5, sched, EpisodeTracker(cfg.num_envs), 0,
-                             [torch.Generator().manual_seed(0)])
+    ro, *_ = collect_rollout(pop, venv, obs, state, sched, EpisodeTracker(cfg.num_envs), 0)
     assert ro.dones[0, 2].all() and not ro.dones[0, [0, 1, 3, 4]].any()
     with torch.no_grad():
         v, _, _ = critic(torch.from_numpy(finals[0]).unsqueeze(0), sched.value_temperature)
@@ -154,8 +152,7 @@ def test_first_ratio_is_one_directly():
         actor = pop.actor
         obs, state, _ = venv.reset()
         sched = pop.plasticity.begin_iteration(0)
-        ro, *_ = collect_rollout(venv, actor, pop.critic, pop.norms, obs, state, cfgs[0].rollout_steps, sched,
-                                 EpisodeTracker(venv.num_envs, members=2), 0, pop.generators)
+        ro, *_ = collect_rollout(pop, venv, obs, state, sched, EpisodeTracker(venv.num_envs, members=2), 0)
         R, N, U = 2, cfgs[0].batch_env_steps, venv.n_agents
         idx = torch.stack([torch.randperm(N)[: N // 2] for _ in range(R)])
         rows = torch.arange(R).unsqueeze(1)
