@@ -56,7 +56,10 @@ retrain = False  # True: ignore the records, train into results_dir and write th
 
 # %%
 #| export
-from pemamoe.core import EXPERIMENTS  # re-export: the experiments' names live in core, for the command line (00b)
+from pemamoe.core import (  # re-export: the experiments' names live in core, for the command line (00b)
+    ACTOR_READINGS, EXPERIMENTS, READABLE_EXPERIMENTS)
+import dataclasses as _dc
+
 from pemamoe.core import by_scale, check_scale
 from pemamoe.execution import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
     BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
@@ -137,7 +140,7 @@ BUDGET_UPDATES = {  # name -> TrainConfig overrides of the update settings
 # choose). The gated methods run the study under both; MLP has no router, so it runs once.
 _OURS = {"load_balance_coef": 0.01, "expert_heads": "shared", "update_routing": "replay", "top_k": 1}
 _PAPERS = {"load_balance_coef": 0.0, "expert_heads": "per_expert", "update_routing": "current", "top_k": 1}
-BUDGET_READINGS = {"ours": _OURS, "paper": _PAPERS}  # name -> NetConfig overrides of the gated methods
+BUDGET_READINGS = dict(zip(ACTOR_READINGS, (_OURS, _PAPERS)))  # name -> NetConfig overrides of the gated methods
 
 
 def fixed_phase_twin(method: str, methods) -> str | None:
@@ -355,11 +358,34 @@ def top2_specs(scale: str, seeds=None) -> list:
     return [RunSpec(m, s, scale, overrides=tuple(net.items()), tag="top2") for m in TOP2_METHODS for s in seeds]
 
 
-def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS) -> list:
+# The sparse actor's reading of the cycling experiments, pinned (issue 40): `reading="paper"` runs
+# main, tricks and noise with the gated methods' actor as the paper describes it, whatever
+# NetConfig's defaults are, and `reading="ours"` with ours. Pinning a field at its default value
+# leaves the run's configuration, hence its name, unchanged, so runs trained pinned are the very
+# runs the unpinned experiment asks for once the defaults are that reading. The other experiments
+# fix their readings themselves (the names: ACTOR_READINGS and READABLE_EXPERIMENTS, in core).
+
+def with_reading(specs, reading: str) -> list:
+    """`specs` with the gated methods' sparse-actor reading pinned ("ours" or "paper", BUDGET_READINGS);
+    MLP runs (no router) unchanged."""
+    if reading not in BUDGET_READINGS:
+        raise ValueError(f"reading must be one of {', '.join(BUDGET_READINGS)}, got {reading!r}")
+    net = BUDGET_READINGS[reading]
+    return [spec if method_spec(spec.method).network == "mlp"
+            else _dc.replace(spec, overrides=tuple({**dict(spec.overrides), **net}.items())) for spec in specs]
+
+
+def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, reading: str | None = None) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
     sweep), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
     ("gating", "sparse"), the tuning grid ("tuning") or the top-2 arm ("top2"); only the first
-    three are part of "all")."""
+    three are part of "all". reading: None (NetConfig's defaults), "ours" or "paper", the gated
+    methods' actor pinned (`with_reading`; main, tricks, noise and all only)."""
+    if reading is not None:
+        if experiment not in READABLE_EXPERIMENTS:
+            raise ValueError(f"reading applies to the experiments {', '.join(READABLE_EXPERIMENTS)}; "
+                             f"{experiment!r} fixes its own actor readings")
+        return with_reading(experiment_specs(experiment, scale, seeds, methods), reading)
     makers = {"main": lambda: main_specs(scale, seeds, methods), "tricks": lambda: trick_specs(scale, seeds),
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":

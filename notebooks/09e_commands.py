@@ -39,8 +39,8 @@ import sys
 import time
 from pathlib import Path
 
-from pemamoe.core import (BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, REPO_ROOT, SCALES, SEED_LIMIT, check_scale,
-                          current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
+                          SCALES, SEED_LIMIT, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -80,6 +80,9 @@ def sweep_cli(argv=None) -> int:
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
+    parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
+                        help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
+                             "(default: the network's defaults)")
     parser.add_argument("--seeds", type=int_arg(0, SEED_LIMIT), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds, integers in [0, 2**63) (default: the scale's)")
     parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
@@ -108,6 +111,9 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
     args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
+    if args.reading is not None and args.experiment not in READABLE_EXPERIMENTS:
+        parser.error(f"--reading applies to the experiments {', '.join(READABLE_EXPERIMENTS)}; "
+                     f"{args.experiment!r} fixes its own actor readings")
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
@@ -136,7 +142,7 @@ def _sweep(args) -> int:
     from pemamoe.sweep import experiment_specs, pending_runs, run_sweep
 
     methods = tuple(args.methods) if args.methods else compared_methods()
-    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods, args.reading)
     if args.status:
         _print_status(specs, args)
         return 0

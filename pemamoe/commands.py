@@ -9,8 +9,8 @@ import sys
 import time
 from pathlib import Path
 
-from pemamoe.core import (BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, REPO_ROOT, SCALES, SEED_LIMIT, check_scale,
-                          current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
+                          SCALES, SEED_LIMIT, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -32,6 +32,9 @@ def sweep_cli(argv=None) -> int:
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
+    parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
+                        help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
+                             "(default: the network's defaults)")
     parser.add_argument("--seeds", type=int_arg(0, SEED_LIMIT), nargs="+", default=None, metavar="SEED",
                         help="one or more seeds, integers in [0, 2**63) (default: the scale's)")
     parser.add_argument("--methods", nargs="+", default=None, type=_method, metavar="METHOD",
@@ -60,6 +63,9 @@ def sweep_cli(argv=None) -> int:
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
     args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
+    if args.reading is not None and args.experiment not in READABLE_EXPERIMENTS:
+        parser.error(f"--reading applies to the experiments {', '.join(READABLE_EXPERIMENTS)}; "
+                     f"{args.experiment!r} fixes its own actor readings")
     if str(args.results_dir).strip() == "":
         parser.error("--results-dir must be a folder path or a URL, got an empty string")
     if str(args.records_dir).strip() == "":
@@ -88,7 +94,7 @@ def _sweep(args) -> int:
     from pemamoe.sweep import experiment_specs, pending_runs, run_sweep
 
     methods = tuple(args.methods) if args.methods else compared_methods()
-    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods)
+    specs = experiment_specs(args.experiment, args.scale, args.seeds, methods, args.reading)
     if args.status:
         _print_status(specs, args)
         return 0
@@ -160,7 +166,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 248)
+# %% notebooks/09e_commands.py, cell 10 (line 254)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -270,7 +276,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 359)
+# %% notebooks/09e_commands.py, cell 11 (line 365)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -364,3 +364,41 @@ def test_the_top2_arm_runs_the_sparse_methods_with_two_experts_under_the_papers_
     assert not main & {c.run_name() for c in configs}  # runs of their own, not top-1's
     run_sweep(experiment_specs("top2", "ci", seeds=(0,)), "local", workers=1, results_dir=tmp_path, progress=False)
     assert all((s.run_dir(tmp_path) / "done.json").is_file() for s in experiment_specs("top2", "ci", seeds=(0,)))
+
+
+@pytest.mark.parametrize("reading", ["ours", "paper"])
+def test_a_pinned_reading_sets_the_gated_actors_and_leaves_mlp_and_the_rest_of_the_run(reading):
+    """--reading pins the sparse actor of the gated methods only; pinning the defaults' own reading
+    renames no run (so runs trained pinned are the unpinned experiment's once the defaults are that
+    reading)."""
+    import dataclasses
+
+    from pemamoe.mappo import NetConfig
+    from pemamoe.methods import method_spec
+    from pemamoe.sweep import BUDGET_READINGS
+
+    plain, pinned = experiment_specs("all", "ci"), experiment_specs("all", "ci", reading=reading)
+    assert [s.tag for s in plain] == [s.tag for s in pinned]
+    for before, after in zip(plain, pinned):
+        a, b = before.to_config(), after.to_config()
+        if method_spec(a.method).network == "mlp":
+            assert after == before and b.run_name() == a.run_name()
+            continue
+        assert all(getattr(b.net, k) == v for k, v in BUDGET_READINGS[reading].items())
+        assert dataclasses.replace(b, net=a.net) == a  # nothing else moved (noise, ablations, seeds)
+        defaults = NetConfig()
+        if all(getattr(defaults, k) == v for k, v in BUDGET_READINGS[reading].items()):
+            assert b.run_name() == a.run_name()
+        else:
+            assert b.run_name() != a.run_name()
+
+
+def test_a_reading_outside_the_cycling_experiments_is_refused_naming_them(capsys):
+    with pytest.raises(ValueError, match="main, tricks, noise, all.*'budget'"):
+        experiment_specs("budget", "ci", reading="paper")
+    with pytest.raises(ValueError, match="reading must be one of ours, paper, got 'theirs'"):
+        experiment_specs("main", "ci", reading="theirs")
+    with pytest.raises(SystemExit) as exit_:
+        sweep_cli(["--experiment", "tuning", "--reading", "paper", "--status"])
+    assert exit_.value.code == 2
+    assert "--reading applies to the experiments main, tricks, noise, all; 'tuning'" in capsys.readouterr().err
