@@ -83,7 +83,7 @@ LOCK_NAME = ".lock"
 _START_OVER = "delete the folder, or train with resume=False to start it over"
 
 
-class _PicklableError:
+class PicklableError:
     """Mixin: an exception whose constructor takes other arguments than its message pickles as its
     message (`args`) and attributes, without calling the constructor again (the default pickling
     calls `cls(*args)`, which fails or, in a process pool, breaks the pool)."""
@@ -99,7 +99,7 @@ def _rebuild_error(cls, args, state):
     return err
 
 
-class RunFolderError(_PicklableError, ValueError):
+class RunFolderError(PicklableError, ValueError):
     """A file of a run folder cannot be used as it is. The message names the folder, the file and
     what is wrong; `path` is the file."""
 
@@ -114,7 +114,7 @@ class RunFolderError(_PicklableError, ValueError):
         return f"run folder {self.path.parent}: {self.path.name} {self.problem}" + (f"; {hint}" if hint else "")
 
 
-class RunLockedError(_PicklableError, RuntimeError):
+class RunLockedError(PicklableError, RuntimeError):
     """Another live process (its PID in `pid`, None when unknown) is writing this run folder."""
 
     def __init__(self, run_dir, pid):

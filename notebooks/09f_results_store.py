@@ -130,7 +130,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_path, one_line, require
-from pemamoe.runs import _PicklableError
+from pemamoe.runs import PicklableError
 
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
 STORE_FILES = ("config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "sweep.json", "done.json")
@@ -143,7 +143,7 @@ CACHE_ENV = "PEMAMOE_CACHE"  # the local cache's root (default ~/.cache/pemamoe)
 SYNC_ENV, STALE_ENV = "PEMAMOE_STORE_SYNC_SECONDS", "PEMAMOE_LEASE_STALE_SECONDS"
 
 
-class StoreLeaseError(_PicklableError, RuntimeError):
+class StoreLeaseError(PicklableError, RuntimeError):
     """A run in the store is not this worker's to write or read as it is: another live worker holds
     its lease; or (`problem`, the message's text) this worker lost the lease, the run was sealed by
     another, or a reader found a file written by a worker that had lost the lease. One line."""
@@ -272,7 +272,7 @@ def open_store(results="results") -> ResultsStore:
 BUCKET_PROTOCOLS = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")  # a URL's first component is a bucket
 
 
-class StoreAccessError(_PicklableError, RuntimeError):
+class StoreAccessError(PicklableError, RuntimeError):
     """A remote store cannot be used as named: no credentials, an endpoint that does not answer, a
     bucket that does not exist, access denied. One line naming the store's URL (`uri`) and what is
     wrong (`problem`)."""

@@ -194,11 +194,7 @@ def test_a_two_module_cycle_fails_and_names_it(tmp_path):
 # A name with a leading underscore is its module's own business: when another module needs it, it
 # gets a public name (and every importer is updated), or it moves to the module that uses it.
 # Exceptions, each with its reason; an exception that no longer matches an import fails the test.
-PRIVATE_IMPORT_EXCEPTIONS = {
-    ("store", "runs", "_PicklableError"): (
-        "pemamoe/store.py is generated from notebooks/09f_results_store.py, which other work was editing when "
-        "the rule came in (issue 39); give the error a public name in 07b and 09f together once that work lands"),
-}
+PRIVATE_IMPORT_EXCEPTIONS = {}  # (module, other module, name): reason
 
 
 def is_private(name: str) -> bool:
