@@ -65,7 +65,8 @@
 # | (appendix to IV-B) populations of runs, resuming and catching up, reading a run back, deterministic evaluation | `07d_populations.py` | `pemamoe/populations.py` | |
 # | (appendix to IV-B) the trainer's bookkeeping: episodes, the log row, the return normaliser, checkpoint encoding | `07e_bookkeeping.py` | `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
-# | (appendix of V) the theory check's instruments | `08b_theory_tools.py` | `pemamoe/theory_tools.py` | |
+# | (appendix of V) the toy tracking problems and the theory check's instruments | `08b_toy_tracking.py` | `pemamoe/toy_tracking.py` | |
+# | (appendix of V) the theory check's records: computed once, committed, read back | `08c_theory_records.py` | `pemamoe/theory_records.py` | |
 # | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_execution.py` | `pemamoe/execution.py` | |

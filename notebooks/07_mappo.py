@@ -124,9 +124,8 @@ from pemamoe.train_config import (  # re-export (public names only)
 # gives four presets: **paper**, the training table exactly (10,800 iterations of 2048 environment
 # steps); **medium**, the scale at which learning is visible (longer phases, three phases twice
 # over; the default of `make figures`); **small**, short training; and **ci**, a handful of
-# iterations crossing two phase switches, seconds per run. Why the smaller presets hold the numbers they hold, a table of
-# the four side by side, and the code of `TrainConfig` (its checks, `config.json`, the hash that
-# names a run's folder) are in appendix 07c (`pemamoe.train_config`); this module re-exports them.
+# iterations crossing two phase switches, seconds per run. Appendix 07c (`pemamoe.train_config`,
+# re-exported here) says why the smaller presets hold their numbers and holds `TrainConfig`'s code.
 #
 # **Time-compressed schedules.** The phase controller's windows (LR warm-up, conservative window,
 # router freeze, KL-anchor decay, noise epochs) are counted relative to the paper's 1200-iteration
@@ -138,11 +137,9 @@ from pemamoe.train_config import (  # re-export (public names only)
 # ## The phase clock
 #
 # The trainer owns the phase: iteration $t$ runs in phase $\lfloor t/L \rfloor \bmod 3$, and a
-# switch happens at every $t > 0$ with $t \bmod L = 0$ (Algorithm 1's "iteration mod L"). The
-# same `PhaseSchedule` object of notebook 03 drives the stand-alone environment's own step clock,
-# here counted in iterations instead of slots. The environment is built with
-# `phase_clock="external"` and told the phase with `set_phase` before each rollout; the phase
-# index never enters an observation.
+# switch happens at every $t > 0$ with $t \bmod L = 0$ (Algorithm 1's "iteration mod L"), counted
+# by notebook 03's `PhaseSchedule` in iterations. The environment (`phase_clock="external"`) is
+# told the phase with `set_phase` before each rollout; the phase never enters an observation.
 
 # %%
 #| export

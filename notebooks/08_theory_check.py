@@ -42,8 +42,8 @@
 # are defined here and exported to `pemamoe/theory.py`. The instruments that measure them (the
 # tracking task's code, the learner and its paired runs, the fits of exponents, the $L_1$ distances
 # between action distributions, the Lipschitz estimates and the probes of the actor) live in the
-# appendix notebook `08b_theory_tools.py` (module `pemamoe.theory_tools`), each checked there on a
-# case with a known answer; this notebook only calls them.
+# appendix notebook `08b_toy_tracking.py` (module `pemamoe.toy_tracking`), each checked there on a
+# case with a known answer; this notebook only calls them. The records (below) are appendix 08c's.
 #
 # **Where the numbers come from.** The three experiments are computed once and kept as records,
 # like the training runs of notebook 09: `records/<scale>/theory/`, one per section (`noise`,
@@ -53,7 +53,7 @@
 # scale `make figures` trains nothing here. To compute them again, run the notebook with
 # `retrain=True` (`python -m pemamoe figures --scale medium --notebook 08_theory_check --retrain`,
 # about eight minutes on two cores) and commit the rewritten records. Computing is not
-# reproducible across processors, while reading a record is: appendix 08b explains why, and
+# reproducible across processors, while reading a record is: appendix 08c explains why, and
 # describes the records.
 
 # %%
@@ -80,7 +80,8 @@ import pandas as pd
 import torch
 
 from pemamoe.core import by_scale, repo_path, save_figure, write_table
-from pemamoe.theory_tools import (
+from pemamoe.theory_records import round_reported, theory_parameters, theory_record
+from pemamoe.toy_tracking import (
     DISTRIBUTIONS,
     TrackerConfig,
     TrackingProblemConfig,
@@ -90,11 +91,8 @@ from pemamoe.theory_tools import (
     lipschitz_ratio,
     moe_components,
     paired_distance,
-    round_reported,
     routing_stability_samples,
     run_many,
-    theory_parameters,
-    theory_record,
     tie_states,
     top1_win_probs,
 )

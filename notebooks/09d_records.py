@@ -142,7 +142,7 @@ def record_files(records_dir, scale: str, run_name: str) -> dict:
 
 def parquet_bytes(frame: pd.DataFrame) -> bytes:
     """`frame` as the compact parquet file of a record (zstd, no pandas schema, no column
-    statistics); the theory records of appendix 08b use it too."""
+    statistics); the theory records of appendix 08c use it too."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 

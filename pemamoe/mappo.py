@@ -37,13 +37,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 8 (line 147)
+# %% notebooks/07_mappo.py, cell 8 (line 144)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 11 (line 189)
+# %% notebooks/07_mappo.py, cell 11 (line 186)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -76,7 +76,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 264)
+# %% notebooks/07_mappo.py, cell 16 (line 261)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -177,7 +177,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 419)
+# %% notebooks/07_mappo.py, cell 18 (line 416)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -406,7 +406,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
     return out
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 675)
+# %% notebooks/07_mappo.py, cell 21 (line 672)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

@@ -11,7 +11,7 @@ from scipy.stats import norm
 
 from pemamoe.nets import make_actor
 from pemamoe.theory import dynamic_regret, noise_energy, noise_schedule, window_coverage
-from pemamoe.theory_tools import (
+from pemamoe.toy_tracking import (
     DISTRIBUTIONS,
     TrackerConfig,
     TrackingProblem,

@@ -1,4 +1,4 @@
-"""Records of notebook 08's theory check (appendix 08b): computed once, read back bit for bit, refused when damaged."""
+"""Records of notebook 08's theory check (appendix 08c): computed once, read back bit for bit, refused when damaged."""
 
 import hashlib
 import json
@@ -8,22 +8,19 @@ import pandas as pd
 import pytest
 
 from pemamoe.nets import make_actor
-from pemamoe.theory_tools import (
+from pemamoe.theory_records import (
     TheoryRecordError,
-    TrackerConfig,
-    TrackingProblemConfig,
     find_theory_record,
-    paired_distance,
     parameters_hash,
     read_theory_record,
     round_reported,
-    routing_stability_samples,
-    run_many,
     theory_parameters,
     theory_record,
     theory_record_path,
     verify_theory_record,
 )
+from pemamoe.toy_tracking import (TrackerConfig, TrackingProblemConfig, paired_distance, routing_stability_samples,
+                                  run_many)
 
 PROBLEM = TrackingProblemConfig(n_phases=3, probe_size=32)
 
@@ -102,7 +99,7 @@ def test_parameters_name_what_the_results_depend_on():
 
 
 def test_a_changed_network_default_is_a_change_of_parameters(monkeypatch):
-    import pemamoe.theory_tools as tt
+    import pemamoe.theory_records as tt
 
     jobs = _jobs()
     before = parameters_hash(theory_parameters({}, jobs))
