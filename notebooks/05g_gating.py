@@ -10,7 +10,6 @@
 #     name: python3
 # ---
 
-
 # %% [markdown]
 # # 05g · Appendix: the gate, for one network and for a population
 #
