@@ -167,7 +167,7 @@ def rss_child(R: int) -> float:
 
 def sweep_groups(scale: str) -> list:
     """[(method, members)] of the 39-run sweep as run_sweep groups it (population cap 16)."""
-    from pemamoe.sweep import experiment_specs, group_specs
+    from pemamoe.experiments import experiment_specs, group_specs
 
     unique = {}
     for spec in experiment_specs("all", scale):  # as run_sweep does: one run per folder

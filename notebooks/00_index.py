@@ -67,9 +67,9 @@
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the toy tracking problems and the theory check's instruments | `08b_toy_tracking.py` | `pemamoe/toy_tracking.py` | |
 # | (appendix of V) the theory check's records: computed once, committed, read back | `08c_theory_records.py` | `pemamoe/theory_records.py` | |
-# | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/sweep.py` | every results figure |
+# | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/experiments.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
-# | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_execution.py` | `pemamoe/execution.py` | |
+# | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_runner.py` | `pemamoe/sweep_runner.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
 # | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
 # | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_results_store.py` | `pemamoe/store.py` | |

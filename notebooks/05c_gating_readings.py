@@ -71,7 +71,7 @@ from pemamoe.budget import PLATEAU_TAIL, block_steps, budget_curves, load_budget
 from pemamoe.core import save_figure, write_table
 from pemamoe.mappo import evaluate_policy
 from pemamoe.records import read_record_actor
-from pemamoe.sweep import GATING_READINGS, gating_specs, sweep_records
+from pemamoe.experiments import GATING_READINGS, gating_specs, sweep_records
 
 specs = gating_specs(scale, seeds)
 records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)

@@ -67,7 +67,7 @@ from pemamoe.budget import PLATEAU_TAIL, block_steps, budget_curves, load_budget
 from pemamoe.core import save_figure, write_table
 from pemamoe.populations import action_switch_readings
 from pemamoe.records import read_record_actor
-from pemamoe.sweep import SPARSE_READINGS, sparse_specs, sweep_records
+from pemamoe.experiments import SPARSE_READINGS, sparse_specs, sweep_records
 
 specs = sparse_specs(scale, seeds)
 records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
@@ -162,7 +162,7 @@ save_figure(fig, "sparse_actor", figures_dir)
 # (PE-MAMoE in a fixed phase is SMoE: the controller never acts, so it is left out.)
 
 # %%
-from pemamoe.sweep import budget_specs
+from pemamoe.experiments import budget_specs
 
 study_specs = [s for s in budget_specs(scale, None, ("mlp", "moe", "smoe"), readings=("ours",))
                if s.tag == "budget/small" and dict(s.overrides)["fixed_phase"] == 0]

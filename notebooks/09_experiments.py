@@ -31,15 +31,15 @@
 # record markers, which is what the figures read. Pending runs whose configs differ only in the
 # member fields of notebook 07 train together as one population (`train_population`), on a local
 # process pool or as Ray tasks. The machinery lives in appendices, so that this notebook reads as
-# the experiments and their results: appendix 09c (`pemamoe.execution`, whose names
-# `pemamoe.sweep` re-exports) is the run cache (a run is done when its folder's `done.json` or its
+# the experiments and their results: appendix 09c (`pemamoe.sweep_runner`, whose names
+# `pemamoe.experiments` re-exports) is the run cache (a run is done when its folder's `done.json` or its
 # record verifies), the grouping into populations, the two backends, stopping and `--status`;
 # appendix 09d (`pemamoe.records`) is the published record of a finished run and the reading of
 # records back into tables; appendix 09e (`pemamoe.commands`) is the command line, `python -m
 # pemamoe sweep`, which calls the same `run_sweep`, so a sweep started from the shell is reused here.
 
 # %%
-#| default_exp sweep
+#| default_exp experiments
 
 # %% tags=["parameters"]
 scale = "small"
@@ -61,7 +61,7 @@ from pemamoe.core import (  # re-export: the experiments' names live in core, fo
 import dataclasses as _dc
 
 from pemamoe.core import by_scale, check_scale
-from pemamoe.execution import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
+from pemamoe.sweep_runner import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
     BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
     pending_runs, record_marker, run_sweep, sweep_records)
 from pemamoe.mappo import METHODS, TrainConfig
@@ -437,7 +437,7 @@ from pemamoe.core import save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
 # Worker processes import what they run by module path, so the sweep must use the package's copies
 # of these definitions, not the ones this notebook's cells just created in __main__.
-from pemamoe.sweep import default_seeds, main_specs, sweep_records
+from pemamoe.experiments import default_seeds, main_specs, sweep_records
 
 method_list = method_order(None if methods is None else tuple(methods))
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
@@ -685,7 +685,7 @@ plt.show()
 
 # %%
 from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
-from pemamoe.sweep import budget_specs, default_reading  # the study's runs of the actor the sweep trained
+from pemamoe.experiments import budget_specs, default_reading  # the study's runs of the actor the sweep trained
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
 study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS),

@@ -66,7 +66,7 @@ import pandas as pd
 
 from pemamoe.analysis import phase_visits
 from pemamoe.records import read_record, record_timing
-from pemamoe.sweep import BUDGET_UPDATES
+from pemamoe.experiments import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
 
@@ -80,7 +80,7 @@ PLATEAU_FRACTION = 0.85  # "learned": this fraction of the plateau
 
 
 def update_setting(config: dict) -> str:
-    """Name of a run's update settings (a key of pemamoe.sweep.BUDGET_UPDATES), from its
+    """Name of a run's update settings (a key of pemamoe.experiments.BUDGET_UPDATES), from its
     config.json: the first setting whose overrides the config holds, else "small" (no overrides)."""
     for name, overrides in BUDGET_UPDATES.items():
         if overrides and all(config.get(k) == v for k, v in overrides.items()):
@@ -335,7 +335,7 @@ from pemamoe.analysis import REFERENCE_POLICIES, method_order, reference_levels
 from pemamoe.core import save_figure, write_table
 from pemamoe.mappo import METHODS, TrainConfig
 from pemamoe.methods import method_colour, method_label, method_spec
-from pemamoe.sweep import budget_specs, net_reading, sweep_records
+from pemamoe.experiments import budget_specs, net_reading, sweep_records
 
 specs = budget_specs(scale, seeds, tuple(methods) if methods else METHODS)  # both actor readings
 records = sweep_records(specs, backend, workers, results_dir, ray_address, records_dir, retrain)
@@ -559,7 +559,7 @@ save_figure(fig, "learning_budget_readings", figures_dir)
 # setting `chosen`, and the experiments run each method at its chosen setting.
 
 # %%
-from pemamoe.sweep import pending_runs, tuning_specs
+from pemamoe.experiments import pending_runs, tuning_specs
 
 tuning = tuning_specs(scale, seeds, tuple(methods) if methods else METHODS)
 missing = set(map(id, pending_runs(tuning, results_dir, records_dir, retrain)[1]))

@@ -16,7 +16,7 @@
 # Notebook 09 says *what* a sweep trains (the run specs of every experiment) and what `run_sweep`
 # promises: every spec not yet done is trained, compatible runs train together as one population,
 # finished runs are never retrained, and the run folders come back in the order of the specs. This
-# appendix is *how*, in the module `pemamoe.execution`:
+# appendix is *how*, in the module `pemamoe.sweep_runner`:
 #
 # * `RunSpec`, a run's name and its folder in the cache, and the run cache: which runs are done
 #   (`pending_runs`), how the rest are grouped into populations (`group_specs`), `run_sweep` and
@@ -27,11 +27,11 @@
 # * stopping: the signal handling of the sweep, the workers that die with it, the progress bar and
 #   the report of failed runs; a time budget (`hours`), and where a long sweep stands (`--status`).
 #
-# `pemamoe.sweep` imports this module and re-exports its public names; this module knows nothing of
+# `pemamoe.experiments` imports this module and re-exports its public names; this module knows nothing of
 # the experiments. The command line, `python -m pemamoe sweep`, is appendix 09e.
 
 # %%
-#| default_exp execution
+#| default_exp sweep_runner
 
 # %% tags=["parameters"]
 scale = "small"
@@ -779,7 +779,7 @@ def status_summary(table, workers: int) -> str:
 
 # %%
 from pemamoe.core import repo_path
-from pemamoe.sweep import experiment_specs
+from pemamoe.experiments import experiment_specs
 
 _status = sweep_status(experiment_specs("main", scale), repo_path("results"), workers=2, records_dir=repo_path("records"))
 print(status_summary(_status, workers=2))

@@ -15,7 +15,7 @@
 #
 # Two commands sit on top of everything else. The sweep command runs one of the experiments of
 # notebook 09 from the shell; `make figures` trains every run the notebooks read and then executes
-# every notebook. Both need the experiments (`pemamoe.sweep`), so they live here, in the module
+# every notebook. Both need the experiments (`pemamoe.experiments`), so they live here, in the module
 # `pemamoe.commands`, above the sweep and above everything the sweep imports. The hand-written
 # `pemamoe/__main__.py` parses the top-level command and calls them.
 #
@@ -139,7 +139,7 @@ def sweep_cli(argv=None) -> int:
 
 def _sweep(args) -> int:
     """The sweep command once its arguments are checked: --status's table, or run_sweep."""
-    from pemamoe.sweep import experiment_specs, pending_runs, run_sweep
+    from pemamoe.experiments import experiment_specs, pending_runs, run_sweep
 
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods, args.reading)
@@ -163,7 +163,7 @@ def _sweep(args) -> int:
 def _print_status(specs, args) -> None:
     import pandas as pd
 
-    from pemamoe.execution import status_summary, sweep_status
+    from pemamoe.sweep_runner import status_summary, sweep_status
 
     table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
     with pd.option_context("display.width", 120, "display.max_columns", 10):
@@ -184,7 +184,7 @@ def error_line(err: BaseException, stores=(), start_over: str | None = None) -> 
         return one_line(err.message(start_over))
     # An error of a module not loaded cannot have been raised: importing one here would cost seconds.
     loaded = [getattr(sys.modules[m], name) for m, name in (("pemamoe.records", "RecordError"),
-                                                             ("pemamoe.execution", "SweepRunError"))
+                                                             ("pemamoe.sweep_runner", "SweepRunError"))
               if m in sys.modules]
     if isinstance(err, (RunLockedError, StoreLeaseError, StoreAccessError, OSError, *loaded)):
         return one_line(err)
@@ -269,7 +269,7 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     """
     import shutil
 
-    from pemamoe.sweep import experiment_specs, run_sweep
+    from pemamoe.experiments import experiment_specs, run_sweep
 
     check_scale(scale)
     figures_dir = repo_path(figures_dir or "paper_figures")

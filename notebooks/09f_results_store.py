@@ -844,7 +844,7 @@ with tempfile.TemporaryDirectory() as tmp:
 # there.
 
 # %%
-from pemamoe.execution import RunSpec, execute_population, pending_runs
+from pemamoe.sweep_runner import RunSpec, execute_population, pending_runs
 
 with tempfile.TemporaryDirectory() as tmp:
     os.environ[CACHE_ENV] = tmp

@@ -52,7 +52,7 @@ from pemamoe.analysis import (SUMMARY_METRICS, claim_verdict, heuristic_episodes
                               method_order, relative_change, run_scores)
 from pemamoe.core import by_scale, save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
-from pemamoe.sweep import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, sweep_records,
+from pemamoe.experiments import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, sweep_records,
                            trick_specs)
 
 proposed = proposed_method()
@@ -296,7 +296,7 @@ print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuris
 # %%
 from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.sweep import budget_specs, default_reading  # the study's runs of the actor the sweep trained
+from pemamoe.experiments import budget_specs, default_reading  # the study's runs of the actor the sweep trained
 
 main_metrics = metrics[metrics.run.isin(runs_of["main"])]
 study_methods = tuple(m for m in method_order(main_metrics.method) if m in METHOD_REGISTRY)

@@ -11,7 +11,7 @@ import pandas as pd
 
 from pemamoe.analysis import phase_visits
 from pemamoe.records import read_record, record_timing
-from pemamoe.sweep import BUDGET_UPDATES
+from pemamoe.experiments import BUDGET_UPDATES
 
 BLOCK_STEPS = 100_000  # environment steps per point of a learning curve
 
@@ -25,7 +25,7 @@ PLATEAU_FRACTION = 0.85  # "learned": this fraction of the plateau
 
 
 def update_setting(config: dict) -> str:
-    """Name of a run's update settings (a key of pemamoe.sweep.BUDGET_UPDATES), from its
+    """Name of a run's update settings (a key of pemamoe.experiments.BUDGET_UPDATES), from its
     config.json: the first setting whose overrides the config holds, else "small" (no overrides)."""
     for name, overrides in BUDGET_UPDATES.items():
         if overrides and all(config.get(k) == v for k, v in overrides.items()):

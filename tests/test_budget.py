@@ -9,7 +9,7 @@ import torch
 from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach
 from pemamoe.env import EnvConfig, UAVVectorEnv
 from pemamoe.mappo import TrainConfig, check_population, population_key, train, train_population
-from pemamoe.sweep import BUDGET_READINGS, RunSpec, budget_specs, default_reading, group_specs
+from pemamoe.experiments import BUDGET_READINGS, RunSpec, budget_specs, default_reading, group_specs
 
 from test_population import _assert_same_run
 
@@ -97,7 +97,7 @@ def test_the_study_runs_the_gated_methods_under_each_actor_reading_and_mlp_once(
 
 
 def test_default_reading_names_the_reading_the_netconfig_defaults_are(monkeypatch):
-    import pemamoe.sweep as sweep
+    import pemamoe.experiments as sweep
 
     assert default_reading() in BUDGET_READINGS
     for name, fields in BUDGET_READINGS.items():
@@ -118,7 +118,7 @@ def test_a_member_of_a_learning_rate_and_entropy_grid_trains_as_it_would_alone(t
 
 
 def test_pemamoe_in_a_fixed_phase_trains_as_smoe_bit_for_bit(tmp_path):
-    from pemamoe.sweep import fixed_phase_twin
+    from pemamoe.experiments import fixed_phase_twin
 
     assert fixed_phase_twin("pemamoe", ("mlp", "smoe", "pemamoe")) == "smoe"
     assert fixed_phase_twin("pemamoe", ("mlp", "pemamoe")) is None and fixed_phase_twin("smoe_redo", ("smoe",)) is None
@@ -205,7 +205,7 @@ def test_budget_curves_weight_iterations_by_episodes_and_drop_the_last_partial_b
 
 # --- the tuning grid (issue 38: every method tuned alike) ------------------------------------------
 def test_tuning_grid_gives_every_method_the_same_settings_and_shares_its_centre_with_the_study():
-    from pemamoe.sweep import BUDGET_READINGS, TUNING_ENTROPY, TUNING_LRS, tuning_specs
+    from pemamoe.experiments import BUDGET_READINGS, TUNING_ENTROPY, TUNING_LRS, tuning_specs
 
     specs = tuning_specs("small")
     cfgs = [s.to_config() for s in specs]

@@ -21,14 +21,14 @@ import torch
 from pemamoe.bookkeeping import _unpack_rows
 from pemamoe.mappo import TIMING_COLUMNS, train
 from pemamoe.runs import RunLockedError, holder_pid, load_checkpoint, read_parquet, verify_done
-from pemamoe.sweep import RunSpec, run_sweep
+from pemamoe.experiments import RunSpec, run_sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = [RunSpec("mlp", 0, "ci"), RunSpec("mlp", 1, "ci")]
 
 TRAIN_SCRIPT = """
 import sys
-from pemamoe.sweep import RunSpec
+from pemamoe.experiments import RunSpec
 from pemamoe.mappo import train
 train(RunSpec("mlp", 0, "ci").to_config(), sys.argv[1], verbose=True)
 """

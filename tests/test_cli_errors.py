@@ -143,7 +143,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import textwrap  # noqa: E402
 
-HEAVY = ("torch", "numpy", "pandas", "pyarrow", "numba", "pemamoe.mappo", "pemamoe.execution", "pemamoe.sweep",
+HEAVY = ("torch", "numpy", "pandas", "pyarrow", "numba", "pemamoe.mappo", "pemamoe.sweep_runner", "pemamoe.experiments",
          "pemamoe.records", "pemamoe.phase_controller")
 
 
@@ -243,7 +243,7 @@ def test_41c_a_missing_bucket_is_named_in_one_line(command, s3_endpoint, tmp_pat
 
 # -- a: a run folder locked by another live process --------------------------------------------
 def test_41a_sweep_over_a_run_locked_by_another_process_is_one_line(tmp_path):
-    from pemamoe.sweep import RunSpec
+    from pemamoe.experiments import RunSpec
 
     results = tmp_path / "results"
     run_dir = RunSpec("mlp", 0, "ci").run_dir(results)
@@ -274,7 +274,7 @@ def portable_state(tmp_path_factory):
     """(records folder, the path of a real portable state in it) of a ci MLP run stopped at iteration 2."""
     from pemamoe.mappo import train_population
     from pemamoe.records import write_portable_state
-    from pemamoe.sweep import RunSpec
+    from pemamoe.experiments import RunSpec
 
     tmp = tmp_path_factory.mktemp("portable")
     spec = RunSpec("mlp", 0, "ci")

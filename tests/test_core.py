@@ -193,10 +193,11 @@ def test_one_line_flattens_every_whitespace_run():
 def test_the_command_lines_names_are_the_owning_modules_own():
     from dataclasses import fields
 
-    from pemamoe import execution, phase_controller, sweep, train_config
+    from pemamoe import experiments, phase_controller, sweep_runner, train_config
 
-    assert phase_controller.MECHANISMS is core.MECHANISMS and sweep.EXPERIMENTS is core.EXPERIMENTS
-    assert execution.BACKENDS is core.BACKENDS and execution.DEFAULT_POPULATION == core.DEFAULT_POPULATION
+    assert phase_controller.MECHANISMS is core.MECHANISMS and experiments.EXPERIMENTS is core.EXPERIMENTS
+    assert experiments.ACTOR_READINGS is core.ACTOR_READINGS and experiments.READABLE_EXPERIMENTS is core.READABLE_EXPERIMENTS
+    assert sweep_runner.BACKENDS is core.BACKENDS and sweep_runner.DEFAULT_POPULATION == core.DEFAULT_POPULATION
     assert train_config.SEED_LIMIT == core.SEED_LIMIT == 2**63
     switches = {f.name for f in fields(phase_controller.PhaseControllerConfig) if f.type in (bool, "bool")}
     assert set(core.MECHANISMS) <= switches  # each names an on/off switch of the controller

@@ -50,7 +50,7 @@ for name in {missing!r}:
 
 import pemamoe.env as E
 import pemamoe.mappo as mappo
-import pemamoe.sweep  # noqa: F401
+import pemamoe.experiments  # noqa: F401
 import runpy
 runpy.run_path("benchmarks/bench_train.py", run_name="bench_train")  # its imports, not its main()
 

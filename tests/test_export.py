@@ -230,14 +230,14 @@ def test_reexport_marker_in_exporti_cell_is_an_error():
 
 
 def test_star_imports_bring_the_appendix_names_the_main_modules_reexport():
-    from pemamoe import execution, train_config
+    from pemamoe import sweep_runner, train_config
 
     mappo_ns, sweep_ns = {}, {}
     exec("from pemamoe.mappo import *", mappo_ns)
-    exec("from pemamoe.sweep import *", sweep_ns)
+    exec("from pemamoe.experiments import *", sweep_ns)
     assert mappo_ns["TrainConfig"] is train_config.TrainConfig
     assert {"EpisodeTracker", "resolve_device", "train_population"} <= mappo_ns.keys()
-    assert sweep_ns["run_sweep"] is execution.run_sweep
+    assert sweep_ns["run_sweep"] is sweep_runner.run_sweep
     assert {"RunSpec", "SweepInterrupted", "execute_population", "run_sweep", "sweep_records"} <= sweep_ns.keys()
     # private helpers of the marked imports and incidental imports stay out of __all__
     for ns in (mappo_ns, sweep_ns):

@@ -46,7 +46,7 @@ def plugin(tmp_path, monkeypatch):
 def test_the_contributing_example_runs_in_a_sweep_and_a_figure(plugin, tmp_path):
     from pemamoe.analysis import load_runs, plot_over_training
     from pemamoe.methods import method_label, method_spec
-    from pemamoe.sweep import main_specs, sweep_records
+    from pemamoe.experiments import main_specs, sweep_records
 
     assert method_spec(plugin).plasticity == "shrink_perturb"  # loaded from $PEMAMOE_PLUGINS on first use
     specs = main_specs("ci", seeds=(0,), methods=("mlp", plugin))

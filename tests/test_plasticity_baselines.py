@@ -247,7 +247,7 @@ def test_redo_logs_units_recycled_and_resumes_bit_for_bit_at_a_switch(tmp_path):
 
 def test_a_sweep_runs_both_baselines_on_both_networks(tmp_path):
     from pemamoe.analysis import load_runs
-    from pemamoe.sweep import RunSpec, sweep_records
+    from pemamoe.experiments import RunSpec, sweep_records
 
     names = ("mlp_redo", "smoe_redo", "mlp_snp", "smoe_snp")
     records = sweep_records([RunSpec(n, 0, "ci") for n in names], "local", workers=1, results_dir=tmp_path / "results",

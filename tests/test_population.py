@@ -85,7 +85,7 @@ GPU_POPULATION_DEPENDENT = pytest.mark.xfail(
 def test_member_is_bit_identical_alone_and_in_any_population(method, device, tmp_path):
     # members differ in seed, ablation switch, noise gamma, force_controller, learning rate and
     # entropy anneal; orders differ. "/paper": the paper's actor readings (a mean head per expert)
-    from pemamoe.sweep import BUDGET_READINGS
+    from pemamoe.experiments import BUDGET_READINGS
 
     method, _, reading = method.partition("/")
     net = BUDGET_READINGS[reading] if reading else {}

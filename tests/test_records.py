@@ -13,7 +13,7 @@ from pemamoe.core import REPO_ROOT, run_notebook
 from pemamoe.mappo import TrainConfig, train, train_population
 from pemamoe.records import (RECORD_BUDGET_MB, RecordError, committed_records_mb, read_record, read_record_actor,
                              record_block, record_frame, verify_record, write_record)
-from pemamoe.sweep import RunSpec, record_marker, run_sweep, sweep_records
+from pemamoe.experiments import RunSpec, record_marker, run_sweep, sweep_records
 
 
 def test_record_frame_averages_blocks_by_hand():

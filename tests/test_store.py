@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from pemamoe.execution import execute_population
+from pemamoe.sweep_runner import execute_population
 from pemamoe.records import (PORTABLE_DIR, RecordError, portable_state_mb, portable_state_path,
                              read_portable_state, restore_portable_state, write_portable_state)
 from pemamoe.runs import load_checkpoint, parquet_rows, read_json
 from pemamoe.mappo import train_population
-from pemamoe.sweep import RunSpec, record_marker
+from pemamoe.experiments import RunSpec, record_marker
 
 
 def _record_bytes(marker):
@@ -96,7 +96,7 @@ def test_a_finished_run_has_no_portable_state(tmp_path):
 
 
 def test_status_on_a_fresh_machine_counts_the_committed_portable_state(tmp_path):
-    from pemamoe.execution import sweep_status
+    from pemamoe.sweep_runner import sweep_status
     from pemamoe.records import portable_state_iteration
 
     spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
@@ -374,7 +374,7 @@ def test_a_worker_paused_past_the_stale_time_writes_nothing_over_the_run_another
 
 _SWEEP_SCRIPT = """
 import sys
-from pemamoe.sweep import RunSpec, run_sweep
+from pemamoe.experiments import RunSpec, run_sweep
 specs = [RunSpec(m, 0, "ci", overrides=(("iterations", {iterations}),)) for m in ("mlp", "smoe")]
 run_sweep(specs, "ray", workers=2, results_dir=sys.argv[1], verbose=False)
 """
@@ -392,7 +392,7 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     import sys
 
     from pemamoe.store import open_store
-    from pemamoe.sweep import run_sweep
+    from pemamoe.experiments import run_sweep
 
     iterations = 40
     specs = [RunSpec(m, 0, "ci", overrides=(("iterations", iterations),)) for m in ("mlp", "smoe")]

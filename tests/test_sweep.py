@@ -18,8 +18,8 @@ import torch
 from pemamoe.mappo import train
 from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.commands import sweep_cli
-from pemamoe.execution import status_summary, sweep_status
-from pemamoe.sweep import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep
+from pemamoe.sweep_runner import status_summary, sweep_status
+from pemamoe.experiments import RunSpec, experiment_specs, main_specs, noise_specs, run_sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 BASELINES = tuple(n for n, sp in METHOD_REGISTRY.items() if sp.compared and not sp.proposed)  # three runs without the controller
@@ -204,7 +204,7 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
 
     before = {p.pid for p in psutil.Process().children(recursive=True)}  # e.g. multiprocessing's resource tracker
     threading.Thread(target=interrupt, daemon=True).start()
-    from pemamoe.sweep import SweepInterrupted
+    from pemamoe.experiments import SweepInterrupted
 
     start = time.monotonic()
     with pytest.raises(SweepInterrupted, match="SIGINT"):
@@ -218,7 +218,7 @@ def test_ray_sweep_is_cancelled_by_sigint(tmp_path):
 
 
 def test_a_large_compatible_set_splits_into_near_equal_populations():
-    from pemamoe.sweep import group_specs
+    from pemamoe.experiments import group_specs
 
     specs = experiment_specs("all", "small")
     unique = list({s.to_config().run_name(): s for s in reversed(specs)}.values())[::-1]  # one spec per run
@@ -278,7 +278,7 @@ def test_status_rate_counts_checkpoints_but_not_pauses(tmp_path):
     step far longer than the typical checkpoint step (a paused process) does not."""
     import pandas as pd
 
-    from pemamoe.execution import _logged_progress
+    from pemamoe.sweep_runner import _logged_progress
 
     steps = [1.0] * 200
     steps[99] = steps[199] = 41.0  # two checkpoints
@@ -351,7 +351,7 @@ def test_sweep_help_describes_the_command_and_every_option(capsys):
 
 
 def test_the_top2_arm_runs_the_sparse_methods_with_two_experts_under_the_papers_reading(tmp_path):
-    from pemamoe.sweep import BUDGET_READINGS, TOP2_METHODS
+    from pemamoe.experiments import BUDGET_READINGS, TOP2_METHODS
 
     specs = experiment_specs("top2", "medium")
     configs = [s.to_config() for s in specs]
@@ -375,7 +375,7 @@ def test_a_pinned_reading_sets_the_gated_actors_and_leaves_mlp_and_the_rest_of_t
 
     from pemamoe.mappo import NetConfig
     from pemamoe.methods import method_spec
-    from pemamoe.sweep import BUDGET_READINGS
+    from pemamoe.experiments import BUDGET_READINGS
 
     plain, pinned = experiment_specs("all", "ci"), experiment_specs("all", "ci", reading=reading)
     assert [s.tag for s in plain] == [s.tag for s in pinned]

@@ -9,7 +9,7 @@ from pemamoe.core import (  # re-export: the experiments' names live in core, fo
 import dataclasses as _dc
 
 from pemamoe.core import by_scale, check_scale
-from pemamoe.execution import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
+from pemamoe.sweep_runner import (  # re-export: a run's spec, the run cache and the backends (appendix 09c)
     BACKENDS, DEFAULT_POPULATION, RunSpec, SweepInterrupted, check_counts, execute_population, group_specs,
     pending_runs, record_marker, run_sweep, sweep_records)
 from pemamoe.mappo import METHODS, TrainConfig
