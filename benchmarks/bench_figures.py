@@ -7,6 +7,8 @@ the time is the figures' alone: the environment build is CI's to measure), runs 
 * the wall time of the whole regeneration and of each notebook (from the command's own lines);
 * how many runs it trained (run folders under the clone's results/; a fresh clone must train none,
   every figure reads the committed records);
+* how many theory records notebook 08 computed instead of reading ("[theory record] ...: computing"
+  lines; a fresh clone must compute none, the toy problems' results are committed records too);
 * which files of paper_figures/ differ from the committed ones (the README of paper_figures/
   itself names the commit, so it always does).
 
@@ -68,18 +70,21 @@ def main() -> int:
             print(f"figures: FAILED (exit {proc.returncode}) after {seconds:.0f} s")
             return 1
         trained = trained_runs(clone / "results")
+        computed = re.findall(r"\[theory record\] (\S+): computing", proc.stdout + proc.stderr)
         changed = changed_files(clone / "paper_figures", ROOT / "paper_figures")
         print(f"figures: make figures SCALE={args.scale} on a fresh clone took {seconds:.0f} s "
               f"({seconds / 60:.1f} min, {args.workers} workers)")
         print(f"figures: runs trained: {len(trained)}" + (f" ({', '.join(trained[:8])}{' ...' if len(trained) > 8 else ''})"
                                                        if trained else " (every figure read the committed records)"))
+        print(f"figures: theory records computed: {len(computed)}"
+              + (f" ({', '.join(computed)})" if computed else " (notebook 08 read every one)"))
         print(f"figures: files of paper_figures/ that differ from this checkout's: {len(changed)}"
               + (f" ({', '.join(changed[:12])}{' ...' if len(changed) > 12 else ''})" if changed else ""))
         if args.install:
             shutil.rmtree(ROOT / "paper_figures")
             shutil.copytree(clone / "paper_figures", ROOT / "paper_figures")
             print("figures: installed the regenerated paper_figures/ into this checkout")
-    return 1 if trained else 0
+    return 1 if trained or computed else 0
 
 
 if __name__ == "__main__":
