@@ -120,6 +120,10 @@ def sweep_cli(argv=None) -> int:
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
     _check_store_arg(parser, "--records-dir", args.records_dir)
+    # relative folders resolve under the checkout, as `figures` reads them: a plugin's sweep run
+    # from the plugin's folder trains into the results and records that `figures` then reads
+    args.results_dir, args.records_dir = (text if open_store(text).remote else repo_path(open_store(text).folder)
+                                          for text in (args.results_dir, args.records_dir))
     stores = (args.results_dir, args.records_dir)
     try:
         for store in stores:

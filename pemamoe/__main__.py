@@ -218,6 +218,10 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         args.store = open_store(args.results_dir)
     except ValueError as err:
         parser.error(f"--results-dir: {err}")
+    if not args.store.remote:  # a relative folder resolves under the checkout, as sweep and figures resolve it
+        from pemamoe.core import repo_path
+
+        args.store = open_store(repo_path(args.store.folder))
     if args.store.remote and args.out is not None:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")

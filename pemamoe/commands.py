@@ -72,6 +72,10 @@ def sweep_cli(argv=None) -> int:
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
     _check_store_arg(parser, "--records-dir", args.records_dir)
+    # relative folders resolve under the checkout, as `figures` reads them: a plugin's sweep run
+    # from the plugin's folder trains into the results and records that `figures` then reads
+    args.results_dir, args.records_dir = (text if open_store(text).remote else repo_path(open_store(text).folder)
+                                          for text in (args.results_dir, args.records_dir))
     stores = (args.results_dir, args.records_dir)
     try:
         for store in stores:
@@ -166,7 +170,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 254)
+# %% notebooks/09e_commands.py, cell 10 (line 258)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -276,7 +280,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 365)
+# %% notebooks/09e_commands.py, cell 11 (line 369)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

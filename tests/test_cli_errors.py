@@ -416,3 +416,16 @@ def test_41i_every_command_checks_counts_with_the_same_words(argv, capsys):
         main(argv)
     assert exit_.value.code == 2
     assert _error_line(capsys.readouterr().err).endswith(f"argument {argv[-2]}: must be an integer >= 1, got '0'")
+
+
+def test_sweep_resolves_relative_stores_under_the_checkout_from_any_folder(tmp_path):
+    """A plugin's sweep run from its own folder reads and writes the repository's results/ and records/,
+    the ones `figures` reads: `--status` from another folder reports what it reports from the root."""
+    argv = [sys.executable, "-m", "pemamoe", "sweep", "--experiment", "main", "--scale", "medium", "--methods",
+            "mlp", "--status"]  # the committed medium MLP records
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    at_root, elsewhere = (subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=300, env=env)
+                          for cwd in (REPO, tmp_path))
+    assert at_root.returncode == elsewhere.returncode == 0, (at_root.stderr, elsewhere.stderr)
+    assert at_root.stdout == elsewhere.stdout and "3 of 3 runs finished" in at_root.stdout
+    assert not (tmp_path / "results").exists() and not (tmp_path / "records").exists()
