@@ -386,13 +386,18 @@ with tempfile.TemporaryDirectory() as scratch:
         calls.append(1)
         return demo_tables, demo_values
 
+    said = []  # the demo's progress lines, kept off stdout (where `make figures` counts computed records)
     p1 = theory_parameters({"T": 10, "seed": seed})
-    got, vals = theory_record(scratch, "ci", "demo", p1, demo_compute)
+    got, vals = theory_record(scratch, "ci", "demo", p1, demo_compute, say=said.append)
     pd.testing.assert_frame_equal(got["runs"], demo_tables["runs"], check_exact=True)
     assert vals == _plain(demo_values)
-    theory_record(scratch, "ci", "demo", p1, demo_compute)  # read, not computed
-    theory_record(scratch, "ci", "demo", theory_parameters({"T": 20, "seed": seed}), demo_compute)
+    theory_record(scratch, "ci", "demo", p1, demo_compute, say=said.append)  # read, not computed
+    theory_record(scratch, "ci", "demo", theory_parameters({"T": 20, "seed": seed}), demo_compute, say=said.append)
     assert len(calls) == 2
+    assert [line.split(": ")[1].split(" ")[0] for line in said] == ["computing", "computed", "read", "computing",
+                                                                    "computed"], said
+    print("the demo's progress lines:", *(line.replace("[theory record] ", "").replace(scratch, "<tmp>")
+                                          for line in said), sep="\n  ")
     marker = theory_record_path(scratch, "ci", "demo")
     table = marker.with_name("demo.runs.parquet")
     table.write_bytes(table.read_bytes()[:-1] + b"\0")

@@ -12,6 +12,8 @@ TRAIN_HELP = "train one MAPPO run; logs and checkpoint go to --out"
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m pemamoe", description="The PE-MAMoE companion's commands (`python -m pemamoe COMMAND --help` for a command's options).",
+        epilog="Scales, smallest first: ci, small, medium, paper. train and sweep default to small (they train, in "
+               "minutes); figures defaults to medium (it reads the committed records and trains nothing).",
         formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
     sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
@@ -179,7 +181,8 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     default = proposed_method()
     p.add_argument("--method", default=default, choices=methods,
                    help=f"a registered method: network kind and plasticity method (default: {default})")
-    p.add_argument("--scale", default="small", choices=SCALES, help="preset budget (default: small)")
+    p.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small, which trains in "
+                   "minutes; figures defaults to medium, whose records are committed)")
     p.add_argument("--seed", type=int_arg(0, SEED_LIMIT), default=0,
                    help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",

@@ -31,7 +31,8 @@ def sweep_cli(argv=None) -> int:
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
-    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small)")
+    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small, which trains in minutes; figures defaults to medium, "
+                        "whose records are committed)")
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
                              "(default: the network's defaults)")
@@ -170,7 +171,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 258)
+# %% notebooks/09e_commands.py, cell 10 (line 259)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -280,7 +281,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 369)
+# %% notebooks/09e_commands.py, cell 11 (line 370)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -429,3 +429,17 @@ def test_sweep_resolves_relative_stores_under_the_checkout_from_any_folder(tmp_p
     assert at_root.returncode == elsewhere.returncode == 0, (at_root.stderr, elsewhere.stderr)
     assert at_root.stdout == elsewhere.stdout and "3 of 3 runs finished" in at_root.stdout
     assert not (tmp_path / "results").exists() and not (tmp_path / "records").exists()
+
+
+@pytest.mark.parametrize("command, default", [("train", "small"), ("sweep", "small"), ("figures", "medium")])
+def test_each_command_help_states_the_scale_default_the_top_level_help_promises(command, default, capsys):
+    """One default-scale story: what `--help` says of --scale is what the parser does and what the
+    top-level help tells a reader (train and sweep train at small; figures reads medium's records)."""
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    story = " ".join(capsys.readouterr().out.split())
+    assert "train and sweep default to small" in story and "figures defaults to medium" in story
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert f"(default: {default}" in help_text.split("--scale {ci,small,medium,paper}", 2)[-1]
