@@ -2,6 +2,7 @@
 declared dependencies (no lock) into a fresh virtual environment, trains a ci run there. Pip uses
 its cache and the configured package index, as a user's pip would."""
 
+import hashlib
 import shutil
 import subprocess
 import sys
@@ -38,3 +39,16 @@ def test_the_wheel_installs_with_its_declared_dependencies_and_trains(tmp_path):
     run = tmp_path / "run"
     _run([python, "-m", "pemamoe", "train", "--scale", "ci", "--out", run], tmp_path, 600)
     assert (run / "done.json").exists() and (run / "metrics.parquet").exists()
+
+    # export and check-export belong to a checkout: on the install they refuse in one line and
+    # leave every installed module as it was (an export there once deleted them all as "orphans")
+    package = Path(_run([python, "-c", "import pemamoe, os; print(os.path.dirname(pemamoe.__file__))"],
+                        tmp_path, 120).stdout.strip())
+    before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in package.glob("*.py")}
+    for command in ("export", "check-export"):
+        proc = subprocess.run([str(python), "-m", "pemamoe", command], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=300)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode != 0 and len(lines) == 1 and "checkout" in lines[0], (command, proc.stdout, proc.stderr)
+        assert "wrote" not in proc.stdout
+    assert {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in package.glob("*.py")} == before
