@@ -48,14 +48,9 @@ def current_commit() -> str:
 
 def machine() -> str:
     """The machine in one line: OS and architecture, CPU count and model, memory, Python."""
-    model = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = " (" + line.split(":", 1)[1].strip() + ")"
-                break
-    except OSError:
-        pass
+    from pemamoe.core import cpu_model
+
+    model = f" ({cpu_model()})"
     try:
         memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.1f} GiB"
     except (ValueError, OSError, AttributeError):

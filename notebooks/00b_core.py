@@ -784,6 +784,22 @@ def figure_notebooks(root=None) -> list:
                   key=lambda p: p.name)
 
 
+def cpu_model() -> str:
+    """The processor's model name (Linux's /proc/cpuinfo), else what `platform` knows. Float
+    kernels differ between processor families, so a figure computed at plot time can differ in its
+    last digits from one family to another: records and figure folders say where they were made."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str) -> Path:
     """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
     readme = repo_path(figures_dir) / "README.md"
@@ -799,6 +815,9 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
         "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
         "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
         "ran at, the command, and the commit the code was at.",
+        f"The last `make figures` that wrote here ran on {cpu_model()}: on the same kind of processor it",
+        "rewrites every file byte for byte; on another, values computed at plot time may differ in",
+        "their last reported digit or a few pixels (the repository's README says which).",
         "",
         "| file | paper counterpart | notebook | scale | command | commit |",
         "|---|---|---|---|---|---|",

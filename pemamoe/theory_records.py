@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pemamoe.core import REPO_ROOT, SCALES, atomic_write_bytes, atomic_write_json, check_scale
+from pemamoe.core import REPO_ROOT, SCALES, atomic_write_bytes, atomic_write_json, check_scale, cpu_model
 from pemamoe.nets import NetConfig
 from pemamoe.records import RecordError, parquet_bytes
 from pemamoe.runs import read_json, read_parquet
@@ -119,13 +119,7 @@ def _differences(a, b, prefix: str = "") -> list:
 def _made_on() -> dict:
     import torch
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
-            cpu = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), cpu)
-    except OSError:
-        pass
-    return {"cpu": cpu, "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+    return {"cpu": cpu_model(), "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
             "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
             "pandas": pd.__version__}
 

@@ -57,6 +57,8 @@ def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
     assert "| a.png | model illustration (no paper figure) | notebooks/01_channel.py | ci |" in text
     assert "| cost_table.md | Table 'Computational cost comparison (actor network)' |" in text
     assert "`make figures SCALE=small` | def |" in text
+    assert f"ran on {core.cpu_model()}:" in text  # where it was made: plot-time values depend on the processor
+    assert core.cpu_model().strip() and "\n" not in core.cpu_model()
 
 
 def test_run_notebook_rejects_unknown_scale(tmp_path):
