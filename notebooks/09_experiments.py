@@ -733,11 +733,11 @@ against = ["revisit_minus_first_mean", "revisit_minus_first_end", "revisit_minus
 learned = learned.merge(revisits.reindex(columns=["method", "visit", *against]), on=["method", "visit"], how="left")
 write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 
-if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
-    print("no revisits at this scale")
-else:
-    methods_here = [m for m in method_order(metrics.method) if m in set(revisits.method)]
-    phases_here = sorted(revisits.phase.unique())
+def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: str) -> None:
+    """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
+    mean over the seeds, with a fresh network's over the same steps where `fresh` has one."""
+    methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
+    phases_here = sorted({p for _, _, p in phase_visits(metrics)})
     fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
                              squeeze=False, sharey="row")
     for j, method in enumerate(methods_here):
@@ -762,7 +762,13 @@ else:
         axes[0][0].legend(fontsize=7)
         axes[0][0].set_ylabel("coverage")
     fig.tight_layout()
-    save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
+    save_figure(fig, name, figures_dir)
+
+
+if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
+    print("no revisits at this scale")
+else:
+    plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale, f"plasticity_loss_{scale}")
 revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
                  "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)
 
@@ -794,6 +800,75 @@ def _plasticity_words(r: pd.DataFrame) -> str:
 from IPython.display import Markdown  # noqa: E402
 
 Markdown(_plasticity_words(revisits))
+
+# %% [markdown]
+# ### The paper's regime, as far as its campaign has run
+#
+# `medium` gives a phase visit about a ninth of the paper's gradient steps, and plasticity loss is
+# driven by updates. The paper-scale campaign (9 visits of 1,200 iterations, 8 epochs of 32
+# minibatches; `benchmarks/HISTORY.md`) publishes its records a population at a time; this cell
+# reads whichever are committed, trains nothing, and measures the same comparisons on them. No
+# fresh network has been trained at the paper's update settings, but the first visit of phase 0
+# is one: a network that has seen nothing else, trained the same way. Three seeds are few, so the
+# differences are shown seed by seed.
+
+# %%
+from pemamoe.core import repo_path
+from pemamoe.methods import METHOD_REGISTRY
+from pemamoe.records import verify_record
+
+campaign = [spec for spec in main_specs("paper", default_seeds("paper"), method_order(METHOD_REGISTRY))  # baselines too
+            if scale != "paper" and verify_record(record_marker(spec, repo_path(records_dir)), spec.to_config())]
+if not campaign:
+    campaign_revisits = pd.DataFrame()
+    print("no paper-scale record to read" if scale != "paper" else "at the paper scale, the section above is this one")
+else:
+    campaign_metrics, _ = load_runs(sweep_records(campaign, "local", 1, results_dir, None, records_dir, False))
+    no_plateaus = pd.DataFrame({"method": [], "phase": [], "plateau": []})
+    campaign_revisits = pd.concat([revisit_learning(runs, runs.iloc[:0], no_plateaus, bin_steps=block_steps("paper"))
+                                   .assign(seed=seed) for seed, runs in campaign_metrics.groupby("seed")])
+    campaign_revisits = campaign_revisits[["method", "seed", "phase", "visit", "steps", "revisit_mean", "first_mean",
+                                           "revisit_minus_first_mean", "revisit_end", "first_end",
+                                           "revisit_minus_first_end", "first_dormant_at_switch",
+                                           "revisit_dormant_at_switch", "first_rank_at_switch", "revisit_rank_at_switch"]]
+    write_table(campaign_revisits.round(4), "plasticity_loss_paper_campaign", figures_dir)
+    plot_visits(campaign_metrics, campaign_metrics.iloc[:0], "paper", "plasticity_loss_paper_campaign")
+campaign_revisits.pivot_table(index=["method", "visit", "phase"], columns="seed",
+                              values=["revisit_minus_first_mean", "revisit_minus_first_end"]).round(3) \
+    if len(campaign_revisits) else campaign_revisits
+
+# %% [markdown]
+# ![Coverage within each phase visit at the paper's scale, the campaign's committed records](../paper_figures/plasticity_loss_paper_campaign.png)
+
+# %%
+def _campaign_words(r: pd.DataFrame) -> str:
+    """The paper-scale comparison in sentences (computed, not typed)."""
+    if r.empty:
+        return "* No paper-scale record is committed yet."
+    lines = []
+    for method, g in r.groupby("method", sort=False):
+        zero = g[g.phase == 0]
+        lines.append(
+            f"* {method_label(method)} ({g.seed.nunique()} seeds, {len(g)} revisits): {int((g.revisit_minus_first_mean < 0).sum())} "
+            f"learn below the first visit over the visit (differences {g.revisit_minus_first_mean.min():+.3f} to "
+            f"{g.revisit_minus_first_mean.max():+.3f}) and {int((g.revisit_minus_first_end < 0).sum())} end below it "
+            f"({g.revisit_minus_first_end.min():+.3f} to {g.revisit_minus_first_end.max():+.3f}); in phase 0, against "
+            f"the fresh network that its first visit is, {int((zero.revisit_minus_first_end < 0).sum())} of {len(zero)} "
+            f"end lower (mean {zero.revisit_minus_first_end.mean():+.3f}); dormant fraction at the switches "
+            f"{g.revisit_dormant_at_switch.mean():.3f} (first visits {g.first_dormant_at_switch.mean():.3f}), effective "
+            f"rank {g.revisit_rank_at_switch.mean():.1f} ({g.first_rank_at_switch.mean():.1f}).")
+    return "\n".join(lines)
+
+
+Markdown(_campaign_words(campaign_revisits))
+
+# %% [markdown]
+# Read on the MLP family's records (the campaign's first): the MLP relearns a revisited phase from a
+# higher start than it first learned it, yet in phase 0 its later visits level off below the fresh
+# network's, with almost no dormant units and a growing feature rank: a lower ceiling, not dead
+# units. That is the shape of plasticity loss the paper starts from, small beside the gaps between
+# methods, and partly the entropy schedule (it anneals over the run, so a revisit explores less).
+# ReDo, which recycles dormant units, finds few here; its revisits end below their first as often.
 
 # %% [markdown]
 # ## The parameter table, generated from the configuration objects

@@ -33,6 +33,7 @@ AWAITING_REGENERATION: dict[str, str] = {}
 IMAGE_LINK = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
 SAVE_FIGURE = re.compile(r"""save_figure\(\s*\w+\s*,\s*(f?)(["'])([^"']+)\2""")
 STRING_LITERAL = re.compile(r"""["']([A-Za-z0-9_]+)["']""")
+F_STRING_NAME = re.compile(r"""\bf(["'])([A-Za-z0-9_]+_\{scale\})\1""")  # f"plasticity_loss_{scale}"
 # A commit-like token: 7 to 40 hexadecimal characters with at least one digit and one letter
 # (so neither a plain number nor an English word such as "defaced"), standing alone.
 COMMIT_LIKE = re.compile(r"(?<![0-9A-Za-z])(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}(?![0-9A-Za-z])")
@@ -68,7 +69,9 @@ def written_figures(path: Path) -> set[str]:
         return set()
     known = committed_figures() | set(AWAITING_REGENERATION)
     names = set()
-    for is_f, _, name in calls:
+    # names handed to a helper that calls save_figure with a variable (09's figure(...), plot_visits(...))
+    helper_f_strings = [("f", None, name) for _, name in F_STRING_NAME.findall(code)]
+    for is_f, _, name in calls + helper_f_strings:
         if not is_f:
             names.add(f"{name}.png")
             continue
