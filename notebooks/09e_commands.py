@@ -121,10 +121,11 @@ def sweep_cli(argv=None) -> int:
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
     _check_store_arg(parser, "--records-dir", args.records_dir)
-    # relative folders resolve under the checkout, as `figures` reads them: a plugin's sweep run
-    # from the plugin's folder trains into the results and records that `figures` then reads
-    args.results_dir, args.records_dir = (text if open_store(text).remote else repo_path(open_store(text).folder)
-                                          for text in (args.results_dir, args.records_dir))
+    # the default stores are the checkout's, as `figures` reads them, from whatever folder the sweep
+    # runs (a plugin's, say); a folder the user names is relative to where the command runs
+    args.results_dir, args.records_dir = (repo_path(text) if text == default else text
+                                          for text, default in ((args.results_dir, "results"),
+                                                                (args.records_dir, "records")))
     stores = (args.results_dir, args.records_dir)
     try:
         for store in stores:

@@ -63,26 +63,26 @@ def main(argv=None) -> int:
         try:
             check_scale(args.scale)
         except ValueError as err:
-            parser.error(str(err))
-        _require_extra("python -m pemamoe figures", FIGURES_MODULES, "figures", parser)
+            fig.error(str(err))
+        _require_extra("python -m pemamoe figures", FIGURES_MODULES, "figures", fig)
         if args.backend == "ray":
-            _require_extra("python -m pemamoe figures --backend ray", RAY_MODULES, "ray", parser)
+            _require_extra("python -m pemamoe figures --backend ray", RAY_MODULES, "ray", fig)
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
         if str(args.results_dir).strip() == "":
-            parser.error("--results-dir must be a folder path or a URL, got an empty string")
+            fig.error("--results-dir must be a folder path or a URL, got an empty string")
         try:
             results_dir = _results_dir(args.results_dir)
         except ValueError as err:
-            parser.error(f"--results-dir: {err}")
-        _check_parent_folder("--results-dir", args.results_dir, parser)
+            fig.error(f"--results-dir: {err}")
+        _check_parent_folder("--results-dir", args.results_dir, fig)
         from pemamoe.store import StoreAccessError, check_access
 
         try:
             check_access(results_dir)  # a URL: its credentials, endpoint and bucket, before any notebook runs
         except StoreAccessError as err:
-            parser.exit(1, f"{parser.prog} figures: error: {err}\n")
+            fig.exit(1, f"{fig.prog}: error: {err}\n")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
         readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
@@ -221,10 +221,10 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         args.store = open_store(args.results_dir)
     except ValueError as err:
         parser.error(f"--results-dir: {err}")
-    if not args.store.remote:  # a relative folder resolves under the checkout, as sweep and figures resolve it
+    if args.results_dir == "results":  # the default store is the checkout's, as sweep and figures read it
         from pemamoe.core import repo_path
 
-        args.store = open_store(repo_path(args.store.folder))
+        args.store = open_store(repo_path("results"))
     if args.store.remote and args.out is not None:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")

@@ -108,10 +108,11 @@ def test_defaults_and_no_resume(calls, tmp_path):
 
 
 def test_default_out_is_named_after_the_run(calls, tmp_path, monkeypatch):
+    """In the checkout's results/ (the default store, as sweep and figures read it) from any folder."""
     monkeypatch.chdir(tmp_path)
     main(["train", "--scale", "ci"])
     (call,) = calls
-    assert call.run_dir == Path("results") / "train" / call.config.run_name()
+    assert call.run_dir == REPO / "results" / "train" / call.config.run_name()
 
 
 @pytest.mark.skipif("device" not in {f.name for f in dataclasses.fields(mappo.TrainConfig)},

@@ -118,8 +118,10 @@ def test_figures_refuses_a_results_dir_whose_parent_does_not_exist(figures_calls
     with pytest.raises(SystemExit) as exit_:
         _figures(tmp_path, "--notebook", "01_channel", "--results-dir", str(missing))
     assert exit_.value.code == 2 and figures_calls == []
-    line = _error_line(capsys.readouterr().err)
+    err = capsys.readouterr().err
+    line = _error_line(err)
     assert "--results-dir" in line and str(missing) in line
+    assert line.startswith("python -m pemamoe figures: error:") and "usage: python -m pemamoe figures" in err
 
 
 @pytest.mark.parametrize("argv", [["train", "--bogus"], ["figures", "--scale", "ci", "--bogus"], ["export", "--bogus"]])
@@ -429,6 +431,10 @@ def test_sweep_resolves_relative_stores_under_the_checkout_from_any_folder(tmp_p
     assert at_root.returncode == elsewhere.returncode == 0, (at_root.stderr, elsewhere.stderr)
     assert at_root.stdout == elsewhere.stdout and "3 of 3 runs finished" in at_root.stdout
     assert not (tmp_path / "results").exists() and not (tmp_path / "records").exists()
+    # a folder the user names is relative to where the command runs: here, an empty new store
+    named = subprocess.run([*argv, "--results-dir", "mine", "--records-dir", "mine_records"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=300, env=env)
+    assert named.returncode == 0 and "0 of 3 runs finished" in named.stdout, named.stderr
 
 
 @pytest.mark.parametrize("command, default", [("train", "small"), ("sweep", "small"), ("figures", "medium")])
