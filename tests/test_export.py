@@ -263,3 +263,11 @@ def test_the_index_maps_every_notebook_and_the_modules_it_exports():
         modules = literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel)
         for module in modules:
             assert f"pemamoe/{module}.py" in rows[nb.name], f"00_index's row for {nb.name} does not name pemamoe/{module}.py"
+
+
+def test_every_notebook_stays_within_900_lines():
+    """Issue 39: a notebook a reader can hold in mind; past 900 lines an idea moves to an appendix."""
+    notebooks = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))
+    assert notebooks
+    long = {p.name: n for p in notebooks if (n := len(p.read_text(encoding="utf-8").splitlines())) > 900}
+    assert not long, long
