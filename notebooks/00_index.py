@@ -61,13 +61,13 @@
 # | (appendix) the plasticity diagnostics (VI-F): feature rank, dormant units, routers, mean action | `06e_diagnostics.py` | `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
 # | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
-# | (appendix to IV-B) the run's configuration: its fields and checks, its identity, the presets | `07c_train_config.py` | `pemamoe/train_config.py` | |
+# | (appendix to IV-B) the run's configuration: its fields and checks, its identity, the presets; VI-A's parameter table | `07c_train_config.py` | `pemamoe/train_config.py` | `table_parameters` |
 # | (appendix to IV-B) populations of runs, resuming and catching up, reading a run back, deterministic evaluation | `07d_populations.py` | `pemamoe/populations.py` | |
 # | (appendix to IV-B) the trainer's bookkeeping: episodes, the log row, the return normaliser, checkpoint encoding | `07e_bookkeeping.py` | `pemamoe/bookkeeping.py` | |
 # | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the toy tracking problems and the theory check's instruments | `08b_toy_tracking.py` | `pemamoe/toy_tracking.py` | |
 # | (appendix of V) the theory check's records: computed once, committed, read back | `08c_theory_records.py` | `pemamoe/theory_records.py` | |
-# | VI-A parameter table, VI-B to VI-F results | `09_experiments.py` | `pemamoe/experiments.py` | every results figure |
+# | VI-B to VI-F results | `09_experiments.py` | `pemamoe/experiments.py` | every results figure |
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_runner.py` | `pemamoe/sweep_runner.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |

@@ -758,6 +758,9 @@ PAPER_COUNTERPARTS = {
     "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
     "learning_budget_compute": "(ours) MLP's two update settings per compute second",
     **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
+    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit and a fresh network"
+       for scale in SCALES},
+    "plasticity_loss_paper_campaign": "(ours) the paper scale's revisits against first visits, committed records so far",
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }

@@ -529,3 +529,35 @@ for _s in SCALES:
                   "conservative": _c.controller.conservative_iters, "freeze": _c.controller.router_freeze_iters,
                   "noise epochs": _c.controller.noise_epochs, "kl decay": round(_c.controller.kl_decay, 4)})
 pd.DataFrame(_rows)
+
+# %% [markdown]
+# ## The paper's parameter table, generated from the configuration objects
+#
+# Every number of the simulation and of training, read from `EnvConfig` and the `paper` preset of
+# `TrainConfig`, so the table cannot drift from the code.
+
+# %%
+import dataclasses as _dc
+
+from pemamoe.core import write_table
+from pemamoe.env import EnvConfig
+from pemamoe.methods import proposed_method
+
+
+def flatten(obj, prefix=""):
+    out = {}
+    for f in _dc.fields(obj):
+        value = getattr(obj, f.name)
+        if _dc.is_dataclass(value):
+            out.update(flatten(value, f"{prefix}{f.name}."))
+        elif not f.name.startswith("_"):
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+params = {**{f"env.{k}": v for k, v in flatten(EnvConfig()).items()},
+          **{f"train.{k}": v for k, v in flatten(TrainConfig.for_scale("paper", proposed_method(), 0)).items()
+             if k not in ("method", "seed")}}
+param_table = pd.DataFrame({"parameter": list(params), "value": [str(v) for v in params.values()]})
+write_table(param_table, "table_parameters", figures_dir)
+print(len(param_table), "parameters")

@@ -499,6 +499,11 @@ plt.show()
 
 # %% [markdown]
 # ## Task performance
+#
+# Return and coverage over training, each phase's level without learning drawn in black; then the
+# normalised IQM of five system metrics with 95 % stratified-bootstrap intervals across seeds, and
+# the probability that the proposed method beats each baseline. The sentences under the IQM table
+# are computed from it.
 
 # %%
 figure("episode_return", "mean episode return", "results_mean_return", "Mean return over training", reference=levels)
@@ -538,6 +543,23 @@ write_table(iqm_table.round(3), "results_normalised_iqm", figures_dir)
 raw = scores.groupby("method")[list(SUMMARY_METRICS)].mean().reindex(present)
 print("per-episode IQM of each metric, mean over seeds (raw units):")
 raw.round(3)
+
+# %%
+def _iqm_words(table: pd.DataFrame) -> str:
+    """Per metric: the leader and which methods' intervals reach its lower bound (computed, not typed)."""
+    lines = []
+    for metric, g in table.groupby("metric", sort=False):
+        best = g.loc[g["normalised IQM"].idxmax()]
+        close = [method_label(m) for m, hi in zip(g.method, g.ci_high) if m != best.method and hi >= best.ci_low]
+        lines.append(f"* {metric}: {method_label(best.method)} leads ({best['normalised IQM']:.2f}, interval "
+                     f"{best.ci_low:.2f} to {best.ci_high:.2f}); "
+                     + (f"within reach of it: {', '.join(close)}." if close else "no other interval reaches it."))
+    return "\n".join(lines)
+
+
+from IPython.display import Markdown  # noqa: E402
+
+Markdown(_iqm_words(iqm_table))
 
 # %% [markdown]
 # ![Normalised IQM across five system metrics, medium scale](../paper_figures/results_normalised_iqm.png)
@@ -630,6 +652,9 @@ if routed:
 
 # %% [markdown]
 # ## System performance and internal state
+#
+# How the methods fly, not only how much they cover: collisions and energy per UAV, the users served
+# and the share of UAVs in use, and how the mean action on the probe batch answers each switch.
 
 # %%
 figure("collisions_per_episode", "collisions per episode", "results_collisions", "Collisions per episode over training",
@@ -797,8 +822,6 @@ def _plasticity_words(r: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-from IPython.display import Markdown  # noqa: E402
-
 Markdown(_plasticity_words(revisits))
 
 # %% [markdown]
@@ -869,31 +892,3 @@ Markdown(_campaign_words(campaign_revisits))
 # units. That is the shape of plasticity loss the paper starts from, small beside the gaps between
 # methods, and partly the entropy schedule (it anneals over the run, so a revisit explores less).
 # ReDo, which recycles dormant units, finds few here; its revisits end below their first as often.
-
-# %% [markdown]
-# ## The parameter table, generated from the configuration objects
-#
-# Every number of the simulation and of training, read from `EnvConfig` and the `paper` preset of
-# `TrainConfig`, so the table cannot drift from the code.
-
-# %%
-from pemamoe.env import EnvConfig
-
-
-def flatten(obj, prefix=""):
-    out = {}
-    for f in _dc.fields(obj):
-        value = getattr(obj, f.name)
-        if _dc.is_dataclass(value):
-            out.update(flatten(value, f"{prefix}{f.name}."))
-        elif not f.name.startswith("_"):
-            out[f"{prefix}{f.name}"] = value
-    return out
-
-
-params = {**{f"env.{k}": v for k, v in flatten(EnvConfig()).items()},
-          **{f"train.{k}": v for k, v in flatten(TrainConfig.for_scale("paper", proposed_method(), 0)).items()
-             if k not in ("method", "seed")}}
-param_table = pd.DataFrame({"parameter": list(params), "value": [str(v) for v in params.values()]})
-write_table(param_table, "table_parameters", figures_dir)
-print(len(param_table), "parameters")

@@ -555,6 +555,9 @@ PAPER_COUNTERPARTS = {
     "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
     "learning_budget_compute": "(ours) MLP's two update settings per compute second",
     **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
+    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit and a fresh network"
+       for scale in SCALES},
+    "plasticity_loss_paper_campaign": "(ours) the paper scale's revisits against first visits, committed records so far",
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }
@@ -623,7 +626,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 29 (line 829)
+# %% notebooks/00b_core.py, cell 29 (line 832)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}
