@@ -314,17 +314,21 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     return figures_dir / "README.md"
 
 
+FIGURE_INPUTS = ("notebooks", "pemamoe", "records")  # what paper_figures/ is computed from
+
+
 def _code_commit() -> str:
-    """The short commit of the code, "+dirty" when notebooks/ or pemamoe/ have uncommitted changes."""
+    """The short commit that last changed what the figures are computed from (FIGURE_INPUTS), not
+    HEAD: committing the figures themselves moves HEAD, and a fresh clone of that commit must write
+    the same provenance. "+dirty" when an input has uncommitted changes (the commit alone does not
+    reproduce the figure then)."""
     import subprocess
 
     try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        ).stdout.strip() or "unknown"
-        # Uncommitted changes to the code mean the commit alone does not reproduce the figure.
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "notebooks", "pemamoe"], cwd=REPO_ROOT,
-                               capture_output=True, text=True).stdout.strip()
+        commit = subprocess.run(["git", "log", "-1", "--format=%h", "--", *FIGURE_INPUTS], cwd=REPO_ROOT,
+                                capture_output=True, text=True).stdout.strip() or "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", *FIGURE_INPUTS],
+                               cwd=REPO_ROOT, capture_output=True, text=True).stdout.strip()
         return commit + ("+dirty" if dirty else "")
     except OSError:
         return "unknown"

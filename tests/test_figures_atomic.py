@@ -89,3 +89,38 @@ def test_a_new_figures_folder_gets_the_mode_mkdir_gives(tmp_path):
     assert (figs / "atomic_table.csv").read_text() == "scale\nci\n"
     assert os.stat(figs).st_mode & 0o777 == 0o777 & ~current_umask()
     assert _beside(tmp_path) == ["figs"]
+
+
+def test_provenance_names_the_commit_of_the_inputs_not_of_the_figures(tmp_path):
+    """paper_figures/README.md's commit is the last one that changed notebooks/, pemamoe/ or records/:
+    committing the figures moves HEAD but not it, so a fresh clone of the figures' commit writes the
+    same provenance, byte for byte; an uncommitted change to an input marks it "+dirty"."""
+    import shutil
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    clone = tmp_path / "clone"
+    git = lambda *args: subprocess.run(["git", "-C", str(clone), *args], capture_output=True, text=True,  # noqa: E731
+                                       check=True).stdout.strip()
+    subprocess.run(["git", "clone", "--quiet", "--depth", "1", f"file://{repo}", str(clone)], check=True)
+    git("config", "user.email", "t@example.org")
+    git("config", "user.name", "t")
+    shutil.copytree(repo / "pemamoe", clone / "pemamoe", dirs_exist_ok=True,  # the code under test, committed
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    git("commit", "--quiet", "--allow-empty", "-am", "the working tree's package")
+
+    def commit_named() -> str:
+        return subprocess.run([sys.executable, "-c", "from pemamoe.commands import _code_commit; print(_code_commit())"],
+                              cwd=clone, env={**os.environ, "PYTHONPATH": str(clone)}, capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+    before = commit_named()
+    assert before == git("log", "-1", "--format=%h", "--", "notebooks", "pemamoe", "records")
+    (clone / "paper_figures" / "README.md").write_text("regenerated\n")
+    git("commit", "--quiet", "-am", "figures")
+    assert commit_named() == before  # the figures' own commit does not change it
+    (clone / "notebooks" / "00_index.py").write_text("# changed\n")
+    assert commit_named() == before + "+dirty"
+    git("commit", "--quiet", "-am", "code")
+    assert commit_named() == git("rev-parse", "--short", "HEAD") != before
