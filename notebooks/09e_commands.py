@@ -314,7 +314,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     return figures_dir / "README.md"
 
 
-FIGURE_INPUTS = ("notebooks", "pemamoe", "records")  # what paper_figures/ is computed from
+# what paper_figures/ is computed from (a campaign's portable states are not: no figure reads them)
+FIGURE_INPUTS = ("notebooks", "pemamoe", "records", ":(exclude,glob)records/*/in_progress/**")
 
 
 def _code_commit() -> str:

@@ -228,7 +228,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     return figures_dir / "README.md"
 
 
-FIGURE_INPUTS = ("notebooks", "pemamoe", "records")  # what paper_figures/ is computed from
+# what paper_figures/ is computed from (a campaign's portable states are not: no figure reads them)
+FIGURE_INPUTS = ("notebooks", "pemamoe", "records", ":(exclude,glob)records/*/in_progress/**")
 
 
 def _code_commit() -> str:
@@ -286,7 +287,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 375)
+# %% notebooks/09e_commands.py, cell 11 (line 376)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

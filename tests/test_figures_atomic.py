@@ -120,6 +120,11 @@ def test_provenance_names_the_commit_of_the_inputs_not_of_the_figures(tmp_path):
     (clone / "paper_figures" / "README.md").write_text("regenerated\n")
     git("commit", "--quiet", "-am", "figures")
     assert commit_named() == before  # the figures' own commit does not change it
+    (clone / "records" / "paper" / "in_progress").mkdir(parents=True, exist_ok=True)
+    (clone / "records" / "paper" / "in_progress" / "run.pt.zst").write_bytes(b"state")
+    git("add", "records")
+    git("commit", "--quiet", "-m", "a campaign's portable state")
+    assert commit_named() == before  # no figure reads a portable state
     (clone / "notebooks" / "00_index.py").write_text("# changed\n")
     assert commit_named() == before + "+dirty"
     git("commit", "--quiet", "-am", "code")
