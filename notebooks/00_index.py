@@ -27,8 +27,9 @@
 # head per expert, no balance loss, the PPO ratio on the current routes) the same actor levels off
 # with the MLP and the dense MoE in every phase (appendix 09b), so the gated methods are being
 # rerun at `medium` that way, every method tuned alike, and the paper's longer regime is being run.
-# Its first populations (MLP, MLP + ReDo) show the paper's premise, plasticity loss, only faintly:
-# a revisited phase starts higher than its first visit and mostly levels off a little below it.
+# Its first populations (MLP and two plasticity baselines) show the paper's premise, plasticity
+# loss, only faintly: an MLP's revisited phase starts higher than its first visit and mostly levels
+# off a little below it; shrink-and-perturb lifts that ceiling, ReDo does not.
 #
 # ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #

@@ -889,6 +889,8 @@ Markdown(_campaign_words(campaign_revisits))
 # Read on the MLP family's records (the campaign's first): the MLP relearns a revisited phase from a
 # higher start than it first learned it, yet in phase 0 its later visits level off below the fresh
 # network's, with almost no dormant units and a growing feature rank: a lower ceiling, not dead
-# units. That is the shape of plasticity loss the paper starts from, small beside the gaps between
-# methods, and partly the entropy schedule (it anneals over the run, so a revisit explores less).
-# ReDo, which recycles dormant units, finds few here; its revisits end below their first as often.
+# units. ReDo, which recycles dormant units, finds few here, and its revisits end below their first
+# as often. Shrink-and-perturb, which shrinks every weight and adds noise at each switch, lifts it:
+# its phase-0 revisits end above the first visit on average. That is the shape of plasticity loss
+# the paper starts from, small beside the gaps between methods, and partly the entropy schedule (it
+# anneals over the run, so a revisit explores less).
