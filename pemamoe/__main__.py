@@ -181,8 +181,8 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     default = proposed_method()
     p.add_argument("--method", default=default, choices=methods,
                    help=f"a registered method: network kind and plasticity method (default: {default})")
-    p.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small, which trains in "
-                   "minutes; figures defaults to medium, whose records are committed)")
+    p.add_argument("--scale", default="small", choices=SCALES, help="the preset, trained in minutes at small "
+                   "(default: small); figures defaults to medium, whose records are committed")
     p.add_argument("--seed", type=int_arg(0, SEED_LIMIT), default=0,
                    help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",

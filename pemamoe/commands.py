@@ -31,8 +31,8 @@ def sweep_cli(argv=None) -> int:
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
-    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset (default: small, which trains in minutes; figures defaults to medium, "
-                        "whose records are committed)")
+    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset, trained in minutes at small (default: small); figures defaults to "
+                        "medium, whose records are committed")
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
                              "(default: the network's defaults)")
