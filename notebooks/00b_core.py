@@ -57,6 +57,9 @@ from contextlib import contextmanager
 from pathlib import Path
 
 SCALES = ("ci", "small", "medium", "paper")
+# --scale's help for the commands that train (train, sweep): one wording of the default-scale story
+TRAINING_SCALE_HELP = ("the preset, trained in minutes at small (default: small); figures defaults to medium, "
+                       "whose records are committed")
 
 
 def check_scale(scale: str) -> str:

@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -79,8 +79,7 @@ def sweep_cli(argv=None) -> int:
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
-    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset, trained in minutes at small (default: small); figures defaults to "
-                        "medium, whose records are committed")
+    parser.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
                              "(default: the network's defaults)")

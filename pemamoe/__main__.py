@@ -169,7 +169,7 @@ def _option_value(argv, option: str):
 def _add_train_parser(sub) -> argparse.ArgumentParser:
     # Light modules only (no torch): --help and an argument error must not wait for the trainer to
     # import. Every value is checked here, while the arguments are parsed (the seed's range too).
-    from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, int_arg, real_arg
+    from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, int_arg, real_arg
     from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
     load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
@@ -181,8 +181,7 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     default = proposed_method()
     p.add_argument("--method", default=default, choices=methods,
                    help=f"a registered method: network kind and plasticity method (default: {default})")
-    p.add_argument("--scale", default="small", choices=SCALES, help="the preset, trained in minutes at small "
-                   "(default: small); figures defaults to medium, whose records are committed")
+    p.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     p.add_argument("--seed", type=int_arg(0, SEED_LIMIT), default=0,
                    help="random seed, an integer in [0, 2**63) (default: 0)")
     p.add_argument("--out", default=None, metavar="DIR",

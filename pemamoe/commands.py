@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -31,8 +31,7 @@ def sweep_cli(argv=None) -> int:
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b) (default: main)")
-    parser.add_argument("--scale", default="small", choices=SCALES, help="the preset, trained in minutes at small (default: small); figures defaults to "
-                        "medium, whose records are committed")
+    parser.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
                              "(default: the network's defaults)")
@@ -172,7 +171,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 260)
+# %% notebooks/09e_commands.py, cell 10 (line 259)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -287,7 +286,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 376)
+# %% notebooks/09e_commands.py, cell 11 (line 375)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)
