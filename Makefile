@@ -19,7 +19,7 @@ help:
 	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1] [RESULTS=s3://...]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them; RESULTS: the results store)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
-	@echo "make bench                 print the performance figures and write them to benchmarks/RESULTS.md"
+	@echo "make bench                 print the performance figures (peers included: installs the extra bench) and write them to benchmarks/RESULTS.md"
 	@echo "make lock                  regenerate environment.lock from requirements.in"
 	@echo "make clean                 remove build outputs and caches (keeps .venv and results/)"
 
@@ -62,7 +62,13 @@ lab: $(STAMP)
 		> $(VENV)/share/jupyter/lab/settings/overrides.json
 	$(VENV)/bin/jupyter lab --ServerApp.root_dir=. $(if $(filter 0,$(shell id -u)),--allow-root,) $(LAB_ARGS)
 
-bench: $(STAMP)
+# The peers of bench_peers.py come with the extra `bench`, installed once into .venv beside the lock.
+BENCH_STAMP := $(VENV)/.bench-installed
+$(BENCH_STAMP): $(STAMP) pyproject.toml
+	$(PY) -m pip install --quiet --no-build-isolation -e ".[bench]"
+	@touch $@
+
+bench: $(BENCH_STAMP)
 	$(PY) benchmarks/run.py
 
 lock:
