@@ -108,6 +108,7 @@ class TorchRLPeer:
 
         from pemamoe.env_wrappers import UAVParallelEnv
 
+        logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage's size is not a result
         s = ppo_settings(cfg)
         env_cfg = cfg.env_config()
 
@@ -233,9 +234,7 @@ def env_seconds(cfg: TrainConfig) -> float:
 
 def main() -> None:
     torch.set_num_threads(1)
-    # the peers' notices (TorchRL's tested PettingZoo version, its storage's size) are not results
-    warnings.filterwarnings("ignore", module="torchrl")
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", module="torchrl")  # the PettingZoo version TorchRL was tested with
     cfg = preset()
     steps = cfg.batch_env_steps
     peers, missing = available_peers()

@@ -402,6 +402,26 @@ def repo_path(path) -> Path:
     return path if path.is_absolute() else REPO_ROOT / path
 
 
+def checkout_store(text, default: str):
+    """A store argument (`--results-dir`, `--records-dir`) as every command reads it: its default
+    name (`results`, `records`) is the checkout's folder of that name, wherever the command runs,
+    because `figures` reads the checkout's; any other text is returned as given (a folder relative
+    to where the command runs, or a URL)."""
+    return repo_path(default) if str(text) == default else text
+
+
+# %% [markdown]
+# The stores that `train`, `sweep` and `figures` share follow one rule, `checkout_store`: the
+# default name is the checkout's folder (so a sweep started from a plugin's folder fills the
+# records that `figures` reads), any other folder is where the user says, and a URL is a URL.
+
+# %%
+assert checkout_store("results", "results") == REPO_ROOT / "results"
+assert checkout_store("records", "records") == REPO_ROOT / "records"
+assert checkout_store("my_results", "results") == "my_results"  # relative to where the command runs
+assert checkout_store("s3://bucket/prefix", "records") == "s3://bucket/prefix"
+
+
 # %% [markdown]
 # ## Writing files atomically
 #

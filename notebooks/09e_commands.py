@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -120,11 +120,8 @@ def sweep_cli(argv=None) -> int:
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
     _check_store_arg(parser, "--records-dir", args.records_dir)
-    # the default stores are the checkout's, as `figures` reads them, from whatever folder the sweep
-    # runs (a plugin's, say); a folder the user names is relative to where the command runs
-    args.results_dir, args.records_dir = (repo_path(text) if text == default else text
-                                          for text, default in ((args.results_dir, "results"),
-                                                                (args.records_dir, "records")))
+    args.results_dir = checkout_store(args.results_dir, "results")  # from a plugin's folder too
+    args.records_dir = checkout_store(args.records_dir, "records")
     stores = (args.results_dir, args.records_dir)
     try:
         for store in stores:

@@ -99,10 +99,11 @@ def _results_dir(text: str) -> str:
     """--results-dir as the notebooks need it: a remote store's URL as it is, a folder (or file://
     URL) other than the default relative to where the command runs (the default, results/, is the
     repository's). A URL no installed fsspec protocol serves fails here, before any notebook runs."""
+    from pemamoe.core import checkout_store
     from pemamoe.store import open_store
 
-    store = open_store(text)
-    return text if store.remote or text == "results" else str(store.folder.resolve())
+    store = open_store(checkout_store(text, "results"))
+    return text if store.remote else str(store.folder.resolve())
 
 
 def _check_parent_folder(flag: str, text: str, parser) -> None:
@@ -211,19 +212,16 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
     store (no credentials, no endpoint, no bucket) and Ctrl-C end it with one line on stderr and a
     non-zero status, not a traceback."""
     from pemamoe.commands import error_line  # light: no torch
+    from pemamoe.core import checkout_store
     from pemamoe.store import check_access, open_store  # light: fsspec only for a URL
 
     if args.out is not None and args.out.strip() == "":
         parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
     _check_out(args.out, parser)
     try:
-        args.store = open_store(args.results_dir)
+        args.store = open_store(checkout_store(args.results_dir, "results"))
     except ValueError as err:
         parser.error(f"--results-dir: {err}")
-    if args.results_dir == "results":  # the default store is the checkout's, as sweep and figures read it
-        from pemamoe.core import repo_path
-
-        args.store = open_store(repo_path("results"))
     if args.store.remote and args.out is not None:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -72,11 +72,8 @@ def sweep_cli(argv=None) -> int:
         parser.error("--records-dir must be a folder path or a URL, got an empty string")
     _check_store_arg(parser, "--results-dir", args.results_dir)
     _check_store_arg(parser, "--records-dir", args.records_dir)
-    # the default stores are the checkout's, as `figures` reads them, from whatever folder the sweep
-    # runs (a plugin's, say); a folder the user names is relative to where the command runs
-    args.results_dir, args.records_dir = (repo_path(text) if text == default else text
-                                          for text, default in ((args.results_dir, "results"),
-                                                                (args.records_dir, "records")))
+    args.results_dir = checkout_store(args.results_dir, "results")  # from a plugin's folder too
+    args.records_dir = checkout_store(args.records_dir, "records")
     stores = (args.results_dir, args.records_dir)
     try:
         for store in stores:
@@ -171,7 +168,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 259)
+# %% notebooks/09e_commands.py, cell 10 (line 256)
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
@@ -286,7 +283,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 375)
+# %% notebooks/09e_commands.py, cell 11 (line 372)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -324,4 +324,7 @@ def test_figures_results_dir_as_a_file_url_is_the_folder_where_the_command_runs(
 
     monkeypatch.chdir(tmp_path)
     assert _results_dir("file://runs") == _results_dir("runs") == str(tmp_path / "runs")
-    assert _results_dir("results") == "results" and _results_dir("memory://b/r") == "memory://b/r"
+    from pemamoe.core import REPO_ROOT
+
+    # the default is the checkout's store wherever the command runs (core.checkout_store), a URL is itself
+    assert _results_dir("results") == str((REPO_ROOT / "results").resolve()) and _results_dir("memory://b/r") == "memory://b/r"
