@@ -386,3 +386,30 @@ def test_paper_preset_and_controller_defaults_agree():
 
     assert TrainConfig.for_scale("paper").base_schedule() == BaseSchedule()
     assert TrainConfig().base_schedule() == BaseSchedule()
+
+
+@pytest.mark.parametrize("reading", ["defaults", "paper"])
+def test_pemamoe_trains_as_smoe_bit_for_bit_until_the_first_switch(reading):
+    """PE-MAMoE is SMoE plus the phase controller, which acts from the first switch on: before it
+    the two runs (same seed, same network reading) are the same numbers, so every difference that
+    PE-MAMoE shows against SMoE afterwards is the controller's (the comparison notebook 10 draws)."""
+    import dataclasses
+
+    def run(method):
+        cfg = TrainConfig.for_scale("ci", method=method, seed=3, phase_length_iters=3, iterations=6)
+        if reading == "paper":
+            cfg = cfg.replace(net=dataclasses.replace(cfg.net, load_balance_coef=0.0, expert_heads="per_expert",
+                                                      update_routing="current"))
+        metrics = train(cfg, max_iterations=4, threads=1, progress=False).metrics
+        return metrics.filter(regex=r"^(?!.*(_time|sps)).*$")  # all but the clocks
+
+    smoe, pemamoe = run("smoe"), run("pemamoe")
+    assert list(smoe.columns) == list(pemamoe.columns)
+    before, at_switch = smoe.iteration < 3, smoe.iteration == 3
+    numeric = [c for c in smoe.columns if smoe[c].dtype != object]
+    for column in numeric:
+        assert np.array_equal(smoe.loc[before, column].to_numpy(), pemamoe.loc[before, column].to_numpy(),
+                              equal_nan=True), column
+    # the switch's iteration is where they part: the controller's resets change the update
+    assert any(not np.array_equal(smoe.loc[at_switch, c].to_numpy(), pemamoe.loc[at_switch, c].to_numpy(),
+                                  equal_nan=True) for c in numeric)
