@@ -276,6 +276,30 @@ def checkpoint_cost(scale: str) -> dict:
     return out
 
 
+CAMPAIGN_BASELINES = ("mlp_redo", "mlp_snp")  # the paper-scale campaign's plasticity baselines (issue 38)
+CAMPAIGN_POPULATION = 3  # seeds per method, trained as one population
+
+
+def report_campaign(iteration_s) -> None:
+    """The paper-scale campaign (the main comparison and the two plasticity baselines, one
+    population of 3 seeds each) projected from this invocation's rates, beside what the committed
+    paper records measured (their timing files: each member's share of its population's compute).
+    The baselines run at MLP's measured rate: their own work is a few operations per phase switch."""
+    iters = TrainConfig.for_scale("paper").iterations
+    populations = [*METHODS, *CAMPAIGN_BASELINES]
+    hours = {m: iteration_s(m if m in METHODS else "mlp", CAMPAIGN_POPULATION) * iters / 3600 for m in populations}
+    print(f"projected paper campaign: {len(populations) * CAMPAIGN_POPULATION} runs in {len(populations)} populations "
+          f"of {CAMPAIGN_POPULATION}: {sum(hours.values()):.1f} core-hours "
+          f"({', '.join(f'{m} {h:.1f}' for m, h in hours.items())})", flush=True)
+    recorded = {}
+    for timing in (Path(__file__).resolve().parents[1] / "records" / "paper").glob("*.timing.json"):
+        method = timing.name.split("-s")[0]
+        recorded[method] = recorded.get(method, 0.0) + json.loads(timing.read_text())["member_compute_s"] / 3600
+    if recorded:
+        print("committed paper records measured: " + ", ".join(
+            f"{m} {h:.1f} worker-hours (projected here {hours[m]:.1f})" for m, h in sorted(recorded.items()) if m in hours))
+
+
 def main() -> int:
     import argparse
 
@@ -337,6 +361,8 @@ def main() -> int:
         if scale == "medium":
             verdict = "met" if max(workers) / 60 <= TARGET_MEDIUM_SWEEP_MIN else "NOT met"
             print(f"target: medium sweep <= {TARGET_MEDIUM_SWEEP_MIN:.0f} min: {verdict}")
+
+    report_campaign(iteration_s)
 
     for method in ("mlp", "pemamoe"):
         c = matmul_ceiling(method, 16)
