@@ -93,11 +93,12 @@
 #   printing which notebook of how many is running, the time spent, and the notebooks' own
 #   progress output. `SCALE=ci` is a smoke run in seconds; `SCALE=small` is short training
 #   (committed too); `SCALE=medium` trains each phase long enough to learn in (notebook 09b says
-#   why this length); `SCALE=paper` uses the paper's training budget. The README gives the
-#   measured cost of each.
+#   why this length); `SCALE=paper` uses the paper's training budget for its campaign, the main
+#   comparison with two plasticity baselines, and draws only what reads it (notebooks 09 and 10,
+#   into `paper_figures/paper_scale/`). The README gives the measured cost of each.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks. A notebook run there
 #   (kernel in `notebooks/`) still writes its figures to the repository's `paper_figures/`.
-# * `python -m pemamoe sweep --experiment all --scale paper --backend ray --address auto` runs the
+# * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
 #   plots from the cached runs (or trains what is missing, on Ray).
 #

@@ -81,6 +81,8 @@ from pemamoe.methods import method_spec
 # ## The paper's experiments as sweeps
 #
 # * **main**: the four methods, each with every seed;
+# * **campaign**: main, with MLP + ReDo and MLP + shrink-and-perturb at the paper scale
+#   (`campaign_methods`): the paper-scale campaign, which `make figures SCALE=paper` draws (09e);
 # * **noise**: PE-MAMoE at γ ∈ {0.001, 0.005, 0.01} and MoE at the same γ (see notebook 10 for how
 #   noise enters MoE);
 # * **tricks**: PE-MAMoE with one mechanism removed at a time: entropy reset/annealing, log-std
@@ -107,6 +109,15 @@ def default_seeds(scale: str) -> tuple:
 def main_specs(scale: str, seeds=None, methods=METHODS) -> list:
     seeds = default_seeds(scale) if seeds is None else tuple(seeds)
     return [RunSpec(m, s, scale, tag="main") for m in methods for s in seeds]
+
+
+CAMPAIGN_BASELINES = ("mlp_redo", "mlp_snp")  # what the paper scale adds to the main comparison
+
+
+def campaign_methods(scale: str, methods=METHODS) -> tuple:
+    """`methods`, and at the paper scale, the only one with the updates per phase in which plasticity
+    loss could appear, the two plasticity baselines on MLP (appendix 06c) too."""
+    return tuple(methods) + tuple(m for m in CAMPAIGN_BASELINES if scale == "paper" and m not in methods)
 
 
 def trick_specs(scale: str, seeds=None) -> list:
@@ -377,7 +388,7 @@ def with_reading(specs, reading: str) -> list:
 
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, reading: str | None = None) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
-    sweep), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
+    sweep), of the paper-scale campaign ("campaign": main with `campaign_methods`), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
     ("gating", "sparse"), the tuning grid ("tuning") or the top-2 arm ("top2"); only the first
     three are part of "all". reading: None (NetConfig's defaults), "ours" or "paper", the gated
     methods' actor pinned (`with_reading`; main, tricks, noise and all only)."""
@@ -390,6 +401,8 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, r
               "noise": lambda: noise_specs(scale, seeds)}
     if experiment == "all":
         return [s for make in makers.values() for s in make()]
+    if experiment == "campaign":
+        return main_specs(scale, seeds, campaign_methods(scale, methods))
     if experiment == "budget":
         return budget_specs(scale, seeds, methods)
     if experiment == "gating":
@@ -437,9 +450,10 @@ from pemamoe.core import save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
 # Worker processes import what they run by module path, so the sweep must use the package's copies
 # of these definitions, not the ones this notebook's cells just created in __main__.
-from pemamoe.experiments import default_seeds, main_specs, sweep_records
+from pemamoe.experiments import campaign_methods, default_seeds, main_specs, sweep_records
 
-method_list = method_order(None if methods is None else tuple(methods))
+# at the paper scale the campaign's plasticity baselines join the comparison
+method_list = list(campaign_methods(scale, method_order())) if methods is None else method_order(tuple(methods))
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
 records = sweep_records(main_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address,
                         records_dir, retrain)
@@ -864,26 +878,9 @@ campaign_revisits.pivot_table(index=["method", "visit", "phase"], columns="seed"
 # ![Coverage within each phase visit at the paper's scale, the campaign's committed records](../paper_figures/plasticity_loss_paper_campaign.png)
 
 # %%
-def _campaign_words(r: pd.DataFrame) -> str:
-    """The paper-scale comparison in sentences (computed, not typed)."""
-    if r.empty:
-        return "* No paper-scale record is committed yet."
-    lines = []
-    for method, g in r.groupby("method", sort=False):
-        zero = g[g.phase == 0]
-        lines.append(
-            f"* {method_label(method)} ({g.seed.nunique()} seeds, {len(g)} revisits): {int((g.revisit_minus_first_mean < 0).sum())} "
-            f"learn below the first visit over the visit (differences {g.revisit_minus_first_mean.min():+.3f} to "
-            f"{g.revisit_minus_first_mean.max():+.3f}) and {int((g.revisit_minus_first_end < 0).sum())} end below it "
-            f"({g.revisit_minus_first_end.min():+.3f} to {g.revisit_minus_first_end.max():+.3f}); in phase 0, against "
-            f"the fresh network that its first visit is, {int((zero.revisit_minus_first_end < 0).sum())} of {len(zero)} "
-            f"end lower (mean {zero.revisit_minus_first_end.mean():+.3f}); dormant fraction at the switches "
-            f"{g.revisit_dormant_at_switch.mean():.3f} (first visits {g.first_dormant_at_switch.mean():.3f}), effective "
-            f"rank {g.revisit_rank_at_switch.mean():.1f} ({g.first_rank_at_switch.mean():.1f}).")
-    return "\n".join(lines)
+from pemamoe.budget import revisit_words
 
-
-Markdown(_campaign_words(campaign_revisits))
+Markdown(revisit_words(campaign_revisits))
 
 # %% [markdown]
 # Read on the MLP family's records (the campaign's first): the MLP relearns a revisited phase from a

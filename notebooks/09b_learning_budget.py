@@ -65,6 +65,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.analysis import phase_visits
+from pemamoe.methods import method_label
 from pemamoe.records import read_record, record_timing
 from pemamoe.experiments import BUDGET_UPDATES
 
@@ -317,6 +318,26 @@ def reading_gaps(curves: pd.DataFrame, baseline: str = "mlp", column: str = "cov
     base = table[table.method == baseline].groupby("phase").plateau.mean()
     table[f"gap_to_{baseline}"] = table.phase.map(base) - table.plateau
     return table.sort_values(["phase", "method", "reading"], kind="stable").reset_index(drop=True)
+
+
+def revisit_words(r: pd.DataFrame) -> str:
+    """A campaign's revisits (revisit_learning rows with a `seed` column, each revisit against
+    the first visit of its phase) in sentences, one per method: computed, never typed."""
+    if r.empty:
+        return "* No revisit to read (no record of such a campaign)."
+    lines = []
+    for method, g in r.groupby("method", sort=False):
+        zero = g[g.phase == 0]
+        lines.append(
+            f"* {method_label(method)} ({g.seed.nunique()} seeds, {len(g)} revisits): {int((g.revisit_minus_first_mean < 0).sum())} "
+            f"learn below the first visit over the visit (differences {g.revisit_minus_first_mean.min():+.3f} to "
+            f"{g.revisit_minus_first_mean.max():+.3f}) and {int((g.revisit_minus_first_end < 0).sum())} end below it "
+            f"({g.revisit_minus_first_end.min():+.3f} to {g.revisit_minus_first_end.max():+.3f}); in phase 0, against "
+            f"the fresh network that its first visit is, {int((zero.revisit_minus_first_end < 0).sum())} of {len(zero)} "
+            f"end lower (mean {zero.revisit_minus_first_end.mean():+.3f}); dormant fraction at the switches "
+            f"{g.revisit_dormant_at_switch.mean():.3f} (first visits {g.first_dormant_at_switch.mean():.3f}), effective "
+            f"rank {g.revisit_rank_at_switch.mean():.1f} ({g.first_rank_at_switch.mean():.1f}).")
+    return "\n".join(lines)
 
 # %% [markdown]
 # ## The runs

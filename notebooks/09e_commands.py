@@ -252,14 +252,40 @@ for _argv in (["--scale", "huge"], ["--results-dir", "/nonexistent/x", "--status
 # It is all or nothing. The notebooks write into a copy of the folder made beside it, which replaces
 # the folder only once every notebook has succeeded; when one fails, the error propagates, the copy
 # is deleted, and `paper_figures/` is left byte for byte as it was, its README still true of it.
+#
+# The paper scale is a campaign, not a rerun of everything: its runs cost hours each, so it trains
+# the main comparison with the two plasticity baselines (the experiment `campaign`, notebook 09)
+# and draws only what reads them, notebooks 09 and 10 (`PAPER_SCALE_NOTEBOOKS`; notebook 10
+# without its ablations). Its figures go to `paper_figures/paper_scale/`, beside the medium
+# scale's, which stay what every other notebook draws (`figures_plan`).
 
 # %%
 #| export
+PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
+PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
+
+
+def figures_plan(scale: str, figures_dir=None, notebooks=None) -> tuple:
+    """(figures folder, notebooks, the experiments trained first or None) of `make_figures` at
+    `scale`: by default paper_figures/ and every notebook after one sweep of everything they read;
+    at the paper scale paper_figures/paper_scale/ and PAPER_SCALE_NOTEBOOKS after the campaign.
+    Named notebooks train nothing first (the notebooks train what they miss themselves)."""
+    paper = scale == "paper"
+    folder = repo_path(figures_dir or (PAPER_SCALE_FIGURES if paper else "paper_figures"))
+    if notebooks is not None:
+        return folder, [Path(n) for n in notebooks], None
+    if paper:
+        chosen = [nb for nb in figure_notebooks() if nb.name in PAPER_SCALE_NOTEBOOKS]
+        return folder, chosen, ("campaign", "budget")
+    return folder, figure_notebooks(), ("all", "budget", "gating", "sparse")
+
+
 def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout: int = 3600,
                  stream: bool = True, precompute: bool | None = None, **extra) -> Path:
     """Execute every notebook at `scale` into `figures_dir`; write its README; return its path.
 
-    figures_dir: default paper_figures/ (a relative path is under the repository root).
+    figures_dir: default paper_figures/, paper_figures/paper_scale/ at the paper scale (a relative
+                 path is under the repository root; see figures_plan).
     stream:      print progress lines and the notebooks' own output (False: silent).
     precompute:  first train every run the notebooks read (the scale's 39-run sweep of notebooks
                  09 and 10, the learning-budget study of 09b, the gating comparison of 05c, the sparse-actor readings of 05d) as one sweep, so that compatible
@@ -274,19 +300,20 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     from pemamoe.experiments import experiment_specs, run_sweep
 
     check_scale(scale)
-    figures_dir = repo_path(figures_dir or "paper_figures")
+    figures_dir, notebooks, experiments = figures_plan(scale, figures_dir, notebooks)
     figures_dir.parent.mkdir(parents=True, exist_ok=True)
     say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
     records, t0 = {}, time.perf_counter()
-    if precompute if precompute is not None else notebooks is None:
+    if scale == "paper" and experiments is not None:
+        say(f"[figures] the paper scale draws its campaign ({', '.join(nb.name for nb in notebooks)}) into "
+            f"{figures_dir}; every other figure is the medium scale's")
+    if precompute if precompute is not None else experiments is not None:
         say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
-        run_sweep(experiment_specs("all", scale) + experiment_specs("budget", scale) + experiment_specs("gating", scale)
-                  + experiment_specs("sparse", scale),
+        run_sweep([spec for name in experiments or figures_plan(scale)[2] for spec in experiment_specs(name, scale)],
                   extra.get("backend", "local"), extra.get("workers", 2),
                   _results_store(extra.get("results_dir", "results")), extra.get("ray_address"),
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
-    notebooks = [Path(n) for n in (notebooks or figure_notebooks())]
     # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
     # that a failure never leaves new files under a README that names the old scale and commit.
     staging = _staging_copy(figures_dir)

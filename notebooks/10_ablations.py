@@ -27,7 +27,11 @@
 #   method.
 #
 # Everything here reads cached runs through the same sweep as notebook 09; the main PE-MAMoE runs
-# double as the γ = 0.005 point and as the "full" reference of the tricks ablation.
+# double as the γ = 0.005 point and as the "full" reference of the tricks ablation. The paper-scale
+# campaign trains the main comparison only, with MLP + ReDo and MLP + shrink-and-perturb beside it
+# (`campaign_methods`, notebook 09), so at `scale="paper"` the ablations are off (the parameter
+# `ablations`) and the claims are the three of the main comparison, then PE-MAMoE against SMoE and
+# against the two plasticity baselines.
 
 # %% tags=["parameters"]
 scale = "small"
@@ -40,6 +44,7 @@ ray_address = None
 results_dir = "results"
 records_dir = "records"  # the published records (appendix 09d); runs without one are trained
 retrain = False  # True: ignore the records, train into results_dir and write the records again
+ablations = None  # None: every scale but paper (the paper-scale campaign trains the main comparison only)
 
 # %%
 from pathlib import Path
@@ -52,13 +57,15 @@ from pemamoe.analysis import (SUMMARY_METRICS, claim_verdict, heuristic_episodes
                               method_order, relative_change, run_scores)
 from pemamoe.core import by_scale, save_figure, write_table
 from pemamoe.methods import method_colour, method_label, proposed_method
-from pemamoe.experiments import (NOISE_GAMMAS, TRICKS, default_seeds, main_specs, noise_specs, sweep_records,
-                           trick_specs)
+from pemamoe.experiments import (NOISE_GAMMAS, TRICKS, campaign_methods, default_seeds, main_specs, noise_specs,
+                                 sweep_records, trick_specs)
 
 proposed = proposed_method()
 seed_list = default_seeds(scale) if seeds is None else tuple(seeds)
-experiments = {"main": main_specs(scale, seed_list, method_order()), "noise": noise_specs(scale, seed_list),
-               "tricks": trick_specs(scale, seed_list)}
+ablations = scale != "paper" if ablations is None else bool(ablations)
+experiments = {"main": main_specs(scale, seed_list, campaign_methods(scale, method_order()))}
+if ablations:
+    experiments.update(noise=noise_specs(scale, seed_list), tricks=trick_specs(scale, seed_list))
 records = sweep_records([s for specs in experiments.values() for s in specs], backend, workers, results_dir,
                         ray_address, records_dir, retrain)
 # Which experiment asked for which run (one run can serve two: the main PE-MAMoE runs are also the
@@ -70,7 +77,7 @@ for name, specs in experiments.items():
 metrics, episodes = load_runs(dict.fromkeys(records))
 n_seeds = len(seed_list)
 note = f"scale={scale}, {n_seeds} seed{'s' if n_seeds != 1 else ''} per point"
-print(note, "|", metrics.run.nunique(), "runs")
+print(note, "|", metrics.run.nunique(), "runs", "" if ablations else "| no ablations at this scale (the sections below say so)")
 
 # %% [markdown]
 # ## Noise sensitivity
@@ -102,40 +109,45 @@ def series_name(method, variant):
     return f"{method_label(method)} {variant}".strip()
 
 
-noise_runs = metrics[metrics.run.isin(runs_of["noise"])]
-labels = gamma_of(noise_runs)
-series = labels[["method", "variant"]].drop_duplicates()
-series = sorted(map(tuple, series.to_numpy()), key=lambda mv: (method_order(labels.method).index(mv[0]), mv[1]))
-table_rows = []
-fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True)
-for row_i, column in enumerate(("served_users", "coverage")):
-    conv = converged_by_phase(noise_runs, column).join(labels, on="run")
-    for phase in range(3):
-        ax = axes[row_i, phase]
-        for method, variant in series:
-            name = series_name(method, variant)
-            sub = conv[(conv.method == method) & (conv.variant == variant) & (conv.phase == phase)]
-            agg = sub.groupby("noise_gamma")[column].agg(["mean", "min", "max", "count"]).reindex(NOISE_GAMMAS)
-            ax.errorbar(agg.index, agg["mean"], yerr=[agg["mean"] - agg["min"], agg["max"] - agg["mean"]],
-                        marker="o", capsize=3, color=method_colour(method), label=name)
-            for g, r in agg.iterrows():
-                table_rows.append({"metric": column, "phase": phase, "method": name, "gamma": g,
-                                   "mean": r["mean"], "min": r["min"], "max": r["max"], "seeds": r["count"]})
-        ax.set_xscale("log")
-        ax.set_xticks(NOISE_GAMMAS, [f"{g:g}" for g in NOISE_GAMMAS])
-        ax.set_title(f"phase {phase}")
-        if phase == 0:
-            ax.set_ylabel(column.replace("_", " ") + " (converged)")
-        if row_i == 1:
-            ax.set_xlabel("noise scale gamma")
-axes[0, 0].legend(fontsize=8)
-fig.suptitle(f"Effect of the expert-noise scale ({note}; bars: min-max over seeds)", fontsize=10)
-save_figure(fig, "ablation_noise_sensitivity", figures_dir)
-plt.show()
-noise_table = pd.DataFrame(table_rows)
-write_table(noise_table.round(3), "ablation_noise_sweep", figures_dir)
-noise_table[noise_table.metric == "served_users"].pivot_table(index=["method", "gamma"], columns="phase",
-                                                              values="mean").round(2)
+noise_view = None
+if not ablations:
+    print(f"noise sensitivity: not run at scale={scale} (ablations off); the medium scale's is in paper_figures/")
+else:
+    noise_runs = metrics[metrics.run.isin(runs_of["noise"])]
+    labels = gamma_of(noise_runs)
+    series = labels[["method", "variant"]].drop_duplicates()
+    series = sorted(map(tuple, series.to_numpy()), key=lambda mv: (method_order(labels.method).index(mv[0]), mv[1]))
+    table_rows = []
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6), sharex=True)
+    for row_i, column in enumerate(("served_users", "coverage")):
+        conv = converged_by_phase(noise_runs, column).join(labels, on="run")
+        for phase in range(3):
+            ax = axes[row_i, phase]
+            for method, variant in series:
+                name = series_name(method, variant)
+                sub = conv[(conv.method == method) & (conv.variant == variant) & (conv.phase == phase)]
+                agg = sub.groupby("noise_gamma")[column].agg(["mean", "min", "max", "count"]).reindex(NOISE_GAMMAS)
+                ax.errorbar(agg.index, agg["mean"], yerr=[agg["mean"] - agg["min"], agg["max"] - agg["mean"]],
+                            marker="o", capsize=3, color=method_colour(method), label=name)
+                for g, r in agg.iterrows():
+                    table_rows.append({"metric": column, "phase": phase, "method": name, "gamma": g,
+                                       "mean": r["mean"], "min": r["min"], "max": r["max"], "seeds": r["count"]})
+            ax.set_xscale("log")
+            ax.set_xticks(NOISE_GAMMAS, [f"{g:g}" for g in NOISE_GAMMAS])
+            ax.set_title(f"phase {phase}")
+            if phase == 0:
+                ax.set_ylabel(column.replace("_", " ") + " (converged)")
+            if row_i == 1:
+                ax.set_xlabel("noise scale gamma")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"Effect of the expert-noise scale ({note}; bars: min-max over seeds)", fontsize=10)
+    save_figure(fig, "ablation_noise_sensitivity", figures_dir)
+    plt.show()
+    noise_table = pd.DataFrame(table_rows)
+    write_table(noise_table.round(3), "ablation_noise_sweep", figures_dir)
+    noise_view = noise_table[noise_table.metric == "served_users"].pivot_table(index=["method", "gamma"],
+                                                                               columns="phase", values="mean").round(2)
+noise_view
 
 # %% [markdown]
 # ![Effect of the expert-noise scale on the converged metrics, medium scale](../paper_figures/ablation_noise_sensitivity.png)
@@ -153,25 +165,28 @@ scores = run_scores(episodes)
 main = scores[scores.run.isin(runs_of["main"])]  # the methods of notebook 09, at the default gamma
 full = scores.run.isin(runs_of["main"]) & (scores.method == proposed)
 trick_rows = []
-for label, mech in TRICKS.items():
+for label, mech in (TRICKS.items() if ablations else ()):
     ablated = scores.run.isin(runs_of["tricks"]) & (scores.method == proposed) & (scores.without == mech)
     point, low, high = relative_change(scores, "return", ablated, full)
     trick_rows.append({"removed": label, "IQM return change %": point, "ci_low": low, "ci_high": high,
                        "paper %": PAPER_TRICK_DROPS[label], "runs": int(ablated.sum())})
-tricks = pd.DataFrame(trick_rows)
-write_table(tricks.round(2), "ablation_tricks", figures_dir)
-fig, ax = plt.subplots(figsize=(7, 3.6))
-x = np.arange(len(tricks))
-ax.bar(x - 0.2, tricks["IQM return change %"], 0.4, color=method_colour(proposed), label="ours",
-       yerr=[tricks["IQM return change %"] - tricks.ci_low, tricks.ci_high - tricks["IQM return change %"]], capsize=3)
-ax.bar(x + 0.2, tricks["paper %"], 0.4, color="0.6", label="paper (1 seed)")
-ax.axhline(0, color="black", lw=0.8)
-ax.set_xticks(x, tricks.removed)
-ax.set_ylabel("IQM return change when removed [%]")
-ax.set_title(f"Ablation: IQM change when removing each component\n{note}; error bars: 95 % bootstrap CI", fontsize=9)
-ax.legend(fontsize=8)
-save_figure(fig, "ablation_tricks", figures_dir)
-plt.show()
+tricks = pd.DataFrame(trick_rows, columns=["removed", "IQM return change %", "ci_low", "ci_high", "paper %", "runs"])
+if not ablations:
+    print(f"tricks: not run at scale={scale} (ablations off); the medium scale's are in paper_figures/")
+else:
+    write_table(tricks.round(2), "ablation_tricks", figures_dir)
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    x = np.arange(len(tricks))
+    ax.bar(x - 0.2, tricks["IQM return change %"], 0.4, color=method_colour(proposed), label="ours",
+           yerr=[tricks["IQM return change %"] - tricks.ci_low, tricks.ci_high - tricks["IQM return change %"]], capsize=3)
+    ax.bar(x + 0.2, tricks["paper %"], 0.4, color="0.6", label="paper (1 seed)")
+    ax.axhline(0, color="black", lw=0.8)
+    ax.set_xticks(x, tricks.removed)
+    ax.set_ylabel("IQM return change when removed [%]")
+    ax.set_title(f"Ablation: IQM change when removing each component\n{note}; error bars: 95 % bootstrap CI", fontsize=9)
+    ax.legend(fontsize=8)
+    save_figure(fig, "ablation_tricks", figures_dir)
+    plt.show()
 tricks.round(2)
 
 # %% [markdown]
@@ -184,8 +199,8 @@ tricks.round(2)
 # interval over seeds. All changes are relative changes of the per-episode IQM (the paper states
 # its return claim on a normalised IQM; min-max normalisation across methods makes a relative
 # change depend on the worst method, so we compare the raw IQMs). "Best baseline" is, for each
-# metric, whichever registered baseline (MLP, MoE and SMoE, plus any plugin method) has the best
-# IQM in our runs. The k-means heuristic of notebook 04, which does not learn, is run through the
+# metric, whichever registered baseline (MLP, MoE and SMoE, plus any plugin method, and at the
+# paper scale MLP + ReDo and MLP + shrink-and-perturb) has the best IQM in our runs. The k-means heuristic of notebook 04, which does not learn, is run through the
 # same phases for as many episodes and reported as a reference row.
 
 # %%
@@ -296,7 +311,7 @@ print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuris
 # %%
 from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.experiments import budget_specs, default_reading  # the study's runs of the actor the sweep trained
+from pemamoe.experiments import CAMPAIGN_BASELINES, budget_specs, default_reading  # the study's runs of the actor the sweep trained
 
 main_metrics = metrics[metrics.run.isin(runs_of["main"])]
 study_methods = tuple(m for m in method_order(main_metrics.method) if m in METHOD_REGISTRY)
@@ -307,16 +322,31 @@ visits = phase_learning(main_metrics, plateaus)
 # The proposed method's own base: the compared method with its network and no plasticity mechanism.
 sparse_base = next(name for name, spec in METHOD_REGISTRY.items() if spec.compared and spec.plasticity == "none"
                    and spec.network == method_spec(proposed).network)
-base_rows = []
-for metric, higher in (("return", True), ("served_users", True), ("coverage", True), ("collisions", False)):
-    point, low, high = relative_change(main, metric, pe, main.method == sparse_base)
-    better = (low > 0 or high < 0) and ((low > 0) == higher)
-    worse = (low > 0 or high < 0) and not better
-    base_rows.append({"metric": metric, "ours %": point, "ci_low": low, "ci_high": high,
-                      "compared with": method_label(sparse_base),
-                      "reading": "better" if better else "worse" if worse else "not resolved"})  # resolved: CI excludes 0
-controller = pd.DataFrame(base_rows)
+CONTRAST_METRICS = (("return", True), ("served_users", True), ("coverage", True), ("collisions", False))
+
+
+def contrast(against: str) -> pd.DataFrame:
+    """PE-MAMoE against one other method of the main comparison, metric by metric: the relative
+    change of the IQM, its 95 % interval, and better / worse only where the interval excludes 0."""
+    rows = []
+    for metric, higher in CONTRAST_METRICS:
+        point, low, high = relative_change(main, metric, pe, main.method == against)
+        better = (low > 0 or high < 0) and ((low > 0) == higher)
+        worse = (low > 0 or high < 0) and not better
+        rows.append({"metric": metric, "ours %": point, "ci_low": low, "ci_high": high,
+                     "compared with": method_label(against),
+                     "reading": "better" if better else "worse" if worse else "not resolved"})
+    return pd.DataFrame(rows)
+
+
+controller = contrast(sparse_base)
 write_table(controller.round(2), "headline_controller_alone", figures_dir)
+# At the paper scale, PE-MAMoE against the generic plasticity methods (appendix 06c) on MLP
+plasticity_baselines = [m for m in method_order(main.method) if m in CAMPAIGN_BASELINES]
+against_baselines = (pd.concat([contrast(m) for m in plasticity_baselines], ignore_index=True)
+                     if plasticity_baselines else None)
+if against_baselines is not None:
+    write_table(against_baselines.round(2), "headline_plasticity_baselines", figures_dir)
 print(visits.pivot_table(index=["visit", "phase"], columns="method", values="fraction_of_plateau")
       .reindex(columns=list(study_methods)).round(2).to_string())
 print(plateaus.pivot_table(index="phase", columns="method", values="plateau").reindex(columns=list(study_methods))
@@ -335,7 +365,7 @@ from IPython.display import Markdown
 
 
 def verdict_in_words(headline: pd.DataFrame, learned: pd.DataFrame, heuristic: pd.Series, visits: pd.DataFrame,
-                     plateaus: pd.DataFrame, controller: pd.DataFrame) -> str:
+                     plateaus: pd.DataFrame, controller: pd.DataFrame, against_baselines=None) -> str:
     """Plain-language summary of the headline table, grouped by verdict, then what the phase visits
     and the controller-alone comparison say."""
     groups = {"reproduced": [], "contradicted": [], "not resolved": [], "undefined": []}
@@ -373,10 +403,15 @@ def verdict_in_words(headline: pd.DataFrame, learned: pd.DataFrame, heuristic: p
                          for _, r in controller.iterrows())
     lines += ["", f"The phase controller alone ({method_label(proposed)} against {controller['compared with'].iloc[0]}, "
               f"the same sparse network without it): {readings}."]
+    if against_baselines is not None:
+        for name, part in against_baselines.groupby("compared with", sort=False):
+            lines += ["", f"{method_label(proposed)} against {name}, a generic plasticity method: " + "; ".join(
+                f"{r.metric} {r['ours %']:+.1f} % [{r.ci_low:+.1f}, {r.ci_high:+.1f}] ({r.reading})"
+                for _, r in part.iterrows()) + "."]
     return "\n".join(lines)
 
 
-Markdown(verdict_in_words(headline, learned, heuristic, visits, plateaus, controller))
+Markdown(verdict_in_words(headline, learned, heuristic, visits, plateaus, controller, against_baselines))
 
 # %% [markdown]
 # ### What the medium campaign says

@@ -21,7 +21,9 @@ def main(argv=None) -> int:
 
     fig.add_argument("--scale", default="medium", choices=SCALES,
                      help="the preset scale (default: medium, whose run records are committed)")
-    fig.add_argument("--figures-dir", default=None, help="output folder (default: paper_figures/)")
+    fig.add_argument("--figures-dir", default=None,
+                     help="output folder (default: paper_figures/; for --scale paper, which draws only the campaign's "
+                          "notebooks 09 and 10, paper_figures/paper_scale/)")
     fig.add_argument("--retrain", action="store_true",
                      help="ignore the committed run records (records/), train every run into results/ and write "
                           "the records again")

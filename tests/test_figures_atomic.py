@@ -129,3 +129,28 @@ def test_provenance_names_the_commit_of_the_inputs_not_of_the_figures(tmp_path):
     assert commit_named() == before + "+dirty"
     git("commit", "--quiet", "-am", "code")
     assert commit_named() == git("rev-parse", "--short", "HEAD") != before
+
+
+def test_the_paper_scale_draws_its_campaign_into_its_own_folder():
+    """`make figures SCALE=paper` trains the campaign (the main comparison and, at the paper scale,
+    MLP + ReDo and MLP + shrink-and-perturb) and runs only notebooks 09 and 10, into
+    paper_figures/paper_scale/; every other scale keeps paper_figures/ and every notebook."""
+    from pemamoe.commands import PAPER_SCALE_NOTEBOOKS, figures_plan
+    from pemamoe.core import REPO_ROOT, figure_notebooks
+    from pemamoe.experiments import experiment_specs
+
+    folder, notebooks, experiments = figures_plan("paper")
+    assert folder == REPO_ROOT / "paper_figures" / "paper_scale"
+    assert [nb.name for nb in notebooks] == list(PAPER_SCALE_NOTEBOOKS) == ["09_experiments.py", "10_ablations.py"]
+    assert experiments == ("campaign", "budget")
+    campaign = experiment_specs("campaign", "paper")
+    assert sorted({s.method for s in campaign}) == ["mlp", "mlp_redo", "mlp_snp", "moe", "pemamoe", "smoe"]
+    assert len(campaign) == 18 and {s.scale for s in campaign} == {"paper"} and {s.tag for s in campaign} == {"main"}
+    # the campaign's specs are the main comparison's plus the baselines: the same runs, not new ones
+    assert set(experiment_specs("main", "paper")) < set(campaign)
+    assert {s.method for s in experiment_specs("campaign", "medium")} == {"mlp", "moe", "smoe", "pemamoe"}
+    folder, notebooks, experiments = figures_plan("medium")
+    assert folder == REPO_ROOT / "paper_figures" and notebooks == figure_notebooks()
+    assert experiments == ("all", "budget", "gating", "sparse")
+    folder, notebooks, experiments = figures_plan("paper", notebooks=["x.py"])
+    assert [nb.name for nb in notebooks] == ["x.py"] and experiments is None

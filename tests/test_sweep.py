@@ -394,11 +394,11 @@ def test_a_pinned_reading_sets_the_gated_actors_and_leaves_mlp_and_the_rest_of_t
 
 
 def test_a_reading_outside_the_cycling_experiments_is_refused_naming_them(capsys):
-    with pytest.raises(ValueError, match="main, tricks, noise, all.*'budget'"):
+    with pytest.raises(ValueError, match="main, tricks, noise, all, campaign.*'budget'"):
         experiment_specs("budget", "ci", reading="paper")
     with pytest.raises(ValueError, match="reading must be one of ours, paper, got 'theirs'"):
         experiment_specs("main", "ci", reading="theirs")
     with pytest.raises(SystemExit) as exit_:
         sweep_cli(["--experiment", "tuning", "--reading", "paper", "--status"])
     assert exit_.value.code == 2
-    assert "--reading applies to the experiments main, tricks, noise, all; 'tuning'" in capsys.readouterr().err
+    assert "--reading applies to the experiments main, tricks, noise, all, campaign; 'tuning'" in capsys.readouterr().err
