@@ -16,8 +16,20 @@
 # `pemamoe` rebuilds *PE-MAMoE* (a plasticity-enhanced multi-agent mixture of experts for
 # UAV-assisted emergency networks) as a sequence of notebooks that follow the paper's order.
 # Each notebook explains one part of the method, implements it, and exports its code into the
-# importable package `pemamoe/`. Nothing in `pemamoe/` is written by hand except the exporter and
-# the command line: the notebooks are the source.
+# importable package `pemamoe/`. Nothing in `pemamoe/` is written by hand except the package's
+# `__init__.py`, the exporter and the command line's entry point (`CONTRIBUTING.md`): the notebooks
+# are the source.
+#
+# **Where to start.** A first pass reads the numbered notebooks in order: 01 to 04 build the
+# environment (channel, energy, mobility, the objective), 05 the actors, 06 the phase controller,
+# 07 the training loop, 08 the theory check, 09 and 10 the results. A notebook with a letter after
+# its number (03b, 05c, ...) is an appendix: the machinery or a side study its main notebook
+# points to; 00b, the shared utilities, can wait until last. Words used throughout: a *scale* is a
+# training budget (`ci` tiny, `small`, `medium`, `paper` the paper's own); SMoE is the top-1
+# sparse network alone, PE-MAMoE the same network with the phase controller; a *reading* is one way
+# of filling in what the paper leaves open (the sparse actor's two are "ours" and "the paper's");
+# a *population* is several runs trained together along a leading axis; a *record* is the
+# committed data of a finished run, which every figure reads.
 #
 # **What we found.** At the `medium` scale PE-MAMoE did not reproduce the paper's headline claims
 # and did no better than its own sparse network without the phase controller (notebook 10). That
@@ -31,7 +43,7 @@
 # loss, only faintly: an MLP's revisited phase starts higher than its first visit and mostly levels
 # off a little below it; shrink-and-perturb lifts that ceiling, ReDo does not.
 #
-# ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
+# ![Normalised IQM across five system metrics, medium scale, the sparse actor built our way: the verdict on hold (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #
 # ## Map from the paper to the code
 #
@@ -77,7 +89,7 @@
 # | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
 # | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_results_store.py` | `pemamoe/store.py` | |
 # | (appendix to VI) reading results: the IQM and its bootstrap intervals, the heuristics' levels, curves over training | `09g_analysis.py` | `pemamoe/analysis.py` | |
-# | VI-G ablations | `10_ablations.py` | | noise sweep, tricks ablation |
+# | VI-G ablations; the headline claims against the paper's numbers | `10_ablations.py` | | noise sweep, tricks ablation, `headline_*` tables |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #
 # `paper_figures/README.md` lists every regenerated file with its paper counterpart, the notebook,
@@ -91,16 +103,20 @@
 # * `make figures` (default `SCALE=medium`, whose runs are committed as records) executes every
 #   notebook headlessly with papermill and writes the figures and tables into `paper_figures/`,
 #   printing which notebook of how many is running, the time spent, and the notebooks' own
-#   progress output. `SCALE=ci` is a smoke run in seconds; `SCALE=small` is short training
+#   progress output. `SCALE=ci` is a smoke run (every notebook, a few minutes); `SCALE=small` is short training
 #   (committed too); `SCALE=medium` trains each phase long enough to learn in (notebook 09b says
 #   why this length); `SCALE=paper` uses the paper's training budget for its campaign, the main
 #   comparison with two plasticity baselines, and draws only what reads it (notebooks 09 and 10,
 #   into `paper_figures/paper_scale/`). The README gives the measured cost of each.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks. A notebook run there
-#   (kernel in `notebooks/`) still writes its figures to the repository's `paper_figures/`.
+#   (kernel in `notebooks/`) writes its figures into the repository's `paper_figures/` at its own
+#   parameters' scale (`small` unless changed), over the committed `medium` files: set `figures_dir`
+#   in its parameters cell to another folder, or `git checkout paper_figures` afterwards.
 # * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
-#   plots from the cached runs (or trains what is missing, on Ray).
+#   plots from the cached runs (or trains what is missing, on Ray). Until the sparse actor's
+#   defaults become the paper's reading, the campaign's gated runs are trained with `--reading paper`
+#   (the states committed so far are), so leave `make figures SCALE=paper` until then.
 #
 # The utilities every notebook shares (scales, the configuration validator, atomic file writes,
 # figure and table saving, the headless notebook runner) are explained in the appendix notebook

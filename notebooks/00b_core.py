@@ -16,15 +16,12 @@
 # Nothing in this notebook is part of the paper. It holds the few utilities every other notebook
 # shares, so that the reader of notebooks 01–10 meets physics and learning rather than plumbing:
 #
-# * **scales**: one `scale` parameter sizes every notebook (`ci`, `small`, `paper`);
+# * **scales**: one `scale` parameter sizes every notebook (`ci`, `small`, `medium`, `paper`);
 # * **validation**: `require`, the one checker behind every configuration class;
 # * **files**: atomic writes that follow the umask, and figure/table output into the repository's
 #   `paper_figures/`, wherever the notebook runs from;
 # * **the headless runner**: `run_notebook`, which `make figures` (appendix 09e) calls for every
 #   notebook, and the provenance table `paper_figures/README.md`.
-#
-# The module keeps its historical name, `pemamoe.core`, so imports did not change when it moved
-# here from notebook 00.
 
 # %%
 #| default_exp core
@@ -780,6 +777,8 @@ PAPER_COUNTERPARTS = {
     "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
     "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
     "learning_budget_compute": "(ours) MLP's two update settings per compute second",
+    "learning_budget_readings": "(ours) the study under both sparse-actor readings: the plateau gap to MLP",
+    "tuning": "(ours) learning rate x entropy, the same grid for every method; each one's chosen setting",
     **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
     **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit and a fresh network"
        for scale in SCALES},
@@ -787,6 +786,11 @@ PAPER_COUNTERPARTS = {
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }
+# Outputs whose runs keep their own settings at every scale but ci: the studies of 05c, 05d and 09b
+# train the small settings; the paper campaign's plasticity table reads the paper-scale records.
+FIXED_SCALE_OUTPUTS = {**dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
+                                        "learning_budget", "learning_budget_compute", "learning_budget_readings",
+                                        "tuning"), "small"), "plasticity_loss_paper_campaign": "paper"}
 
 
 def notebook_parameters(notebook) -> set:
@@ -834,7 +838,9 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     for name, nb in records.items():
         stem = name.rsplit(".", 1)[0]
         counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
-        rows[name] = [name, counterpart, f"notebooks/{nb}", scale, f"`{command}`", commit]
+        fixed = FIXED_SCALE_OUTPUTS.get(stem, scale) if scale != "ci" else scale
+        shown = scale if fixed == scale else f"{fixed} (at every scale)"
+        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", commit]
     lines = [
         "# paper_figures",
         "",

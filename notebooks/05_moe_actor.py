@@ -166,7 +166,7 @@ class NetConfig:
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
-    # the sparse actor as the paper's equations write it (appendix 05d measures each reading)
+    # the sparse actor's reading: ours for now; the paper's equations write per_expert and current (05d)
     expert_heads: str = "shared"  # "per_expert": each expert its own mean head, the experts' means mixed
     update_routing: str = "replay"  # "current": PPO's update routes each row with the current router
     expert_impl: str = "auto"
@@ -692,7 +692,7 @@ print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
 # %%
 from pemamoe.netcost import active_parameters, count_parameters, draw_actor_architecture, macs_per_step
 
-cfg = PAPER_NET  # the paper's reading: learned routing noise, whose noise gate its counts include
+cfg = PAPER_NET  # the paper's counts: learned routing noise (its noise gate) and one shared mean head
 paper_actors = {name: make_actor(spec.network, PAPER_OBS_DIM, 2, cfg) for name, spec in METHOD_REGISTRY.items()
                 if spec.compared}
 fig, axes = plt.subplots(1, len(paper_actors), figsize=(4.5 * len(paper_actors), 5.6))

@@ -30,7 +30,8 @@ def sweep_cli(argv=None) -> int:
                         help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
-                             "for every method alike (09b) (default: main)")
+                             "for every method alike (09b); top2: the top-2 arm beside top-1 (09b); campaign: main "
+                             "with MLP + ReDo and MLP + shrink-and-perturb, the paper scale's comparison (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "
@@ -168,7 +169,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 262)
+# %% notebooks/09e_commands.py, cell 10 (line 263)
 PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
 
@@ -304,7 +305,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 399)
+# %% notebooks/09e_commands.py, cell 11 (line 400)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -56,7 +56,7 @@ class NetConfig:
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
-    # the sparse actor as the paper's equations write it (appendix 05d measures each reading)
+    # the sparse actor's reading: ours for now; the paper's equations write per_expert and current (05d)
     expert_heads: str = "shared"  # "per_expert": each expert its own mean head, the experts' means mixed
     update_routing: str = "replay"  # "current": PPO's update routes each row with the current router
     expert_impl: str = "auto"
