@@ -102,12 +102,18 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
 # map of the raw observation ($\mu^{(j)} = W^{(j)}_\mu x + b^{(j)}_\mu$) and mix the means. That
 # design would cost $3\,(177\cdot2+2)$ plus router, nowhere near 20,858. The counts, and the
 # figure caption ("combine their outputs to form a shared MoE trunk, which parameterizes the
-# policy head"), describe deep expert trunks followed by one shared head. We follow the counts.
+# policy head"), describe deep expert trunks followed by one shared head. We keep the deep trunks
+# the counts describe, and give each trunk its own mean head as the equations do
+# (`expert_heads="per_expert"`, 66 parameters more per extra expert). That was not always the
+# default: until the medium sweep was rerun under it (issue 40), one shared head was, and appendix
+# 05d measures what the shared head costs a top-1 actor. `PAPER_NET` keeps the shared head, so the
+# cost table below reproduces the paper's counts exactly.
 #
 # **Where the experts are mixed.** With one shared linear head $h(\cdot)$ and mixing weights
 # that sum to one, $h(\sum_j w_j f_j) = \sum_j w_j h(f_j)$ (the head's bias is multiplied by
-# $\sum_j w_j = 1$). We mix the 32-wide features and apply the head once: cheaper, the caption's
-# "shared trunk", and the features the plasticity diagnostics (rank, dormant units) look at.
+# $\sum_j w_j = 1$): mixing the 32-wide features and applying the head once is the same policy,
+# and cheaper. With a head per expert the experts' means are mixed instead. Either way the mixed
+# features are what the plasticity diagnostics (rank, dormant units) look at.
 
 # %% [markdown]
 # ## Configuration
@@ -118,17 +124,21 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
 # * `init_log_std = log(0.3)`: Algorithm 1 resets the log-std "to $\sigma_{\text{init}}$" at a
 #   switch, and the training table lists the reset value 0.3. We read that as $\sigma = 0.3$ at
 #   initialisation, so a reset puts the policy back to exactly its initial spread.
-# * `load_balance_coef = 0.01`: the weight of the Switch-style balance loss (the value Switch
-#   Transformers use; the paper gives none), reported weighted as `aux_loss`.
+# * `load_balance_coef = 0`: the weight of a Switch-style balance loss, reported weighted as
+#   `aux_loss`. The paper describes no such loss, so it is off; 0.01 (the value Switch Transformers
+#   use) was our default until issue 40, and appendix 05d keeps it as an ablation row.
 # * Three gating choices the paper leaves open ("Top-1 gating" below): `top1_weight`,
 #   `routing_noise` (`learned`, `fixed`, `annealed` or `off`, with `noise_std` and
 #   `noise_anneal_portion`) and `critic_gating` (`dense`, `gated` or `mlp`).
-# * Two readings of the sparse actor (appendix 05d compares them): `expert_heads` (`shared`: one
-#   mean head after the mixed trunk, as the parameter counts say; `per_expert`: each expert its
-#   own head and the experts' means mixed, as the equations say) and `update_routing` (`replay`:
-#   the update reuses the experts chosen in the rollout; `current`: it routes each row again with
-#   the current router and the stored noise, so a change of route moves the PPO ratio and is
-#   clipped like any other change of the policy).
+# * Two readings of the sparse actor (appendix 05d compares them): `expert_heads` (`per_expert`,
+#   the default: each expert its own head and the experts' means mixed, as the equations say;
+#   `shared`: one mean head after the mixed trunk, as the parameter counts say) and
+#   `update_routing` (`current`, the default: the update routes each row again with the current
+#   router and the stored noise, so a change of route moves the PPO ratio and is clipped like any
+#   other change of the policy; `replay`: the update reuses the experts chosen in the rollout).
+#   With the balance loss off these are the paper's reading of the sparse actor; the balance loss,
+#   a shared head and replayed routes are ours, the defaults until issue 40 (`BUDGET_READINGS`,
+#   notebook 09, names both).
 # * `expert_impl = "auto"` and `masked_min_batch = 512`: how a single network executes its expert
 #   bank (next section); speed only.
 # * Orthogonal initialisation gains (the usual PPO choices): $\sqrt2$ for hidden layers, 0.01 for
@@ -159,16 +169,16 @@ class NetConfig:
     n_experts: int = 3
     top_k: int = 1
     init_log_std: float = math.log(0.3)
-    load_balance_coef: float = 0.01
+    load_balance_coef: float = 0.0  # the paper describes no balance loss (issue 40; 0.01 before)
     # the gating readings (chosen by the comparison of appendix 05c; see "Top-1 gating" below)
     top1_weight: str = "straight_through"
     routing_noise: str = "off"
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
-    # the sparse actor's reading: ours for now; the paper's equations write per_expert and current (05d)
-    expert_heads: str = "shared"  # "per_expert": each expert its own mean head, the experts' means mixed
-    update_routing: str = "replay"  # "current": PPO's update routes each row with the current router
+    # the sparse actor's reading: the paper's equations (issue 40; "shared" and "replay" before, 05d)
+    expert_heads: str = "per_expert"  # each expert its own mean head, the experts' means mixed; or "shared"
+    update_routing: str = "current"  # PPO's update routes each row with the current router; or "replay"
     expert_impl: str = "auto"
     masked_min_batch: int = 512
     gain_hidden: float = math.sqrt(2.0)
@@ -310,7 +320,9 @@ PAPER_NET = NetConfig(routing_noise="learned", expert_heads="shared")
 # update re-drew the gate noise, the ratio $\pi_\theta(a|o)/\pi_{\text{old}}(a|o)$ would differ
 # from 1 before any learning, just from a different expert being picked. So `act` returns the
 # noise and the chosen experts, the buffer stores them, and `evaluate(..., routing=stored)`
-# replays them: the policy optimised is the one conditioned on those draws. On the same batch the
+# replays them: the policy optimised is the one conditioned on those draws. Under
+# `update_routing="current"` only the noise is replayed; the experts are chosen again by the
+# current router, so before the first gradient step they are the rollout's. On the same batch the
 # replayed log-probabilities are bit-identical to the rollout's (checked below); in other
 # minibatch groupings they can differ by float rounding (~1e-7), as for any network.
 

@@ -760,11 +760,10 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # explores less than a first visit or a fresh run.
 
 # %%
-from pemamoe.budget import block_steps, load_budget, revisit_learning, visit_curve
+from pemamoe.budget import block_steps, load_study, revisit_learning, visit_curve
 from pemamoe.analysis import phase_visits
 
-fresh = load_budget(study)
-fresh = fresh[fresh.settings == "small"]
+fresh = load_study(study)  # PE-MAMoE's fresh network is SMoE's run, as its plateau is
 revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
 write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
 # the phase-visit table carries each revisit's two comparisons beside its fraction of the plateau

@@ -414,6 +414,43 @@ def verdict_in_words(headline: pd.DataFrame, learned: pd.DataFrame, heuristic: p
 Markdown(verdict_in_words(headline, learned, heuristic, visits, plateaus, controller, against_baselines))
 
 # %% [markdown]
+# ### Top-2 beside top-1
+#
+# The paper's actor keeps one expert per step. Appendix 05d found that keeping the two best
+# (`top_k=2`, the paper's actor readings otherwise) recovered most of what top-1 routing cost in
+# a fixed phase, so the sparse methods have a top-2 arm of their own: SMoE and PE-MAMoE with
+# `top_k=2` in the main comparison's cycling runs (`python -m pemamoe sweep --experiment top2`,
+# 3 seeds). Each row sets a method's top-2 runs beside its top-1 runs of the main comparison: the
+# IQM's relative change and its 95 % interval. This cell trains nothing beyond the `ci` scale (at
+# `ci`, a few iterations, so that CI executes it); it reads the runs that have a record and says
+# how many are missing.
+
+# %%
+from pemamoe.experiments import pending_runs, top2_specs
+
+top2_runs = top2_specs(scale, seed_list)
+if scale != "ci":  # the arm is a sweep of its own: read what it has recorded
+    unfinished = set(map(id, pending_runs(top2_runs, results_dir, records_dir, retrain)[1]))
+    top2_runs = [spec for spec in top2_runs if id(spec) not in unfinished]
+print(f"top-2 arm: {len(top2_runs)} of {len(top2_specs(scale, seed_list))} runs finished")
+if top2_runs:
+    top2_scores = run_scores(load_runs(dict.fromkeys(sweep_records(top2_runs, backend, workers, results_dir, ray_address,
+                                                                    records_dir, retrain)))[1])
+    both = pd.concat([main.assign(arm="top-1"), top2_scores.assign(arm="top-2")], ignore_index=True)
+    rows = []
+    for method in method_order(top2_scores.method):
+        for metric, _ in CONTRAST_METRICS:
+            point, low, high = relative_change(both, metric, (both.method == method) & (both.arm == "top-2"),
+                                               (both.method == method) & (both.arm == "top-1"))
+            rows.append({"method": method_label(method), "metric": metric, "top-1 IQM": iqm(
+                both.loc[(both.method == method) & (both.arm == "top-1"), metric]), "top-2 IQM": iqm(
+                both.loc[(both.method == method) & (both.arm == "top-2"), metric]), "top-2 vs top-1 %": point,
+                "ci_low": low, "ci_high": high, "seeds": int(((both.method == method) & (both.arm == "top-2")).sum())})
+    top2_table = pd.DataFrame(rows)
+    write_table(top2_table.round(3), "top2_arm", figures_dir)
+    display(top2_table.round(3))
+
+# %% [markdown]
 # ### What the medium campaign says
 #
 # Read at `medium` from the campaign's committed records (`records/medium/`, 39 runs, 3 seeds

@@ -560,6 +560,7 @@ PAPER_COUNTERPARTS = {
     "headline_claims": "(ours) the paper's headline numbers beside ours",
     "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
     "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
+    "top2_arm": "(ours) the sparse methods kept at top-2 beside their top-1 runs (notebook 05d's arm)",
     "env_reward_anatomy": "(ours) reward anatomy of objective O'",
     "mappo_training_curves": "(ours) one training run per method, notebook 07",
     "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
@@ -646,7 +647,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 31 (line 861)
+# %% notebooks/00b_core.py, cell 31 (line 862)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}

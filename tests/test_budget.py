@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 import torch
 
-from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach
+from pemamoe.budget import plateau_table, reading_gaps, seconds_to_reach, with_fixed_phase_twins
 from pemamoe.env import EnvConfig, UAVVectorEnv
 from pemamoe.mappo import TrainConfig, check_population, population_key, train, train_population
 from pemamoe.experiments import BUDGET_READINGS, RunSpec, budget_specs, default_reading, group_specs
@@ -104,6 +104,22 @@ def test_default_reading_names_the_reading_the_netconfig_defaults_are(monkeypatc
         monkeypatch.setitem(sweep.BUDGET_READINGS, name, {**fields, "top_k": 3})
     with pytest.raises(ValueError, match="match none of the study's readings"):
         default_reading()
+
+
+def test_the_defaults_are_the_papers_reading_and_their_study_lends_pemamoe_smoes_runs():
+    """After issue 40 the NetConfig defaults are the paper's reading; its study runs SMoE only (in a
+    fixed phase PE-MAMoE trains as SMoE), so PE-MAMoE's yardstick rows are SMoE's, renamed, and a
+    method with runs of its own (or no twin: MLP, MoE) is left as it is."""
+    assert default_reading() == "paper"
+    paper = budget_specs("ci", readings=("paper",))
+    assert {s.method for s in paper} == {"mlp", "moe", "smoe"}
+    rows = pd.DataFrame({"method": ["smoe", "smoe", "mlp"], "run": ["s0", "s1", "m0"], "coverage": [0.5, 0.6, 0.7]})
+    out = with_fixed_phase_twins(rows)
+    twin = out[out.method == "pemamoe"]
+    assert list(twin.coverage) == [0.5, 0.6] and list(twin.run) == ["s0", "s1"]
+    assert sorted(out.method) == ["mlp", "pemamoe", "pemamoe", "smoe", "smoe"]
+    own = pd.concat([rows, rows[rows.method == "smoe"].assign(method="pemamoe", coverage=0.1)], ignore_index=True)
+    assert with_fixed_phase_twins(own).equals(own)
 
 
 def test_a_member_of_a_learning_rate_and_entropy_grid_trains_as_it_would_alone(tmp_path):
