@@ -31,19 +31,22 @@
 # a *population* is several runs trained together along a leading axis; a *record* is the
 # committed data of a finished run, which every figure reads.
 #
-# **What we found.** At the `medium` scale PE-MAMoE did not reproduce the paper's headline claims
-# and did no better than its own sparse network without the phase controller (notebook 10). That
-# verdict is on hold: the top-1 sparse actor it rested on, built with three settings of ours,
-# learns even a single fixed phase 0.11 worse than the MLP because its routing splits states
-# between experts whose actions disagree (appendix 05d). Built as the paper describes it (a mean
-# head per expert, no balance loss, the PPO ratio on the current routes) the same actor levels off
-# with the MLP and the dense MoE in every phase (appendix 09b), so the gated methods are being
-# rerun at `medium` that way, every method tuned alike, and the paper's longer regime is being run.
-# Its first populations (MLP and two plasticity baselines) show the paper's premise, plasticity
-# loss, only faintly: an MLP's revisited phase starts higher than its first visit and mostly levels
-# off a little below it; shrink-and-perturb lifts that ceiling, ReDo does not.
+# **What we found.** At the `medium` scale PE-MAMoE does not reproduce the paper's headline
+# claims: its return IQM is 13 % below the dense MoE's where the paper reports 26 % above the best
+# baseline, and it does no better than its own sparse network without the phase controller
+# (notebook 10). That verdict is on the sparse actor as the paper describes it (a mean head per
+# expert, no balance loss, the PPO ratio on the current routes), the default since our first
+# reading, with three settings of ours, was found to learn even a single fixed phase 0.11 worse
+# than the MLP because its routing split states between experts whose actions disagreed
+# (appendix 05d). Built the paper's way the same actor levels off with the MLP and the dense MoE
+# in every fixed phase (appendix 09b), so the gap that remains on the cycling runs is not the
+# sparse network's plateau. Every method was tuned alike, and the paper's longer regime is being
+# run in stages. Its first populations (MLP and two plasticity baselines) show the paper's
+# premise, plasticity loss, only faintly: an MLP's revisited phase starts higher than its first
+# visit and mostly levels off a little below it; shrink-and-perturb lifts that ceiling, ReDo does
+# not.
 #
-# ![Normalised IQM across five system metrics, medium scale, the sparse actor built our way: the verdict on hold (notebook 09)](../paper_figures/results_normalised_iqm.png)
+# ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #
 # ## Map from the paper to the code
 #
@@ -114,9 +117,9 @@
 #   in its parameters cell to another folder, or `git checkout paper_figures` afterwards.
 # * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
-#   plots from the cached runs (or trains what is missing, on Ray). Until the sparse actor's
-#   defaults become the paper's reading, the campaign's gated runs are trained with `--reading paper`
-#   (the states committed so far are), so leave `make figures SCALE=paper` until then.
+#   plots from the cached runs (or trains what is missing, on Ray). The campaign is still
+#   being trained in stages (its SMoE and PE-MAMoE runs are not yet), so `make figures SCALE=paper`
+#   would train what has no record: wait for the committed campaign.
 #
 # The utilities every notebook shares (scales, the configuration validator, atomic file writes,
 # figure and table saving, the headless notebook runner) are explained in the appendix notebook
