@@ -423,16 +423,18 @@ Markdown(verdict_in_words(headline, learned, heuristic, visits, plateaus, contro
 # 3 seeds). Each row sets a method's top-2 runs beside its top-1 runs of the main comparison: the
 # IQM's relative change and its 95 % interval. This cell trains nothing beyond the `ci` scale (at
 # `ci`, a few iterations, so that CI executes it); it reads the runs that have a record and says
-# how many are missing.
+# how many are missing. Like the ablations it is off at the paper scale, whose campaign is the
+# main comparison only.
 
 # %%
 from pemamoe.experiments import pending_runs, top2_specs
 
-top2_runs = top2_specs(scale, seed_list)
+top2_runs = top2_specs(scale, seed_list) if ablations else []  # an arm beside the main comparison, off with the ablations
 if scale != "ci":  # the arm is a sweep of its own: read what it has recorded
     unfinished = set(map(id, pending_runs(top2_runs, results_dir, records_dir, retrain)[1]))
     top2_runs = [spec for spec in top2_runs if id(spec) not in unfinished]
-print(f"top-2 arm: {len(top2_runs)} of {len(top2_specs(scale, seed_list))} runs finished")
+print(f"top-2 arm: {len(top2_runs)} of {len(top2_specs(scale, seed_list)) if ablations else 0} runs finished"
+      + ("" if ablations else " (the ablations are off at this scale)"))
 if top2_runs:
     top2_scores = run_scores(load_runs(dict.fromkeys(sweep_records(top2_runs, backend, workers, results_dir, ray_address,
                                                                     records_dir, retrain)))[1])
@@ -455,7 +457,7 @@ if top2_runs:
 #
 # Read at `medium` from the campaign's committed records (`records/medium/`, 39 runs, 3 seeds
 # each, the gated methods built as the paper describes them, NetConfig's defaults since issue 40;
-# the numbers are the ones computed above, at `7e7ad8c`; `benchmarks/HISTORY.md` records which
+# the numbers are the ones computed above; `benchmarks/HISTORY.md` records which
 # records they were and keeps the verdict on our earlier reading), the paper's picture does not
 # reproduce, and what carried the first verdict is gone:
 #
