@@ -441,13 +441,12 @@ if top2_runs:
     both = pd.concat([main.assign(arm="top-1"), top2_scores.assign(arm="top-2")], ignore_index=True)
     rows = []
     for method in method_order(top2_scores.method):
+        top1, top2 = ((both.method == method) & (both.arm == arm) for arm in ("top-1", "top-2"))
         for metric, _ in CONTRAST_METRICS:
-            point, low, high = relative_change(both, metric, (both.method == method) & (both.arm == "top-2"),
-                                               (both.method == method) & (both.arm == "top-1"))
-            rows.append({"method": method_label(method), "metric": metric, "top-1 IQM": iqm(
-                both.loc[(both.method == method) & (both.arm == "top-1"), metric]), "top-2 IQM": iqm(
-                both.loc[(both.method == method) & (both.arm == "top-2"), metric]), "top-2 vs top-1 %": point,
-                "ci_low": low, "ci_high": high, "seeds": int(((both.method == method) & (both.arm == "top-2")).sum())})
+            point, low, high = relative_change(both, metric, top2, top1)
+            rows.append({"method": method_label(method), "metric": metric, "top-1 IQM": iqm(both.loc[top1, metric]),
+                         "top-2 IQM": iqm(both.loc[top2, metric]), "top-2 vs top-1 %": point,
+                         "ci_low": low, "ci_high": high, "seeds": int(top2.sum())})
     top2_table = pd.DataFrame(rows)
     write_table(top2_table.round(3), "top2_arm", figures_dir)
     display(top2_table.round(3))
