@@ -4,19 +4,23 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# torch==2.13.0+cpu is not on PyPI: when the lock does not resolve from the configured indexes, the
+# install is retried with PyTorch's CPU wheel index (a mirror can be named: make TORCH_INDEX=...).
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 SCALE ?= medium
 BACKEND ?= local
 WORKERS ?= 2
 PYTEST_ARGS ?= -n 2
 RETRAIN ?=
 RESULTS ?= results
+RAY_ADDRESS ?=
 LAB_ARGS ?=
 
 .PHONY: help test figures export check-export lab bench clean lock venv
 
 help:
 	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
-	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1] [RESULTS=s3://...]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them; RESULTS: the results store)"
+	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1] [RESULTS=s3://...] [BACKEND=ray RAY_ADDRESS=auto]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them; RESULTS: the results store; RAY_ADDRESS: a Ray cluster)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
 	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
 	@echo "make bench                 print the performance figures (peers included: installs the extra bench) and write them to benchmarks/RESULTS.md"
@@ -29,7 +33,7 @@ $(STAMP): environment.lock pyproject.toml
 	rm -rf $(VENV)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -r environment.lock
+	$(PY) -m pip install --quiet -r environment.lock || { echo "[venv] retrying with PyTorch's CPU wheel index ($(TORCH_INDEX)) for torch==2.13.0+cpu"; $(PY) -m pip install --quiet --extra-index-url $(TORCH_INDEX) -r environment.lock; }
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	@touch $@
 
@@ -44,7 +48,7 @@ test: $(STAMP)
 # kernels' "Kernel is running over TCP without encryption" warnings are fixed at their cause, not
 # filtered: the runner provisions CurveZMQ keys (transport_encryption="auto"; notebooks/00b_core.py).
 figures: $(STAMP)
-	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS) --results-dir $(RESULTS) $(if $(RETRAIN),--retrain,)
+	$(PY) -m pemamoe figures --scale $(SCALE) --backend $(BACKEND) --workers $(WORKERS) --results-dir $(RESULTS) $(if $(RETRAIN),--retrain,) $(if $(RAY_ADDRESS),--ray-address $(RAY_ADDRESS),)
 
 export: $(STAMP)
 	$(PY) -m pemamoe.literate export

@@ -12,8 +12,8 @@
 # CHECK_DEVICE=cuda (default) | cpu; cpu is the rehearsal (benchmarks/device_rehearsal.sh runs this
 # very script in a venv holding only the GPU image's packages). Also PY (python3), BENCH_SCALE
 # (paper), BENCH_SIZES ("1 16 64"). Logs go to $OUT (the device tool's output folder) or
-# build/device_check/. Expected to take about 5 minutes on the GPU (not yet run on one: no session
-# has been lent a GPU); each step has its own timeout; exits non-zero if any step failed.
+# build/device_check/. About 130 s on one H200 (first run: benchmarks/HISTORY.md, "The CUDA path");
+# each step has its own timeout; exits non-zero if any step failed.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-build/device_check}

@@ -26,9 +26,16 @@
 # its number (03b, 05c, ...) is an appendix: the machinery or a side study its main notebook
 # points to; 00b, the shared utilities, can wait until last. Words used throughout: a *scale* is a
 # training budget (`ci` tiny, `small`, `medium`, `paper` the paper's own); SMoE is the top-1
-# sparse network alone, PE-MAMoE the same network with the phase controller; a *reading* is one way
-# of filling in what the paper leaves open (the sparse actor's two are "ours" and "the paper's");
-# a *population* is several runs trained together along a leading axis; a *record* is the
+# sparse network alone, PE-MAMoE the same network with the phase controller, MoE the dense mixture
+# (every expert weighted by its gate) and MLP the plain actor; the *phase controller* is PE-MAMoE's
+# reaction to a phase switch (a KL anchor to the old policy, an optimizer reset, noise on the used
+# experts, log-std and entropy resets, a learning-rate drop; notebook 06); ReDo and
+# shrink-and-perturb are two published plasticity baselines, an MLP whose dormant units are
+# re-initialised, or whose weights are shrunk towards a fresh initialisation, at each switch; an
+# *IQM* is the interquartile mean (the mean of the middle half: within a run over its episodes,
+# then across runs), given with a 95 % bootstrap interval (rliable, appendix 09g); a *reading* is
+# one way of filling in what the paper leaves open (the sparse actor's two are "ours" and "the
+# paper's"); a *population* is several runs trained together along a leading axis; a *record* is the
 # committed data of a finished run, which every figure reads.
 #
 # **What we found.** At the `medium` scale PE-MAMoE does not reproduce the paper's headline
@@ -38,9 +45,10 @@
 # expert, no balance loss, the PPO ratio on the current routes), the default since our first
 # reading, with three settings of ours, was found to learn even a single fixed phase 0.11 worse
 # than the MLP because its routing split states between experts whose actions disagreed
-# (appendix 05d). Built the paper's way the same actor levels off with the MLP and the dense MoE
-# in every fixed phase (appendix 09b), so the gap that remains on the cycling runs is not the
-# sparse network's plateau. Every method was tuned alike, and the paper's longer regime is being
+# (appendix 05d). Built the paper's way the same actor levels off with the MLP in every fixed
+# phase (within 0.013 coverage) and with the dense MoE in phase 0, about 0.03 below it in phases 1
+# and 2 (appendix 09b), so the gap that remains on the cycling runs is not the sparse network's
+# plateau. Every method was tuned alike, and the paper's longer regime is being
 # run in stages. Its first populations (MLP and two plasticity baselines) show the paper's
 # premise, plasticity loss, only faintly: an MLP's revisited phase starts higher than its first
 # visit and mostly levels off a little below it; shrink-and-perturb lifts that ceiling, ReDo does
@@ -110,7 +118,7 @@
 #   (committed too); `SCALE=medium` trains each phase long enough to learn in (notebook 09b says
 #   why this length); `SCALE=paper` uses the paper's training budget for its campaign, the main
 #   comparison with two plasticity baselines, and draws only what reads it (notebooks 09 and 10,
-#   into `paper_figures/paper_scale/`). The README gives the measured cost of each.
+#   into `paper_figures/paper_scale/`, a folder that run creates). The README gives the measured cost of each.
 # * `make lab` opens JupyterLab, where these `.py` files open as notebooks. A notebook run there
 #   (kernel in `notebooks/`) writes its figures into the repository's `paper_figures/` at its own
 #   parameters' scale (`small` unless changed), over the committed `medium` files: set `figures_dir`
@@ -118,7 +126,8 @@
 # * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
 #   plots from the cached runs (or trains what is missing, on Ray). The campaign is still
-#   being trained in stages (its SMoE and PE-MAMoE runs are not yet), so `make figures SCALE=paper`
+#   being trained in stages (its MoE runs are nearly done, its SMoE and PE-MAMoE runs not yet:
+#   `python -m pemamoe sweep --experiment campaign --scale paper --status`), so `make figures SCALE=paper`
 #   would train what has no record: wait for the committed campaign.
 #
 # The utilities every notebook shares (scales, the configuration validator, atomic file writes,
@@ -133,8 +142,9 @@
 # * **MAPPO** (Yu et al., 2022, "The Surprising Effectiveness of PPO in Cooperative Multi-Agent
 #   Games"): PPO with a centralised critic and shared actor weights, the training recipe the paper
 #   builds on.
-# * **Switch Transformer** (Fedus, Zoph and Shazeer, 2022): top-1 routing and the load-balancing
-#   loss that keeps experts in use, the gating of the SMoE and PE-MAMoE actors.
+# * **Switch Transformer** (Fedus, Zoph and Shazeer, 2022): top-1 routing, the gating of the SMoE
+#   and PE-MAMoE actors; its load-balancing loss, which the paper does not use, is an ablation row
+#   of appendix 05d.
 # * **Dormant neurons** (Sokar et al., 2023, "The Dormant Neuron Phenomenon in Deep RL"): the
 #   τ-dormant score that appendix 06e measures as the plasticity indicator.
 # * **rliable** (Agarwal et al., 2021, "Deep RL at the Edge of the Statistical Precipice"): IQM

@@ -18,8 +18,10 @@
 #
 # Every actor is a Gaussian policy over the UAV's 2-D displacement. The mean comes from a network
 # of the observation; the spread is one learned log-standard-deviation per action coordinate that
-# does not depend on the observation. The four actors differ only in how they turn the
-# observation into the 32-wide feature vector that feeds the final linear "head":
+# does not depend on the observation. The four actors differ in how they turn the observation
+# into the 32-wide feature vector that feeds the final linear "head" (the gated actors give each
+# expert its own head and mix the experts' means, the default since appendix 05d; the parameter
+# counts below are the paper's, with one shared head):
 #
 # | kind | feature extractor | gating |
 # |---|---|---|
@@ -105,7 +107,7 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
 # policy head"), describe deep expert trunks followed by one shared head. We keep the deep trunks
 # the counts describe, and give each trunk its own mean head as the equations do
 # (`expert_heads="per_expert"`, 66 parameters more per extra expert). That was not always the
-# default: until the medium sweep was rerun under it (issue 40), one shared head was, and appendix
+# default: until the medium sweep was rerun under it (`benchmarks/HISTORY.md`, session 25), one shared head was, and appendix
 # 05d measures what the shared head costs a top-1 actor. `PAPER_NET` keeps the shared head, so the
 # cost table below reproduces the paper's counts exactly.
 #
@@ -126,7 +128,8 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
 #   initialisation, so a reset puts the policy back to exactly its initial spread.
 # * `load_balance_coef = 0`: the weight of a Switch-style balance loss, reported weighted as
 #   `aux_loss`. The paper describes no such loss, so it is off; 0.01 (the value Switch Transformers
-#   use) was our default until issue 40, and appendix 05d keeps it as an ablation row.
+#   use) was our default until the medium sweep was rerun, and appendix 05d keeps it as an
+#   ablation row.
 # * Three gating choices the paper leaves open ("Top-1 gating" below): `top1_weight`,
 #   `routing_noise` (`learned`, `fixed`, `annealed` or `off`, with `noise_std` and
 #   `noise_anneal_portion`) and `critic_gating` (`dense`, `gated` or `mlp`).
@@ -137,7 +140,7 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
 #   router and the stored noise, so a change of route moves the PPO ratio and is clipped like any
 #   other change of the policy; `replay`: the update reuses the experts chosen in the rollout).
 #   With the balance loss off these are the paper's reading of the sparse actor; the balance loss,
-#   a shared head and replayed routes are ours, the defaults until issue 40 (`BUDGET_READINGS`,
+#   a shared head and replayed routes are ours, the defaults until that rerun (`BUDGET_READINGS`,
 #   notebook 09, names both).
 # * `expert_impl = "auto"` and `masked_min_batch = 512`: how a single network executes its expert
 #   bank (next section); speed only.
@@ -169,14 +172,14 @@ class NetConfig:
     n_experts: int = 3
     top_k: int = 1
     init_log_std: float = math.log(0.3)
-    load_balance_coef: float = 0.0  # the paper describes no balance loss (issue 40; 0.01 before)
+    load_balance_coef: float = 0.0  # the paper describes no balance loss (0.01 before; appendix 05d)
     # the gating readings (chosen by the comparison of appendix 05c; see "Top-1 gating" below)
     top1_weight: str = "straight_through"
     routing_noise: str = "off"
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
-    # the sparse actor's reading: the paper's equations (issue 40; "shared" and "replay" before, 05d)
+    # the sparse actor's reading: the paper's equations ("shared" and "replay" before, 05d)
     expert_heads: str = "per_expert"  # each expert its own mean head, the experts' means mixed; or "shared"
     update_routing: str = "current"  # PPO's update routes each row with the current router; or "replay"
     expert_impl: str = "auto"

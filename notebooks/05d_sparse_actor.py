@@ -13,9 +13,9 @@
 # %% [markdown]
 # # 05d · The sparse actor, measured: why top-1 SMoE plateaus below MLP and MoE
 #
-# In the learning-budget study (notebook 09b) the top-1 sparse actor levels off clearly below the
-# MLP and the dense MoE in every fixed phase, with no phase switch and no plasticity mechanism
-# involved. Every verdict about PE-MAMoE, which is that sparse actor plus a phase controller,
+# In the learning-budget study (notebook 09b), built as we first read the paper, the top-1 sparse
+# actor levelled off clearly below the MLP and the dense MoE in every fixed phase (0.680 against
+# 0.793 in phase 0), with no phase switch and no plasticity mechanism involved. Every verdict about PE-MAMoE, which is that sparse actor plus a phase controller,
 # inherits this gap, so it has to be explained before it is blamed on sparse routing itself.
 #
 # The sparse actor of notebook 05, as it was when the gap was found ("ours" in `BUDGET_READINGS`,
@@ -234,7 +234,8 @@ Markdown(_describe(table))
 #   agree where their regions meet.
 # * **What is left is top-1 routing itself.** The same readings help the dense MoE just as much
 #   (0.772 to 0.811), so against the dense mixture the sparse actor still trails by 0.07 under
-#   either reading. Keeping the two best experts (`top-2`) recovers almost all of it (0.792).
+#   either reading. Keeping the two best experts (`top-2`) recovers about three quarters of it
+#   (0.792 against the dense MoE's 0.811).
 #
 # So the readings that follow the paper's equations (`expert_heads="per_expert"`,
 # `load_balance_coef=0`, `update_routing="current"`) close more than half of the gap, and they

@@ -249,10 +249,10 @@ _adv.squeeze().tolist()
 #
 # The shared actor sees the $B\cdot U$ agent rows of a step as one batch. For gated actors
 # `act` returns a `RoutingSample` (the gate noise, the chosen experts and the temperature); we
-# keep it so that the update can *replay* the same routing: PPO's ratio
-# $\pi_\theta(a|o)/\pi_{\text{old}}(a|o)$ only means something if numerator and denominator route
-# the observation through the same experts. The critic's routing is stored too, for the same
-# reason. Actions are stored unclipped (the log-probability belongs to the sampled Gaussian
+# keep it for the update. With `update_routing="current"` (the default, notebook 05) the update
+# replays the stored noise and temperature and lets the current router choose the experts again,
+# so a change of route is a change of policy that PPO's ratio $\pi_\theta(a|o)/\pi_{\text{old}}(a|o)$
+# sees and clips; `"replay"` also reuses the rollout's experts. The critic's routing is stored too. Actions are stored unclipped (the log-probability belongs to the sampled Gaussian
 # action); the environment clips them to $[-1, 1]^2$ and reports it in `info`.
 #
 # `EpisodeTracker` (appendix 07e) accumulates each environment's running episode (team return and
@@ -369,8 +369,9 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # $$\mathcal L_\text{PPO} = \mathbb E\big[\max\big(-A\,\rho,\; -A\,\operatorname{clip}(\rho, 1-\epsilon, 1+\epsilon)\big)\big],
 # \qquad \rho = \exp\big(\log\pi_\theta(a|o) - \log\pi_\text{old}(a|o)\big),$$
 # with $\epsilon$ the controller's clip range of this iteration (0.15, or 0.10 in PE-MAMoE's
-# conservative window). $\log\pi_\theta$ comes from `actor.evaluate` with the stored routing and
-# temperature replayed, so before the first gradient step $\rho = 1$ *exactly* (the tests check
+# conservative window). $\log\pi_\theta$ comes from `actor.evaluate` with the stored noise and
+# temperature replayed (and, under `"replay"`, the stored experts), so before the first gradient
+# step the router chooses what it chose in the rollout and $\rho = 1$ *exactly* (the tests check
 # this bit for bit for every method). The full loss of a minibatch is
 # $$\mathcal L = \mathcal L_\text{PPO} + \lambda_V\,\mathbb E[(\hat v_\psi(s) - \tilde R)^2]
 #   - \lambda_\text{ent}\,\mathbb E[\mathcal H(\pi_\theta)] + \lambda_\text{kl}\,\mathbb E[\mathrm{KL}(\pi_\theta\|\pi_\text{ref})]

@@ -89,7 +89,7 @@ from pemamoe.methods import method_spec
 #   reset, learning-rate drop and warm-up, noise injection.
 #
 # `default_seeds` gives the scale's number of seeds. The paper trained one seed per method; we use
-# three at the `small` and `paper` scales and report the number on every figure.
+# three at every scale but `ci` and report the number on every figure.
 
 # %%
 #| export
@@ -315,7 +315,7 @@ def sparse_specs(scale: str, seeds=None, readings=None, phase: int = 0, steps: i
             for name in readings for method, net in [SPARSE_READINGS[name]] for seed in seeds]
 
 
-# The tuning grid (issue 38; its table in appendix 09b): every compared method tuned alike, on the
+# The tuning grid (its table in appendix 09b): every compared method tuned alike, on the
 # learning-budget study's run (fixed phase 0, BUDGET_STEPS environment steps, small update
 # settings), over one grid of learning rate x entropy coefficient (the start and end of its
 # anneal, scaled together), 2 seeds. The gated methods run the paper's actor readings (appendix
@@ -355,7 +355,7 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
     return specs
 
 
-# The top-2 arm (issue 40): the sparse methods with two of the three experts active per step, in
+# The top-2 arm (appendix 05d): the sparse methods with two of the three experts active per step, in
 # the main experiment's cycling runs, beside their top-1 runs. Their actor reading is the paper's
 # (appendix 05d), pinned, with top_k = 2; the study measured top-2 in a fixed phase ("smoe/paper
 # top-2" of the sparse-actor comparison), this arm asks what it does across phase switches.
@@ -369,7 +369,7 @@ def top2_specs(scale: str, seeds=None) -> list:
     return [RunSpec(m, s, scale, overrides=tuple(net.items()), tag="top2") for m in TOP2_METHODS for s in seeds]
 
 
-# The sparse actor's reading of the cycling experiments, pinned (issue 40): `reading="paper"` runs
+# The sparse actor's reading of the cycling experiments, pinned (appendix 05d): `reading="paper"` runs
 # main, tricks and noise with the gated methods' actor as the paper describes it, whatever
 # NetConfig's defaults are, and `reading="ours"` with ours. Pinning a field at its default value
 # leaves the run's configuration, hence its name, unchanged, so runs trained pinned are the very
@@ -843,9 +843,11 @@ Markdown(_plasticity_words(revisits))
 # `medium` gives a phase visit about a ninth of the paper's gradient steps, and plasticity loss is
 # driven by updates. The paper-scale campaign (9 visits of 1,200 iterations, 8 epochs of 32
 # minibatches; `benchmarks/HISTORY.md`) publishes its records a population at a time; this cell
-# reads whichever are committed, trains nothing, and measures the same comparisons on them. No
-# fresh network has been trained at the paper's update settings, but the first visit of phase 0
-# is one: a network that has seen nothing else, trained the same way. Three seeds are few, so the
+# reads whichever are committed, trains nothing, and measures the same comparisons on them.
+# Revisits are set against first visits: the first visit of phase 0 is a fresh network (it has
+# seen nothing else, trained the same way), those of phases 1 and 2 have seen only the phases
+# before them. The learning-budget study's fresh MLP at the paper's update settings (09b) ran 2M
+# steps of phase 0 only, not a 2.5M-step visit, so it is not used here. Three seeds are few, so the
 # differences are shown seed by seed.
 
 # %%

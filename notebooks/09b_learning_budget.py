@@ -16,8 +16,9 @@
 # The paper's figures are about what happens *inside* a phase (learning), *at* a switch (the drop)
 # and *after* it (the recovery). None of that is visible if a phase ends before the networks have
 # learned much, which is what happens at the `small` scale: a phase there lasts 60 iterations of
-# 512 environment steps, about 31k steps. In the small sweep committed at `47c5ed4`
-# (`phase_learning_small`), MLP and MoE ended every phase at 63-75 % of the coverage they reach in
+# 512 environment steps, about 31k steps. In the small sweep committed at `47c5ed4` (its table
+# `phase_learning_small`, since retired: `git show 47c5ed4:paper_figures/phase_learning_small.md`),
+# MLP and MoE ended every phase at 63-75 % of the coverage they reach in
 # a phase of 2 million steps, and a phase's coverage barely moved from one cycle to the next (MLP in
 # phase 0: 0.51, 0.52, 0.52).
 #
@@ -33,8 +34,8 @@
 #
 # Two update settings are on the table: the `small` preset's (16 environments x 32 slots per
 # iteration, 4 epochs x 4 minibatches) and the paper's (64 x 32, 8 epochs x 32 minibatches). The
-# paper's settings do twice as many gradient passes over every sample in minibatches a quarter the
-# size, so they cost more compute per environment step; what matters for a budget is coverage per
+# paper's settings do twice as many gradient passes over every sample in minibatches half the
+# size (64 samples per minibatch against 128), so they cost more compute per environment step; what matters for a budget is coverage per
 # second of compute, so MLP trains in phase 0 with both and we compare them on that axis.
 #
 # The runs are an ordinary sweep (`python -m pemamoe sweep --experiment budget`), cached under
@@ -477,21 +478,24 @@ speed
 #   (150 m instead of 200 m); the heuristic, which reads every user's position each slot and flies
 #   to the centroid of its users, copes with that far better than the learned policies do within
 #   2M steps.
-# * **The top-1 routed network levels off with the dense ones.** SMoE plateaus at 0.796 in phase
-#   0, 0.504 in phase 1 and 0.371 in phase 2, against MLP's 0.793, 0.497 and 0.384. Built our
+# * **The top-1 routed network levels off with the MLP.** SMoE plateaus at 0.796 in phase
+#   0, 0.504 in phase 1 and 0.371 in phase 2, against MLP's 0.793, 0.497 and 0.384; the dense MoE
+#   is level with both in phase 0 (0.796) and about 0.03 above SMoE in phases 1 and 2 (0.535 and
+#   0.396), with seed ranges that do not overlap SMoE's there. Built our
 #   earlier way it levelled off at 0.68, 0.44 and 0.33, and that gap carried the first medium
 #   verdict (section "The study under the paper's actor readings" below). In a fixed phase
 #   PE-MAMoE is SMoE with nothing to react to: under our reading the study ran both and their
 #   records agree to the byte, so under the paper's it runs SMoE only and PE-MAMoE's rows are
 #   SMoE's (`with_fixed_phase_twins`).
 # * **The slowest case sets the phase length.** MoE in phase 1 first reaches 85 % of its plateau
-#   at 1.0M steps (1.1M under our reading); everything else takes 900k or fewer. The `medium`
+#   at 1.0M steps (1.1M under our reading, `benchmarks/HISTORY.md`); everything else takes 900k or fewer. The `medium`
 #   phase is 2,200 iterations of 512 steps (1,126,400), set from our reading's 1.1M and covering
 #   both, which the cell below checks. (The earlier study, at `d02f78f`, found 1.0M and set 2,000
 #   iterations.)
 # * **The small update settings.** The paper's update settings cost about 2.7 times as much compute
 #   per environment step (110.6 against 40.8 compute seconds per million steps, measured in the
-#   same study, 9 runs to a population) and level off no higher within 2M steps (0.77 against
+#   same study; the small settings' runs trained 9 to a population and the paper settings' 3, and
+#   a member of a larger population costs less, so part of that ratio is the population size) and level off no higher within 2M steps (0.77 against
 #   0.79 in phase 0). A phase is a number of environment steps, so the small settings give the same
 #   phase for about a third of the compute; the medium preset uses them.
 
@@ -569,12 +573,12 @@ save_figure(fig, "learning_budget_readings", figures_dir)
 #   plateau goes from 0.680 (ours) to 0.796, against MLP's 0.793: the gap of 0.113 that carried the
 #   medium verdict is gone. In phase 1 it goes from 0.436 to 0.504 (MLP 0.497), in phase 2 from
 #   0.332 to 0.371 (MLP 0.384, a gap of 0.013 where it was 0.052). The seeds of the paper's reading
-#   lie inside MLP's range in phases 0 and 1 and just below it in phase 2.
+#   lie inside MLP's range in phase 0, just above it in phase 1 and just below it in phase 2.
 # * **The gap was ours, not top-1 routing's.** The same top-1 router with one mean head per expert,
 #   no balance loss and the ratio on the current routes learns as well as the dense networks in a
-#   fixed phase. Its curve has another shape: in phase 0 it is at 0.728 at 1M steps (MLP 0.712,
-#   MoE 0.742-0.759), falls behind at 1.5M (0.751 against MLP's 0.780) and still rises over the
-#   last 0.5M, so a study cut at 1.5M shows part of the gap (appendix 05d's 1.5M-step comparison
+#   fixed phase. Its curve has another shape (the figure above): in phase 0 it is level with MLP
+#   at 1M steps, falls behind it by 1.5M and still rises over the last 0.5M, so a study cut at
+#   1.5M shows part of the gap (appendix 05d's 1.5M-step comparison
 #   closed two thirds of it with these readings).
 # * **Dense MoE barely moves** (0.805 to 0.796 in phase 0, 0.526 to 0.535 and 0.385 to 0.396 in
 #   phases 1 and 2): its plateaus were never the problem.

@@ -60,7 +60,7 @@ from pemamoe.core import REPO_ROOT, Progress, atomic_write_json, check_scale, on
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_iteration, record_files,
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_progress, record_files,
                              record_timing, restore_portable_state, verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
@@ -733,10 +733,12 @@ def sweep_status(specs, results_dir="results", population: int | None = None, wo
             for spec in group:
                 pull_run(results_dir, spec.scale, spec.run_dir(results_dir).name, ("metrics.parquet",))
         progress = [_logged_progress(spec.run_dir(results_dir), config.checkpoint_every) for spec in group]
-        if records_dir is not None:  # a committed portable state not restored here yet counts as reached
-            carried = [portable_state_iteration(records_dir, spec.scale, spec.run_dir(results_dir).name)
+        if records_dir is not None:  # a committed portable state not restored here yet counts as reached,
+            # and lends its average rate where this machine has logged none
+            carried = [portable_state_progress(records_dir, spec.scale, spec.run_dir(results_dir).name) or (0, None)
                        for spec in group]
-            progress = [(max(n, c or 0), rate) for (n, rate), c in zip(progress, carried)]
+            progress = [(max(n, c), rate if rate is not None else c_rate)
+                        for (n, rate), (c, c_rate) in zip(progress, carried)]
         reached = min(n for n, _ in progress)
         rates = [r for _, r in progress if r is not None]
         seconds = max(rates) if rates else float("nan")

@@ -426,15 +426,19 @@ def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> N
     portable_state_path(records_dir, scale, run_name).unlink(missing_ok=True)
 
 
-def portable_state_iteration(records_dir, scale: str, run_name: str) -> int | None:
-    """The iteration the portable state of `run_name` has reached, or None when there is none
-    (what `sweep --status` reports for a run this machine has not restored yet). It is verified as
-    a resume would verify it (seal, run): a damaged one raises RecordError naming the file, rather
-    than reporting an iteration that the sweep would then refuse to resume from."""
+def portable_state_progress(records_dir, scale: str, run_name: str) -> tuple | None:
+    """(the iteration the portable state of `run_name` has reached, its wall seconds per iteration
+    so far, or None before the first), or None when there is no portable state: what `sweep
+    --status` reports for a run this machine has not restored yet. The rate is the checkpoint's
+    training seconds over its iterations, every session that trained it averaged alike. The state
+    is verified as a resume would verify it (seal, run): a damaged one raises RecordError naming
+    the file, rather than reporting an iteration that the sweep would then refuse to resume from."""
     source = portable_state_path(records_dir, scale, run_name)
     if not source.exists():
         return None
-    return int(_open_portable_state(source, run_name)[1]["iteration"])
+    ck = _open_portable_state(source, run_name)[1]
+    iteration = int(ck["iteration"])
+    return iteration, (float(ck["elapsed"]) / iteration if iteration else None)
 
 
 def portable_state_mb(records_dir=RECORDS_DIR) -> dict:

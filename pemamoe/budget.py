@@ -3,7 +3,7 @@
 
 __all__ = ['BLOCK_STEPS', 'block_steps', 'PLATEAU_TAIL', 'PLATEAU_FRACTION', 'update_setting', 'load_budget', 'budget_curves', 'plateau_table', 'seconds_to_reach', 'phase_learning', 'visit_curve', 'revisit_learning', 'with_fixed_phase_twins', 'load_study', 'study_plateaus', 'TUNING_MARGIN', 'run_plateau', 'tuning_table', 'reading_gaps', 'revisit_words']
 
-# %% notebooks/09b_learning_budget.py, cell 4 (line 60)
+# %% notebooks/09b_learning_budget.py, cell 4 (line 61)
 from pathlib import Path
 
 import numpy as np

@@ -30,7 +30,7 @@ def sweep_cli(argv=None) -> int:
                         help="main: the four methods; tricks: the controller's ablations; noise: the noise scale; "
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
-                             "for every method alike (09b); top2: the top-2 arm beside top-1 (09b); campaign: main "
+                             "for every method alike (09b); top2: the top-2 arm beside top-1 (05d, 10); campaign: main "
                              "with MLP + ReDo and MLP + shrink-and-perturb, the paper scale's comparison (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
@@ -121,8 +121,9 @@ def _print_status(specs, args) -> None:
     from pemamoe.sweep_runner import status_summary, sweep_status
 
     table = sweep_status(specs, args.results_dir, args.population, args.workers, args.records_dir)
-    with pd.option_context("display.width", 120, "display.max_columns", 10):
-        print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
+    if not table.empty:  # a finished sweep has no populations left to list
+        with pd.option_context("display.width", 120, "display.max_columns", 10):
+            print(table.round({"s_per_iteration": 3, "hours_left": 2}).to_string(index=False))
     print(status_summary(table, args.workers))
 
 
@@ -169,7 +170,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 263)
+# %% notebooks/09e_commands.py, cell 10 (line 264)
 PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
 
@@ -305,7 +306,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 400)
+# %% notebooks/09e_commands.py, cell 11 (line 401)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

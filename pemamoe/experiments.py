@@ -239,7 +239,7 @@ def sparse_specs(scale: str, seeds=None, readings=None, phase: int = 0, steps: i
             for name in readings for method, net in [SPARSE_READINGS[name]] for seed in seeds]
 
 
-# The tuning grid (issue 38; its table in appendix 09b): every compared method tuned alike, on the
+# The tuning grid (its table in appendix 09b): every compared method tuned alike, on the
 # learning-budget study's run (fixed phase 0, BUDGET_STEPS environment steps, small update
 # settings), over one grid of learning rate x entropy coefficient (the start and end of its
 # anneal, scaled together), 2 seeds. The gated methods run the paper's actor readings (appendix
@@ -279,7 +279,7 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
     return specs
 
 
-# The top-2 arm (issue 40): the sparse methods with two of the three experts active per step, in
+# The top-2 arm (appendix 05d): the sparse methods with two of the three experts active per step, in
 # the main experiment's cycling runs, beside their top-1 runs. Their actor reading is the paper's
 # (appendix 05d), pinned, with top_k = 2; the study measured top-2 in a fixed phase ("smoe/paper
 # top-2" of the sparse-actor comparison), this arm asks what it does across phase switches.
@@ -293,7 +293,7 @@ def top2_specs(scale: str, seeds=None) -> list:
     return [RunSpec(m, s, scale, overrides=tuple(net.items()), tag="top2") for m in TOP2_METHODS for s in seeds]
 
 
-# The sparse actor's reading of the cycling experiments, pinned (issue 40): `reading="paper"` runs
+# The sparse actor's reading of the cycling experiments, pinned (appendix 05d): `reading="paper"` runs
 # main, tricks and noise with the gated methods' actor as the paper describes it, whatever
 # NetConfig's defaults are, and `reading="ours"` with ours. Pinning a field at its default value
 # leaves the run's configuration, hence its name, unchanged, so runs trained pinned are the very

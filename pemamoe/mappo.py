@@ -177,7 +177,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 416)
+# %% notebooks/07_mappo.py, cell 18 (line 417)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -406,7 +406,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
     return out
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 672)
+# %% notebooks/07_mappo.py, cell 21 (line 673)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

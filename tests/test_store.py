@@ -97,14 +97,15 @@ def test_a_finished_run_has_no_portable_state(tmp_path):
 
 def test_status_on_a_fresh_machine_counts_the_committed_portable_state(tmp_path):
     from pemamoe.sweep_runner import sweep_status
-    from pemamoe.records import portable_state_iteration
+    from pemamoe.records import portable_state_progress
 
     spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
     train_population([spec.to_config()], [spec.run_dir(tmp_path / "first")], max_iterations=5)
     records = tmp_path / "records"
     write_portable_state(spec.run_dir(tmp_path / "first"), "ci", records)
-    assert portable_state_iteration(records, "ci", spec.to_config().run_name()) == 5
-    assert portable_state_iteration(records, "ci", "mlp-s9-000000000000") is None
+    iteration, rate = portable_state_progress(records, "ci", spec.to_config().run_name())
+    assert iteration == 5 and rate > 0  # seconds per iteration, from the checkpoint's training time
+    assert portable_state_progress(records, "ci", "mlp-s9-000000000000") is None
     fresh = tmp_path / "fresh"  # nothing restored here yet
     assert sweep_status([spec], fresh, workers=1).iteration.tolist() == [0]
     assert sweep_status([spec], fresh, workers=1, records_dir=records).iteration.tolist() == [5]
