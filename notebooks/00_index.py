@@ -49,10 +49,12 @@
 # phase (within 0.013 coverage) and with the dense MoE in phase 0, about 0.03 below it in phases 1
 # and 2 (appendix 09b), so the gap that remains on the cycling runs is not the sparse network's
 # plateau. Every method was tuned alike, and the paper's longer regime is being
-# run in stages. Its first populations (MLP and two plasticity baselines) show the paper's
-# premise, plasticity loss, only faintly: an MLP's revisited phase starts higher than its first
-# visit and mostly levels off a little below it; shrink-and-perturb lifts that ceiling, ReDo does
-# not.
+# run in stages. Its first populations show the paper's premise, plasticity loss, faintly in an
+# MLP (a revisited phase starts higher than its first visit and mostly levels off a little below
+# it; shrink-and-perturb lifts that ceiling, ReDo does not) and clearly in the dense MoE (every
+# phase-0 revisit ends below the first visit, by 0.08 on average, with no dormant units); its
+# sparse populations, SMoE and PE-MAMoE, come next. A top-2 arm (notebook 10) shows that keeping
+# two experts does not change the medium verdict.
 #
 # ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #
@@ -126,7 +128,7 @@
 # * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
 #   plots from the cached runs (or trains what is missing, on Ray). The campaign is still
-#   being trained in stages (its MoE runs are nearly done, its SMoE and PE-MAMoE runs not yet:
+#   being trained in stages (its SMoE and PE-MAMoE runs are under way:
 #   `python -m pemamoe sweep --experiment campaign --scale paper --status`), so `make figures SCALE=paper`
 #   would train what has no record: wait for the committed campaign.
 #

@@ -452,6 +452,15 @@ if top2_runs:
     display(top2_table.round(3))
 
 # %% [markdown]
+# At `medium` (`paper_figures/top2_arm.md`, 3 seeds each) keeping two experts helps both sparse
+# methods by a few percent, resolved only for SMoE's coverage (+7.7 % [+0.7, +15.4]) and served
+# users (+6.0 % [+0.4, +12.6]); PE-MAMoE's changes (return +7.6 % [−4.0, +21.1], coverage +6.8 %
+# [−1.6, +16.0]) all span zero. Top-2 brings both to the dense MoE's coverage (0.567 and 0.558
+# against 0.568) and PE-MAMoE's return to 1,684 against the dense MoE's 1,803 (IQMs,
+# `headline_reference_iqm.md`): with two experts PE-MAMoE's return is still below the dense
+# mixture's, so the verdict above is not a matter of top-1 against top-2.
+
+# %% [markdown]
 # ### What the medium campaign says
 #
 # Read at `medium` from the campaign's committed records (`records/medium/`, 39 runs, 3 seeds
