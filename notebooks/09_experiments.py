@@ -894,7 +894,7 @@ Markdown(revisit_words(campaign_revisits))
 # anneals over the run, so a revisit explores less).
 #
 # The dense MoE (the campaign's second population) shows it clearly: all six phase-0 revisits end
-# below the fresh first visit, by 0.082 on average (MLP 0.028), 13 of its 18 revisits end below
-# their first visit, and it does not start a revisit higher as the MLP does. Its units are not
-# dormant (2 % at a switch) and its feature rank stays near 18 (the MLP's grows from 19 to 21): a
-# lower ceiling without dead units, what PE-MAMoE's controller is for; the sparse runs come next.
+# below the fresh first visit, by 0.082 on average (MLP 0.028), and 13 of its 18 revisits below
+# their first; a revisit starts higher but barely learns (in phase 0 the third stays below the
+# second). Its units are not dormant (2 % at a switch) and its feature rank stays near 18 (the
+# MLP's grows from 19 to 21): a lower ceiling without dead units, what PE-MAMoE's controller is for.
