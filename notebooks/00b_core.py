@@ -743,8 +743,7 @@ assert _log.getvalue().count("\n") == 1  # the start line only: nothing re-print
 
 # %%
 #| export
-# Paper counterpart of each output, by file stem. Stems not listed are illustrations of a model
-# that the paper describes in equations only.
+# Paper counterpart of each output, by file stem (one not listed: a model the paper gives in equations).
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
     "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
@@ -772,6 +771,7 @@ PAPER_COUNTERPARTS = {
     "headline_claims": "(ours) the paper's headline numbers beside ours",
     "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
     "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
+    "headline_plasticity_baselines": "(ours) PE-MAMoE against ReDo and shrink-and-perturb on MLP (paper scale)",
     "top2_arm": "(ours) the sparse methods kept at top-2 beside their top-1 runs (notebook 05d's arm)",
     "env_reward_anatomy": "(ours) reward anatomy of objective O'",
     "mappo_training_curves": "(ours) one training run per method, notebook 07",
@@ -783,7 +783,7 @@ PAPER_COUNTERPARTS = {
     **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
     **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit and a fresh network"
        for scale in SCALES},
-    "plasticity_loss_paper_campaign": "(ours) the paper scale's revisits against first visits, committed records so far",
+    "plasticity_loss_paper_campaign": "(ours) paper-scale revisits against first visits, seed by seed",
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }

@@ -723,13 +723,11 @@ plt.show()
 # starts from a network trained on other phases, which can help or hurt.
 
 # %%
-from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
-from pemamoe.experiments import budget_specs, default_reading  # the study's runs of the actor the sweep trained
+from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus, study_specs
 
 # The study covers the built-in methods (a plugin method would need its own 2M-step runs; notebook 09b).
-study = sweep_records(budget_specs(scale, seed_list, tuple(m for m in method_list if m in METHODS),
-                                   readings=(default_reading(),)), backend,
-                      workers, results_dir, ray_address, records_dir, retrain)
+study = sweep_records(study_specs(scale, seed_list, method_list), backend, workers, results_dir, ray_address,
+                      records_dir, retrain)
 learned = phase_learning(metrics, study_plateaus(study, scale))
 mlp_rows = learned[learned.method == "mlp"]
 mlp_ok = bool(len(mlp_rows) and (mlp_rows.fraction_of_plateau >= PLATEAU_FRACTION).all()
@@ -741,29 +739,31 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # %% [markdown]
 # ### Is a revisited phase learned worse? Plasticity loss, measured
 #
-# The fraction of the plateau says whether a visit learned, not whether the network had lost
-# some of its ability to learn: the plateau comes from runs scheduled differently (2 million steps
-# in one phase), and a visit's end level mixes what the network carried over with what it learned
-# in the visit. The paper's premise is sharper: a network that has trained on other phases
-# relearns a phase worse than it first learned it. So for every later visit of a phase we compare
-# the learning curve **within the visit** with two references over the same number of environment
+# The fraction of the plateau says whether a visit learned, not whether the network had lost some
+# of its ability to learn: the plateau comes from runs scheduled differently (2 million steps in
+# one phase), and a visit's end level mixes what the network carried over with what it learned in
+# the visit. The paper's premise is sharper: a network that has trained on other phases relearns a
+# phase worse than it first learned it. So for every later visit of a phase we compare the
+# learning curve **within the visit** with two references over the same number of environment
 # steps: the same runs' first visit of that phase, and a fresh network (the study's run of the
-# method in that phase, the same update settings, started from scratch). Per visit: the mean
-# coverage over the visit (the area under the curve per step), the level at its end, and the steps
-# to 85 % of the study's plateau; and, at the switch that opens the visit, the dormant-unit fraction
-# and the effective feature rank (the diagnostics run at every switch). A negative
-# revisit-minus-first or revisit-minus-fresh difference is what plasticity loss looks like, and
-# those two differences (mean over the visit and level at its end) are also the last columns of the
-# phase-visit table `phase_learning_<scale>` (empty for a first visit). The fraction of the plateau
-# there answers "did the visit learn?"; only these comparisons answer "was it learned worse?". One
-# caveat: the entropy coefficient of a cycling run anneals over the whole run, so a revisit also
-# explores less than a first visit or a fresh run.
+# method in that phase, the same update settings, started from scratch; the study has none with
+# the paper's update settings and a visit's length, so at that scale only the first visit). Per
+# visit: the mean coverage over the visit (the area under the curve per step), the level at its
+# end, and the steps to 85 % of the study's plateau; and, at the switch that opens the visit, the
+# dormant-unit fraction and the effective feature rank (the diagnostics run at every switch). A
+# negative revisit-minus-first or revisit-minus-fresh difference is what plasticity loss looks
+# like, and those two differences (mean over the visit and level at its end) are also the last
+# columns of the phase-visit table `phase_learning_<scale>` (empty for a first visit). The
+# fraction of the plateau there answers "did the visit learn?"; only these comparisons answer "was
+# it learned worse?". One caveat: the entropy coefficient of a cycling run anneals over the whole
+# run, so a revisit also explores less than a first visit or a fresh run.
 
 # %%
 from pemamoe.budget import block_steps, load_study, revisit_learning, visit_curve
 from pemamoe.analysis import phase_visits
 
-fresh = load_study(study)  # PE-MAMoE's fresh network is SMoE's run, as its plateau is
+# the study's fresh networks train with medium's update settings, not the paper's (8 x 32): none at paper
+fresh = load_study(study) if scale != "paper" else load_study(study).iloc[:0]  # PE-MAMoE's is SMoE's run
 revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
 write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
 # the phase-visit table carries each revisit's two comparisons beside its fraction of the plateau
@@ -856,10 +856,10 @@ from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.records import verify_record
 
 campaign = [spec for spec in main_specs("paper", default_seeds("paper"), method_order(METHOD_REGISTRY))  # baselines too
-            if scale != "paper" and verify_record(record_marker(spec, repo_path(records_dir)), spec.to_config())]
+            if verify_record(record_marker(spec, repo_path(records_dir)), spec.to_config())]
 if not campaign:
     campaign_revisits = pd.DataFrame()
-    print("no paper-scale record to read" if scale != "paper" else "at the paper scale, the section above is this one")
+    print("no paper-scale record to read")
 else:
     campaign_metrics, _ = load_runs(sweep_records(campaign, "local", 1, results_dir, None, records_dir, False))
     no_plateaus = pd.DataFrame({"method": [], "phase": [], "plateau": []})

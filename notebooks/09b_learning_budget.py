@@ -236,6 +236,8 @@ def revisit_learning(metrics: pd.DataFrame, fresh: pd.DataFrame, plateaus: pd.Da
             horizon = int(min(revisit.steps.max(), first_visit.steps.max()))
             own = fresh[(fresh.method == method) & (fresh.phase == phase)]
             fresh_curve = visit_curve(own, 0, int(own.iteration.max()), column, bin_steps) if len(own) else revisit.iloc[:0]
+            if len(fresh_curve) and fresh_curve.steps.max() < horizon:  # shorter than the visit: a mean over fewer
+                fresh_curve = revisit.iloc[:0]  # steps is not the same area, so no comparison
             target = fraction * float(plateau.get(phase, np.nan))
             row = {"method": method, "phase": phase, "visit": visit, "first_visit": earlier[0], "steps": horizon}
             for name, curve in (("revisit", revisit), ("first", first_visit), ("fresh", fresh_curve)):
@@ -271,6 +273,17 @@ def load_study(study_records, settings: str = "small") -> pd.DataFrame:
     twins included (with_fixed_phase_twins)."""
     study = load_budget(study_records)
     return with_fixed_phase_twins(study[study.settings == settings])
+
+
+def study_specs(scale: str, seeds, methods) -> list:
+    """The study's runs that serve as the yardstick of `methods`' runs at `scale`: those of its
+    built-in compared methods (METHODS), under the actor reading the NetConfig defaults are. A
+    method outside METHODS (a plug-in, the paper scale's plasticity baselines) has no study runs:
+    its plateau and fresh network are missing (NaN), never trained by a figure."""
+    from pemamoe.mappo import METHODS
+    from pemamoe.experiments import budget_specs, default_reading
+
+    return budget_specs(scale, seeds, tuple(m for m in methods if m in METHODS), readings=(default_reading(),))
 
 
 def study_plateaus(study_records, scale: str, settings: str = "small") -> pd.DataFrame:

@@ -309,13 +309,14 @@ print(f"{'k-means':>9s}: coverage {heuristic.coverage:.2f}, served users {heuris
 # runs SMoE only under the default reading, and one plateau serves both, `load_study`.)
 
 # %%
-from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus
+from pemamoe.budget import PLATEAU_FRACTION, phase_learning, study_plateaus, study_specs
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.experiments import CAMPAIGN_BASELINES, budget_specs, default_reading  # the study's runs of the actor the sweep trained
+from pemamoe.experiments import CAMPAIGN_BASELINES
 
 main_metrics = metrics[metrics.run.isin(runs_of["main"])]
-study_methods = tuple(m for m in method_order(main_metrics.method) if m in METHOD_REGISTRY)
-study = sweep_records(budget_specs(scale, seed_list, study_methods, readings=(default_reading(),)), backend, workers, results_dir, ray_address,
+study_methods = method_order(main_metrics.method)
+# the study's runs that notebook 09 reads too (none for the paper scale's plasticity baselines: no plateau)
+study = sweep_records(study_specs(scale, seed_list, study_methods), backend, workers, results_dir, ray_address,
                       records_dir, retrain)
 plateaus = study_plateaus(study, scale)
 visits = phase_learning(main_metrics, plateaus)

@@ -270,14 +270,16 @@ def _code_commit() -> str:
 
 def _staging_copy(folder: Path) -> Path:
     """A new folder beside `folder` (the same file system, so that a rename can swap it in) holding
-    a copy of its contents, modification times kept."""
+    a copy of its contents, modification times kept, without the staging and aside folders a killed
+    run of a nested output folder (paper_figures/paper_scale) left inside it."""
     import shutil
     import tempfile
 
     staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.partial-"))
     try:
         if folder.is_dir():
-            shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True)  # folder's mode too
+            shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True,  # folder's mode too
+                            ignore=shutil.ignore_patterns("*.partial-*", "*.old-*"))
         else:
             staging.chmod(0o777 & ~current_umask())  # what mkdir would give, not mkdtemp's 0o700
     except BaseException:
@@ -306,7 +308,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 401)
+# %% notebooks/09e_commands.py, cell 11 (line 403)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -290,3 +290,55 @@ def test_tuning_moves_off_the_centre_only_when_the_lead_exceeds_the_seed_noise()
     with pytest.raises(ValueError, match=r"mlp has no run at the centre setting \(0.001, 0.02, 0.006\)"):
         tuning_table(pd.DataFrame([{"run": "a", "method": "mlp", "seed": 0, "env_steps": 1, "coverage": 0.5,
                                     "member_seconds": 1.0}]), {"a": (3e-4, 0.01, 0.003)}, centre=(1e-3, 0.02, 0.006))
+
+
+def _cycling_run(levels, steps_per_iteration=100, iterations_per_visit=10):
+    """One seed of a hand-made cycling run: visits of phases 0, 1, 0 at constant coverage `levels`."""
+    rows, it = [], 0
+    for phase, level in zip((0, 1, 0), levels):
+        for _ in range(iterations_per_visit):
+            rows.append({"method": "mlp", "run": "r0", "seed": 0, "iteration": it, "phase": phase,
+                         "env_steps": (it + 1) * steps_per_iteration, "episodes": 1, "coverage": level})
+            it += 1
+    return pd.DataFrame(rows)
+
+
+def _fresh_run(level, iterations, steps_per_iteration=100):
+    return pd.DataFrame({"method": "mlp", "seed": 0, "phase": 0, "iteration": range(iterations),
+                         "env_steps": [(i + 1) * steps_per_iteration for i in range(iterations)],
+                         "episodes": 1, "coverage": level})
+
+
+def test_revisit_learning_sets_a_revisit_against_its_first_visit_and_a_fresh_network_by_hand():
+    from pemamoe.budget import revisit_learning
+
+    plateaus = pd.DataFrame({"method": ["mlp"], "phase": [0], "plateau": [0.8]})
+    out = revisit_learning(_cycling_run((0.6, 0.3, 0.5)), _fresh_run(0.7, 12), plateaus, bin_steps=100)
+    row = out.iloc[0]
+    assert len(out) == 1 and (row.phase, row.visit, row.first_visit, row.steps) == (0, 2, 0, 1000)
+    assert row.revisit_minus_first_mean == pytest.approx(-0.1) and row.revisit_minus_fresh_mean == pytest.approx(-0.2)
+    assert np.isnan(row.revisit_steps_to_target) and row.fresh_steps_to_target == 100  # 0.68 = 85 % of 0.8
+
+
+def test_a_fresh_network_shorter_than_the_visit_is_not_compared():
+    """Its mean over fewer steps is not the same area (the paper scale: a 2.46M-step visit against
+    the study's 2M-step runs), so the revisit-minus-fresh differences are NaN, not a mean over less."""
+    from pemamoe.budget import revisit_learning
+
+    plateaus = pd.DataFrame({"method": ["mlp"], "phase": [0], "plateau": [0.8]})
+    out = revisit_learning(_cycling_run((0.6, 0.3, 0.5)), _fresh_run(0.7, 8), plateaus, bin_steps=100)
+    assert np.isnan(out.revisit_minus_fresh_mean.iloc[0]) and np.isnan(out.fresh_end.iloc[0])
+    assert out.revisit_minus_first_mean.iloc[0] == pytest.approx(-0.1)
+
+
+def test_the_figures_read_study_runs_of_the_compared_methods_only():
+    """At the paper scale the campaign adds MLP + ReDo and MLP + shrink-and-perturb, which the study
+    never ran: notebooks 09 and 10 ask for no run of theirs (it would train 2M-step runs inside
+    `make figures SCALE=paper`), only runs the figures command's own sweep of "budget" covers."""
+    from pemamoe.budget import study_specs
+    from pemamoe.experiments import CAMPAIGN_BASELINES, campaign_methods, experiment_specs
+
+    specs = study_specs("paper", None, campaign_methods("paper"))
+    assert specs and not {s.method for s in specs} & set(CAMPAIGN_BASELINES)
+    covered = {s.to_config().run_name() for s in experiment_specs("budget", "paper")}
+    assert {s.to_config().run_name() for s in specs} <= covered

@@ -154,3 +154,18 @@ def test_the_paper_scale_draws_its_campaign_into_its_own_folder():
     assert experiments == ("all", "budget", "gating", "sparse")
     folder, notebooks, experiments = figures_plan("paper", notebooks=["x.py"])
     assert [nb.name for nb in notebooks] == ["x.py"] and experiments is None
+
+
+def test_a_nested_folder_left_by_a_killed_run_is_not_copied_into_the_new_figures(tmp_path):
+    """A killed `make figures SCALE=paper` leaves paper_figures/paper_scale.partial-*: the next run of
+    the enclosing folder must not publish it."""
+    figs = _figures(tmp_path)
+    for leftover in ("paper_scale.partial-x1", "paper_scale.old-x2"):
+        (figs / leftover).mkdir()
+        (figs / leftover / "half_written.csv").write_text("a\n")
+    (figs / "paper_scale").mkdir()
+    (figs / "paper_scale" / "kept.csv").write_text("b\n")
+    make_figures(scale="ci", figures_dir=figs, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                 precompute=False, stream=False)
+    assert sorted(p.name for p in figs.iterdir() if p.is_dir()) == ["paper_scale"]
+    assert (figs / "paper_scale" / "kept.csv").read_text() == "b\n"
