@@ -109,6 +109,7 @@ import pemamoe.plasticity_baselines  # noqa: F401  registers ReDo and shrink-and
 from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, ValueNorms, decode_arrays,
                                   encode_arrays, merge_env_states, split_env_state, write_checkpoint,
                                   write_rows_parquet)
+from pemamoe.core import cpu_model
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.optim import RunAdamW, group_index
@@ -408,6 +409,10 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
 
 # %%
 #| export
+# A checkpoint written before processors were recorded: the sessions that trained it are not known.
+UNRECORDED_PROCESSOR = "not recorded"
+
+
 @dataclass
 class MemberStates:
     """What a checkpoint stores of a population's members besides the `Population` itself (lists:
@@ -420,12 +425,14 @@ class MemberStates:
     episode_rows: list = field(init=False)  # RowLog of episode rows
     elapsed: list = field(init=False)  # training seconds before this process
     torch_threads: list = field(init=False)  # sets of the torch thread counts used
+    processors: list = field(init=False)  # sets of the processors that trained each member
 
     def __post_init__(self):
         R = len(self.population.configs)
         self.metrics_rows, self.episode_rows = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)]
         self.elapsed = [0.0] * R
         self.torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
+        self.processors = [{cpu_model()} for _ in range(R)]  # recorded: float kernels differ between processor families
 
     def seconds(self, r: int) -> float:
         """Member r's training seconds so far: before this process and in it."""
@@ -457,6 +464,7 @@ class MemberStates:
             self.metrics_rows[r] = RowLog.from_checkpoint(ck["metrics_rows"])
             self.episode_rows[r] = RowLog.from_checkpoint(ck["episode_rows"])
             self.torch_threads[r].update(ck.get("torch_threads", ()))
+            self.processors[r].update(ck.get("processors", (UNRECORDED_PROCESSOR,)))
             start = int(ck["iteration"])
         venv.load_state_dict(merge_env_states(env_states))
         return start, global_step
@@ -479,7 +487,7 @@ class MemberStates:
             "state": torch.from_numpy(state[r * B:(r + 1) * B].copy()),
             "torch_rng": pop.generators[r].get_state(), "numpy_rng": pop.rngs[r].bit_generator.state,
             "metrics_rows": self.metrics_rows[r].packed(), "episode_rows": self.episode_rows[r].packed(),
-            "torch_threads": sorted(self.torch_threads[r]),
+            "torch_threads": sorted(self.torch_threads[r]), "processors": sorted(self.processors[r]),
         }, run_dir / "checkpoint.pt")
         final = iteration == pop.configs[r].iterations  # the logs done.json seals: every row converted at once
         write_rows_parquet(self.metrics_rows[r], run_dir / "metrics.parquet", final)
@@ -503,6 +511,7 @@ class MemberStates:
             metrics = pd.DataFrame(self.metrics_rows[r])
             if run_dir is not None and finished:
                 write_done(run_dir, config, env_steps=global_step, torch_threads=sorted(self.torch_threads[r]),
+                           processors=sorted(self.processors[r]),
                            wall_time_s=self.seconds(r),
                            final_episode_return=float(metrics["episode_return"].tail(config.phase_length_iters).mean()))
             actor, critic = pop.member(r)

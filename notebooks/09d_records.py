@@ -162,11 +162,13 @@ def _actor_frame(state: dict) -> pd.DataFrame:
 def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
     RecordError when the run is not finished."""
+    from pemamoe.populations import UNRECORDED_PROCESSOR
     from pemamoe.runs import load_checkpoint  # the checkpoint is read only here, for the final actor
 
     run_dir = Path(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
-    if not verify_done(run_dir, config):
+    done = verify_done(run_dir, config)
+    if not done:
         raise RecordError(run_dir, "is not a finished run (no done.json): only finished runs have records")
     name = config.run_name()  # the sweep's folder name; a folder elsewhere gets the same record
     files = record_files(records_dir, scale, name)
@@ -181,6 +183,7 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
                                             "population": int(metrics.population.iloc[-1]),
+                                            "processors": done.get("processors", [UNRECORDED_PROCESSOR]),
                                             "note": "measured; differs between trainings of the same run"})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
               "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),

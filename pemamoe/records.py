@@ -104,11 +104,13 @@ def _actor_frame(state: dict) -> pd.DataFrame:
 def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
     RecordError when the run is not finished."""
+    from pemamoe.populations import UNRECORDED_PROCESSOR
     from pemamoe.runs import load_checkpoint  # the checkpoint is read only here, for the final actor
 
     run_dir = Path(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
-    if not verify_done(run_dir, config):
+    done = verify_done(run_dir, config)
+    if not done:
         raise RecordError(run_dir, "is not a finished run (no done.json): only finished runs have records")
     name = config.run_name()  # the sweep's folder name; a folder elsewhere gets the same record
     files = record_files(records_dir, scale, name)
@@ -123,6 +125,7 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
                                             "population": int(metrics.population.iloc[-1]),
+                                            "processors": done.get("processors", [UNRECORDED_PROCESSOR]),
                                             "note": "measured; differs between trainings of the same run"})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
               "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
@@ -231,7 +234,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 314)
+# %% notebooks/09d_records.py, cell 10 (line 317)
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
 _PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
@@ -366,7 +369,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 12 (line 462)
+# %% notebooks/09d_records.py, cell 12 (line 465)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 

@@ -12,7 +12,7 @@ import pemamoe.records as records
 from pemamoe.core import REPO_ROOT, run_notebook
 from pemamoe.mappo import TrainConfig, train, train_population
 from pemamoe.records import (RECORD_BUDGET_MB, RecordError, committed_records_mb, read_record, read_record_actor,
-                             record_block, record_frame, verify_record, write_record)
+                             record_block, record_frame, record_timing, verify_record, write_record)
 from pemamoe.experiments import RunSpec, record_marker, run_sweep, sweep_records
 
 
@@ -131,3 +131,28 @@ def test_committed_records_fit_the_budget(capsys):
             stems.setdefault(f.name.split(".")[0], 0.0)
             stems[f.name.split(".")[0]] += f.stat().st_size / 1e6
     assert all(mb <= RECORD_BUDGET_MB["per_medium_run"] for mb in stems.values()), stems
+
+
+def test_a_record_says_which_processors_trained_it_and_when_that_is_not_known(tmp_path):
+    """Training floats differ between processor families (a paper-scale MLP trained on another
+    machine differs from iteration 0), so the timing file names the processors of every session;
+    a run resumed from a checkpoint older than that record says part of it is not known."""
+    import torch
+
+    from pemamoe.core import cpu_model
+    from pemamoe.populations import UNRECORDED_PROCESSOR
+    from pemamoe.runs import seal_checkpoint
+
+    cfg = TrainConfig.for_scale("ci", method="mlp", seed=0, iterations=4, phase_length_iters=2)
+    train(cfg, tmp_path / "whole")
+    timing = record_timing(write_record(tmp_path / "whole", "ci", tmp_path / "rec_whole"))
+    assert timing["processors"] == [cpu_model()]
+    train(cfg, tmp_path / "old", max_iterations=2)
+    ck_path = tmp_path / "old" / "checkpoint.pt"
+    ck = torch.load(ck_path, weights_only=False)
+    ck.pop("processors")  # as the checkpoints written before it was recorded
+    torch.save(ck, ck_path)
+    seal_checkpoint(ck_path)
+    train(cfg, tmp_path / "old")
+    timing = record_timing(write_record(tmp_path / "old", "ci", tmp_path / "rec_old"))
+    assert timing["processors"] == sorted([cpu_model(), UNRECORDED_PROCESSOR])
