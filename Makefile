@@ -76,7 +76,7 @@ bench: $(BENCH_STAMP)
 	$(PY) benchmarks/run.py
 
 lock:
-	bash tools/lock.sh $(PYTHON)
+	TORCH_INDEX=$(TORCH_INDEX) bash tools/lock.sh $(PYTHON)
 
 clean:
 	rm -rf build .pytest_cache .hypothesis

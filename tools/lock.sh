@@ -1,14 +1,22 @@
 #!/usr/bin/env bash
 # Regenerate environment.lock: resolve requirements.in in a brand-new virtual environment and
 # freeze every installed distribution, transitive ones included, at its exact version.
-# Usage: make lock   (or: bash tools/lock.sh [python-interpreter])
+# Usage: make lock   (or: TORCH_INDEX=... bash tools/lock.sh [python-interpreter])
 set -euo pipefail
 python=${1:-python3}
+torch_index=${TORCH_INDEX:-https://download.pytorch.org/whl/cpu}
 root=$(cd "$(dirname "$0")/.." && pwd)
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 "$python" -m venv "$tmp/venv"
 "$tmp/venv/bin/pip" install --quiet --upgrade pip
+# torch goes in first, as the CPU build: requirements.in's plain pin would otherwise resolve, on a
+# machine with only PyPI, to the CUDA build and freeze several GB of nvidia-* wheels into the lock.
+# The CPU build satisfies that pin, so the second install keeps it.
+torch_cpu="torch==$(sed -n 's/^torch==//p' "$root/requirements.in")+cpu"
+"$tmp/venv/bin/pip" install --quiet "$torch_cpu" 2>/dev/null \
+  || { echo "[lock] $torch_cpu is not on the configured indexes; trying $torch_index"
+       "$tmp/venv/bin/pip" install --quiet --extra-index-url "$torch_index" "$torch_cpu"; }
 "$tmp/venv/bin/pip" install --quiet -r "$root/requirements.in"
 {
   echo "# environment.lock: exact pins of every dependency of pemamoe, transitive ones included."
