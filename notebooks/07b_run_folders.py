@@ -30,10 +30,11 @@
 #    the requested config (whether or not `config.json` is still there) and refuses, naming the
 #    folder, the file and the keys that differ.
 # 3. **`done.json` is a seal, not a flag.** `write_done` records the config hash, the number of
-#    iterations, the torch thread counts and the sha256 of the final logs. `verify_done` checks all
-#    of them before a run counts as finished (`train(resume=True)`, `load_run`, the sweep's "already
-#    done" test, `analysis.load_runs`). A marker from another run, a garbage marker, or logs changed
-#    after the seal (e.g. a marker copied beside a run stopped half-way) raise `RunFolderError`.
+#    iterations and the sha256 of the final logs (and, for the record, the torch thread counts and
+#    processors). `verify_done` checks the first three before a run counts as finished
+#    (`train(resume=True)`, `load_run`, the sweep's "already done" test, `analysis.load_runs`). A
+#    marker from another run, a garbage marker, or logs changed after the seal (e.g. a marker copied
+#    beside a run stopped half-way) raise `RunFolderError`.
 #    We never guess which file is right.
 #    The marker also has to seal a whole run: `write_done` refuses, and `verify_done` rejects, a
 #    `metrics.parquet` whose row count (read from the parquet footer, not the rows) is not the
@@ -74,7 +75,7 @@ import json
 import os
 from pathlib import Path
 
-from pemamoe.core import atomic_write_json, one_line
+from pemamoe.core import atomic_write_json, cpu_model, one_line
 
 RUN_FILES = ("config.json", "metrics.parquet", "episodes.parquet", "checkpoint.pt", "done.json")
 LOG_FILES = ("metrics.parquet", "episodes.parquet")  # sealed by their sha256 in done.json
@@ -371,9 +372,21 @@ def file_digest(path) -> str:
     return h.hexdigest()
 
 
+# What a checkpoint or done.json written before processors were recorded says of its sessions.
+UNRECORDED_PROCESSOR = "not recorded"
+
+
+def training_processor() -> str:
+    """This machine as a run's provenance names it: the processor's model and the kernels torch
+    dispatches to on it (a run's floats differ between processor families)."""
+    import torch
+
+    return f"{cpu_model()} ({torch.backends.cpu.get_cpu_capability()})"
+
+
 def write_done(run_dir, config, **record) -> dict:
     """Seal a finished run: write done.json with the config hash, the number of iterations and the
-    sha256 of each log file, plus `record` (e.g. env_steps, torch_threads, wall_time_s).
+    sha256 of each log file, plus `record` (e.g. env_steps, torch_threads, processors, wall_time_s).
     RunFolderError when metrics.parquet does not hold one row per iteration (a partial run)."""
     run_dir = Path(run_dir)
     rows = parquet_rows(run_dir / "metrics.parquet")

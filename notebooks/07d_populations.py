@@ -109,13 +109,12 @@ import pemamoe.plasticity_baselines  # noqa: F401  registers ReDo and shrink-and
 from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, ValueNorms, decode_arrays,
                                   encode_arrays, merge_env_states, split_env_state, write_checkpoint,
                                   write_rows_parquet)
-from pemamoe.core import cpu_model
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.optim import RunAdamW, group_index
 from pemamoe.plasticity import plasticity_method
-from pemamoe.runs import (check_run_dir, load_checkpoint, lock_run, prepare_run_dir, read_config, read_parquet,
-                          verify_done, write_done)
+from pemamoe.runs import (UNRECORDED_PROCESSOR, check_run_dir, load_checkpoint, lock_run, prepare_run_dir,
+                          read_config, read_parquet, training_processor, verify_done, write_done)
 from pemamoe.train_config import TrainConfig, resolve_device
 
 # %% [markdown]
@@ -397,9 +396,9 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
 # ## A member's checkpoint, written and read back
 #
 # The training loop holds what learns in one object, the trainer's `Population` (notebook 07:
-# networks, optimisers, plasticity method, return normalisers, random streams). `MemberStates`
-# adds what else a checkpoint stores: the running episodes, each member's log rows, its training
-# seconds before this process and the torch thread counts it ran with. Writing and reading a
+# networks, optimisers, plasticity method, return normalisers, random streams). `MemberStates` adds
+# what else a checkpoint stores: the running episodes, each member's log rows, its training seconds
+# before this process, and the torch thread counts and processors it ran with. Writing and reading a
 # checkpoint live here rather than in the loop. `save` writes one member's checkpoint (what it
 # holds: appendix 07e), then its `metrics.parquet` and `episodes.parquet`; the last write of a
 # finished run converts every row at once and releases the rows (the logs `done.json` seals).
@@ -409,10 +408,6 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
 
 # %%
 #| export
-# A checkpoint written before processors were recorded: the sessions that trained it are not known.
-UNRECORDED_PROCESSOR = "not recorded"
-
-
 @dataclass
 class MemberStates:
     """What a checkpoint stores of a population's members besides the `Population` itself (lists:
@@ -432,7 +427,8 @@ class MemberStates:
         self.metrics_rows, self.episode_rows = [RowLog() for _ in range(R)], [RowLog() for _ in range(R)]
         self.elapsed = [0.0] * R
         self.torch_threads = [{torch.get_num_threads()} for _ in range(R)]  # recorded: results with 1 and 2 threads differ
-        self.processors = [{cpu_model()} for _ in range(R)]  # recorded: float kernels differ between processor families
+        here = training_processor()  # recorded: float kernels differ between processor families
+        self.processors = [{here} for _ in range(R)]
 
     def seconds(self, r: int) -> float:
         """Member r's training seconds so far: before this process and in it."""

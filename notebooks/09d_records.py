@@ -34,7 +34,8 @@
 # A record is computed from the run's sealed files alone, so it is byte-identical however the run
 # was trained: alone, in a population, or resumed (tests/test_records.py checks all three). The
 # compute the run took is a measurement, not a result; it goes to a fourth file,
-# `<run>.timing.json`, written once, when the record is first made.
+# `<run>.timing.json`, written once, when the record is first made, with the processors that trained
+# it (their names follow the record's bytes when a retraining rewrites them).
 
 # %%
 #| default_exp records
@@ -162,8 +163,7 @@ def _actor_frame(state: dict) -> pd.DataFrame:
 def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
     RecordError when the run is not finished."""
-    from pemamoe.populations import UNRECORDED_PROCESSOR
-    from pemamoe.runs import load_checkpoint  # the checkpoint is read only here, for the final actor
+    from pemamoe.runs import UNRECORDED_PROCESSOR, load_checkpoint  # the checkpoint: only for the final actor
 
     run_dir = Path(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
@@ -179,12 +179,14 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     actor = parquet_bytes(_actor_frame(ckpt["actor"]))
     atomic_write_bytes(files["data"], data)
     atomic_write_bytes(files["actor"], actor)
+    processors = done.get("processors", [UNRECORDED_PROCESSOR])  # of the training whose bytes these are
     if not files["timing"].exists():  # a measurement of the training that made the record first
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
-                                            "population": int(metrics.population.iloc[-1]),
-                                            "processors": done.get("processors", [UNRECORDED_PROCESSOR]),
+                                            "population": int(metrics.population.iloc[-1]), "processors": processors,
                                             "note": "measured; differs between trainings of the same run"})
+    elif read_json(files["timing"]).get("processors") != processors:  # retrained: the bytes' processors
+        atomic_write_json(files["timing"], {**read_json(files["timing"]), "processors": processors})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
               "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
               "block": block, "rows": int(-(-config.iterations // block)), "env_steps": int(metrics.env_steps.max()),
@@ -279,7 +281,8 @@ def read_record_actor(marker_path):
 
 
 def record_timing(marker_path) -> dict:
-    """The measured compute of the training that first made the record ({} if none)."""
+    """The measured compute of the training that first made the record, and the processors of the
+    training whose bytes it holds ({} if none; records before December 2026 name no processors)."""
     path = Path(marker_path).with_name(Path(marker_path).stem + ".timing.json")
     return read_json(path) if path.exists() else {}
 

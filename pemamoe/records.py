@@ -3,7 +3,7 @@
 
 __all__ = ['RECORD_FORMAT', 'RECORDS_DIR', 'RECORD_ROWS', 'RECORD_BUDGET_MB', 'EPISODE_COLUMNS', 'RecordError', 'record_block', 'record_frame', 'record_files', 'parquet_bytes', 'write_record', 'MARKER_KEYS', 'read_marker', 'verify_record', 'read_record', 'read_record_actor', 'record_timing', 'committed_records_mb', 'PORTABLE_DIR', 'portable_state_path', 'write_portable_state', 'read_portable_state', 'restore_portable_state', 'drop_portable_state', 'portable_state_progress', 'portable_state_mb', 'RUN_COLUMNS', 'run_labels', 'RECORD_EPISODE_COLUMNS', 'load_runs']
 
-# %% notebooks/09d_records.py, cell 4 (line 47)
+# %% notebooks/09d_records.py, cell 4 (line 48)
 import hashlib
 import io
 import json
@@ -37,7 +37,7 @@ class RecordError(ValueError):
         return type(self), (self.path, self.problem)
 
 
-# %% notebooks/09d_records.py, cell 6 (line 89)
+# %% notebooks/09d_records.py, cell 6 (line 90)
 def record_block(config: TrainConfig) -> int:
     """Iterations per record row for `config`."""
     target = max(1, math.ceil(config.iterations / RECORD_ROWS))
@@ -74,7 +74,7 @@ def record_frame(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
     return out
 
 
-# %% notebooks/09d_records.py, cell 8 (line 134)
+# %% notebooks/09d_records.py, cell 8 (line 135)
 def record_files(records_dir, scale: str, run_name: str) -> dict:
     """{"data", "actor", "marker", "timing"}: the paths of one run's record."""
     base = Path(records_dir) / check_scale(scale)
@@ -104,8 +104,7 @@ def _actor_frame(state: dict) -> pd.DataFrame:
 def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     """Write the record of the finished run in `run_dir` (trained at `scale`); returns its marker.
     RecordError when the run is not finished."""
-    from pemamoe.populations import UNRECORDED_PROCESSOR
-    from pemamoe.runs import load_checkpoint  # the checkpoint is read only here, for the final actor
+    from pemamoe.runs import UNRECORDED_PROCESSOR, load_checkpoint  # the checkpoint: only for the final actor
 
     run_dir = Path(run_dir)
     config = read_config(run_dir / "config.json", TrainConfig)
@@ -121,12 +120,14 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     actor = parquet_bytes(_actor_frame(ckpt["actor"]))
     atomic_write_bytes(files["data"], data)
     atomic_write_bytes(files["actor"], actor)
+    processors = done.get("processors", [UNRECORDED_PROCESSOR])  # of the training whose bytes these are
     if not files["timing"].exists():  # a measurement of the training that made the record first
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
-                                            "population": int(metrics.population.iloc[-1]),
-                                            "processors": done.get("processors", [UNRECORDED_PROCESSOR]),
+                                            "population": int(metrics.population.iloc[-1]), "processors": processors,
                                             "note": "measured; differs between trainings of the same run"})
+    elif read_json(files["timing"]).get("processors") != processors:  # retrained: the bytes' processors
+        atomic_write_json(files["timing"], {**read_json(files["timing"]), "processors": processors})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
               "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
               "block": block, "rows": int(-(-config.iterations // block)), "env_steps": int(metrics.env_steps.max()),
@@ -221,7 +222,8 @@ def read_record_actor(marker_path):
 
 
 def record_timing(marker_path) -> dict:
-    """The measured compute of the training that first made the record ({} if none)."""
+    """The measured compute of the training that first made the record, and the processors of the
+    training whose bytes it holds ({} if none; records before December 2026 name no processors)."""
     path = Path(marker_path).with_name(Path(marker_path).stem + ".timing.json")
     return read_json(path) if path.exists() else {}
 
@@ -234,7 +236,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 317)
+# %% notebooks/09d_records.py, cell 10 (line 320)
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
 _PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
@@ -369,7 +371,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 12 (line 465)
+# %% notebooks/09d_records.py, cell 12 (line 468)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 

@@ -139,14 +139,12 @@ def test_a_record_says_which_processors_trained_it_and_when_that_is_not_known(tm
     a run resumed from a checkpoint older than that record says part of it is not known."""
     import torch
 
-    from pemamoe.core import cpu_model
-    from pemamoe.populations import UNRECORDED_PROCESSOR
-    from pemamoe.runs import seal_checkpoint
+    from pemamoe.runs import UNRECORDED_PROCESSOR, seal_checkpoint, training_processor
 
     cfg = TrainConfig.for_scale("ci", method="mlp", seed=0, iterations=4, phase_length_iters=2)
     train(cfg, tmp_path / "whole")
     timing = record_timing(write_record(tmp_path / "whole", "ci", tmp_path / "rec_whole"))
-    assert timing["processors"] == [cpu_model()]
+    assert timing["processors"] == [training_processor()]
     train(cfg, tmp_path / "old", max_iterations=2)
     ck_path = tmp_path / "old" / "checkpoint.pt"
     ck = torch.load(ck_path, weights_only=False)
@@ -155,4 +153,7 @@ def test_a_record_says_which_processors_trained_it_and_when_that_is_not_known(tm
     seal_checkpoint(ck_path)
     train(cfg, tmp_path / "old")
     timing = record_timing(write_record(tmp_path / "old", "ci", tmp_path / "rec_old"))
-    assert timing["processors"] == sorted([cpu_model(), UNRECORDED_PROCESSOR])
+    assert timing["processors"] == sorted([training_processor(), UNRECORDED_PROCESSOR])
+    # the same record written again from the whole run: the bytes' processors, the first compute kept
+    again = record_timing(write_record(tmp_path / "whole", "ci", tmp_path / "rec_old"))
+    assert again["processors"] == [training_processor()] and again["member_compute_s"] == timing["member_compute_s"]

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from pemamoe.mappo import TrainConfig, load_run, train
+from pemamoe.runs import training_processor
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -55,9 +56,8 @@ def test_done_marker_records_hash_iterations_digests_and_threads(copy):
         assert done["digests"][name] == hashlib.sha256((d / name).read_bytes()).hexdigest()
     assert done["torch_threads"] == [1]  # recorded in the done marker (and in the checkpoint)
     assert torch.load(d / "checkpoint.pt", weights_only=True)["torch_threads"] == [1]
-    from pemamoe.core import cpu_model  # and where: float kernels differ between processor families
-
-    assert done["processors"] == [cpu_model()] == torch.load(d / "checkpoint.pt", weights_only=True)["processors"]
+    here = [training_processor()]  # and where: float kernels differ between processor families
+    assert done["processors"] == here == torch.load(d / "checkpoint.pt", weights_only=True)["processors"]
     assert train(cfg, d).from_cache
 
 
