@@ -759,10 +759,10 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # run, so a revisit also explores less than a first visit or a fresh run.
 
 # %%
-from pemamoe.budget import block_steps, load_study, revisit_learning, visit_curve
+from pemamoe.budget import block_steps, load_study, plasticity_words, revisit_learning, visit_curve
 from pemamoe.analysis import phase_visits
 
-# the study's fresh networks train with medium's update settings, not the paper's (8 x 32): none at paper
+# the study trains medium's update settings (the paper's for MLP only, 2M steps: shorter than a paper visit)
 fresh = load_study(study) if scale != "paper" else load_study(study).iloc[:0]  # PE-MAMoE's is SMoE's run
 revisits = revisit_learning(metrics, fresh, study_plateaus(study, scale), bin_steps=block_steps(scale))
 write_table(revisits.round(4), f"plasticity_loss_{scale}", figures_dir)
@@ -790,9 +790,10 @@ def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: st
                 horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
                 ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
                         lw=1.4, label=f"visit {k + 1}")
-            if len(own) and horizon is not None:
-                curve = visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps").value.mean()
-                curve = curve[curve.index <= horizon]
+            curve = (visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps")
+                     .value.mean() if len(own) else pd.Series(dtype=float))
+            if horizon is not None and len(curve) and curve.index.max() >= horizon:  # as the table: none shorter
+                curve = curve.loc[:horizon]
                 ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
             ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
             if i == len(phases_here) - 1:
@@ -817,25 +818,7 @@ revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fres
 # one, which `make figures` writes.*
 
 # %%
-def _plasticity_words(r: pd.DataFrame) -> str:
-    """The plasticity-loss table in sentences (computed, not typed)."""
-    if r.empty:
-        return "* No phase is visited twice at this scale."
-    lines = []
-    for method, g in r.groupby("method", sort=False):
-        worse_first = int((g.revisit_minus_first_mean < 0).sum())
-        worse_fresh = int((g.revisit_minus_fresh_mean < 0).sum())
-        lines.append(f"* {method_label(method)}: {worse_first} of {len(g)} revisits learn below the first visit "
-                     f"(mean coverage over the visit, differences {g.revisit_minus_first_mean.min():+.3f} to "
-                     f"{g.revisit_minus_first_mean.max():+.3f}); {worse_fresh} of {len(g)} below a fresh network "
-                     f"({g.revisit_minus_fresh_mean.min():+.3f} to {g.revisit_minus_fresh_mean.max():+.3f}); dormant "
-                     f"fraction at the switch {g.first_dormant_at_switch.mean():.3f} before the first visit, "
-                     f"{g.revisit_dormant_at_switch.mean():.3f} before the revisits; effective rank "
-                     f"{g.first_rank_at_switch.mean():.1f} and {g.revisit_rank_at_switch.mean():.1f}.")
-    return "\n".join(lines)
-
-
-Markdown(_plasticity_words(revisits))
+Markdown(plasticity_words(revisits))
 
 # %% [markdown]
 # ### The paper's regime, as far as its campaign has run

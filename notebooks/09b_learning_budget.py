@@ -354,6 +354,25 @@ def reading_gaps(curves: pd.DataFrame, baseline: str = "mlp", column: str = "cov
     return table.sort_values(["phase", "method", "reading"], kind="stable").reset_index(drop=True)
 
 
+def plasticity_words(r: pd.DataFrame) -> str:
+    """The plasticity-loss table (revisit_learning) in sentences, computed, not typed."""
+    if r.empty:
+        return "* No phase is visited twice at this scale."
+    lines = []
+    for method, g in r.groupby("method", sort=False):
+        worse_first = int((g.revisit_minus_first_mean < 0).sum())
+        fresh = g.revisit_minus_fresh_mean  # NaN where no fresh network trained as the visits (the paper scale)
+        vs_fresh = "" if fresh.isna().all() else (f"; {int((fresh < 0).sum())} of {len(g)} below a fresh network "
+                                                  f"({fresh.min():+.3f} to {fresh.max():+.3f})")
+        lines.append(f"* {method_label(method)}: {worse_first} of {len(g)} revisits learn below the first visit "
+                     f"(mean coverage over the visit, differences {g.revisit_minus_first_mean.min():+.3f} to "
+                     f"{g.revisit_minus_first_mean.max():+.3f}){vs_fresh}; dormant "
+                     f"fraction at the switch {g.first_dormant_at_switch.mean():.3f} before the first visit, "
+                     f"{g.revisit_dormant_at_switch.mean():.3f} before the revisits; effective rank "
+                     f"{g.first_rank_at_switch.mean():.1f} and {g.revisit_rank_at_switch.mean():.1f}.")
+    return "\n".join(lines)
+
+
 def revisit_words(r: pd.DataFrame) -> str:
     """A campaign's revisits (revisit_learning rows with a `seed` column, each revisit against
     the first visit of its phase) in sentences, one per method: computed, never typed."""

@@ -371,7 +371,8 @@ def _staging_copy(folder: Path) -> Path:
     try:
         if folder.is_dir():
             shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True,  # folder's mode too
-                            ignore=shutil.ignore_patterns("*.partial-*", "*.old-*"))
+                            ignore=lambda at, names: [n for n in names if Path(at) == folder and (folder / n).is_dir()
+                                                      and (".partial-" in n or ".old-" in n)])
         else:
             staging.chmod(0o777 & ~current_umask())  # what mkdir would give, not mkdtemp's 0o700
     except BaseException:

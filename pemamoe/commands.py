@@ -279,7 +279,8 @@ def _staging_copy(folder: Path) -> Path:
     try:
         if folder.is_dir():
             shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True,  # folder's mode too
-                            ignore=shutil.ignore_patterns("*.partial-*", "*.old-*"))
+                            ignore=lambda at, names: [n for n in names if Path(at) == folder and (folder / n).is_dir()
+                                                      and (".partial-" in n or ".old-" in n)])
         else:
             staging.chmod(0o777 & ~current_umask())  # what mkdir would give, not mkdtemp's 0o700
     except BaseException:
@@ -308,7 +309,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 403)
+# %% notebooks/09e_commands.py, cell 11 (line 404)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -531,7 +531,7 @@ def _terminal_columns(stream) -> int:
 
 
 # %% notebooks/00b_core.py, cell 30 (line 744)
-# Paper counterpart of each output, by file stem (one not listed: a model the paper gives in equations).
+# Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
     "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
@@ -569,8 +569,8 @@ PAPER_COUNTERPARTS = {
     "learning_budget_readings": "(ours) the study under both sparse-actor readings: the plateau gap to MLP",
     "tuning": "(ours) learning rate x entropy, the same grid for every method; each one's chosen setting",
     **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
-    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit and a fresh network"
-       for scale in SCALES},
+    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit"
+       + (" and a fresh network" if scale != "paper" else "") for scale in SCALES},
     "plasticity_loss_paper_campaign": "(ours) paper-scale revisits against first visits, seed by seed",
     **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},

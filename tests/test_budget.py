@@ -329,6 +329,8 @@ def test_a_fresh_network_shorter_than_the_visit_is_not_compared():
     out = revisit_learning(_cycling_run((0.6, 0.3, 0.5)), _fresh_run(0.7, 8), plateaus, bin_steps=100)
     assert np.isnan(out.revisit_minus_fresh_mean.iloc[0]) and np.isnan(out.fresh_end.iloc[0])
     assert out.revisit_minus_first_mean.iloc[0] == pytest.approx(-0.1)
+    exactly = revisit_learning(_cycling_run((0.6, 0.3, 0.5)), _fresh_run(0.7, 10), plateaus, bin_steps=100)
+    assert exactly.revisit_minus_fresh_mean.iloc[0] == pytest.approx(-0.2)  # as long as the visit: compared
 
 
 def test_the_figures_read_study_runs_of_the_compared_methods_only():

@@ -13,7 +13,9 @@ trap 'rm -rf "$tmp"' EXIT
 # torch goes in first, as the CPU build: requirements.in's plain pin would otherwise resolve, on a
 # machine with only PyPI, to the CUDA build and freeze several GB of nvidia-* wheels into the lock.
 # The CPU build satisfies that pin, so the second install keeps it.
-torch_cpu="torch==$(sed -n 's/^torch==//p' "$root/requirements.in")+cpu"
+torch_version=$(sed -n 's/^torch==\([0-9][0-9.]*\).*/\1/p' "$root/requirements.in")
+[ -n "$torch_version" ] || { echo "[lock] requirements.in must pin torch as torch==X.Y.Z" >&2; exit 2; }
+torch_cpu="torch==${torch_version}+cpu"
 "$tmp/venv/bin/pip" install --quiet "$torch_cpu" 2>/dev/null \
   || { echo "[lock] $torch_cpu is not on the configured indexes; trying $torch_index"
        "$tmp/venv/bin/pip" install --quiet --extra-index-url "$torch_index" "$torch_cpu"; }
