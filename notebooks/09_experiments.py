@@ -759,7 +759,7 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # run, so a revisit also explores less than a first visit or a fresh run.
 
 # %%
-from pemamoe.budget import block_steps, load_study, plasticity_words, revisit_learning, visit_curve
+from pemamoe.budget import block_steps, fresh_visit_curve, load_study, plasticity_words, revisit_learning, visit_curve
 from pemamoe.analysis import phase_visits
 
 # the study trains medium's update settings (the paper's for MLP only, 2M steps: shorter than a paper visit)
@@ -783,17 +783,16 @@ def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: st
         visits = phase_visits(runs)
         for i, phase in enumerate(phases_here):
             ax = axes[i][j]
-            own = fresh[(fresh.method == method) & (fresh.phase == phase)]
             horizon = None
             for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
                 curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
                 horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
                 ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
                         lw=1.4, label=f"visit {k + 1}")
-            curve = (visit_curve(own, 0, int(own.iteration.max()), "coverage", block_steps(scale)).groupby("steps")
-                     .value.mean() if len(own) else pd.Series(dtype=float))
-            if horizon is not None and len(curve) and curve.index.max() >= horizon:  # as the table: none shorter
-                curve = curve.loc[:horizon]
+            curve = fresh_visit_curve(fresh, method, phase, horizon, "coverage", block_steps(scale)) \
+                if horizon is not None else fresh.iloc[:0]  # the table's reference, or none
+            if len(curve):
+                curve = curve[curve.steps <= horizon].groupby("steps").value.mean()
                 ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
             ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
             if i == len(phases_here) - 1:

@@ -203,6 +203,16 @@ def visit_curve(runs: pd.DataFrame, first: int, last: int, column: str, bin_step
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=["seed", "steps", "value"])
 
 
+def fresh_visit_curve(fresh: pd.DataFrame, method: str, phase: int, horizon: int, column: str,
+                      bin_steps: int) -> pd.DataFrame:
+    """The fresh network's curve (visit_curve of `fresh`'s runs of `method` in `phase`) as a
+    revisit's reference over `horizon` steps; empty when there is none or it is shorter than the
+    horizon (a mean over fewer steps is not the same area, so no comparison)."""
+    own = fresh[(fresh.method == method) & (fresh.phase == phase)]
+    curve = visit_curve(own, 0, int(own.iteration.max()) if len(own) else 0, column, bin_steps)
+    return curve if len(curve) and curve.steps.max() >= horizon else curve.iloc[:0]
+
+
 def _curve_summary(curve: pd.DataFrame, horizon: int, target: float) -> dict:
     """Seed-mean curve up to `horizon` steps: its mean (the area under it per step), its last bin,
     and the first bin at or above `target` (NaN if never)."""
@@ -234,10 +244,7 @@ def revisit_learning(metrics: pd.DataFrame, fresh: pd.DataFrame, plateaus: pd.Da
             f0, l0, _ = visits[earlier[0]]
             revisit, first_visit = (visit_curve(runs, a, b, column, bin_steps) for a, b in ((first, last), (f0, l0)))
             horizon = int(min(revisit.steps.max(), first_visit.steps.max()))
-            own = fresh[(fresh.method == method) & (fresh.phase == phase)]
-            fresh_curve = visit_curve(own, 0, int(own.iteration.max()), column, bin_steps) if len(own) else revisit.iloc[:0]
-            if len(fresh_curve) and fresh_curve.steps.max() < horizon:  # shorter than the visit: a mean over fewer
-                fresh_curve = revisit.iloc[:0]  # steps is not the same area, so no comparison
+            fresh_curve = fresh_visit_curve(fresh, method, phase, horizon, column, bin_steps)
             target = fraction * float(plateau.get(phase, np.nan))
             row = {"method": method, "phase": phase, "visit": visit, "first_visit": earlier[0], "steps": horizon}
             for name, curve in (("revisit", revisit), ("first", first_visit), ("fresh", fresh_curve)):

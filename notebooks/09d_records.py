@@ -180,13 +180,14 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     atomic_write_bytes(files["data"], data)
     atomic_write_bytes(files["actor"], actor)
     processors = done.get("processors", [UNRECORDED_PROCESSOR])  # of the training whose bytes these are
-    if not files["timing"].exists():  # a measurement of the training that made the record first
+    timing = read_json(files["timing"]) if files["timing"].exists() else None
+    if timing is None:  # a measurement of the training that made the record first
         member_s = float(((metrics.rollout_time + metrics.update_time) / metrics.population).sum())
         atomic_write_json(files["timing"], {"member_compute_s": member_s, "wall_time_s": float(metrics.wall_time.max()),
                                             "population": int(metrics.population.iloc[-1]), "processors": processors,
                                             "note": "measured; differs between trainings of the same run"})
-    elif read_json(files["timing"]).get("processors") != processors:  # retrained: the bytes' processors
-        atomic_write_json(files["timing"], {**read_json(files["timing"]), "processors": processors})
+    elif timing.get("processors") != processors:  # retrained: the bytes' processors
+        atomic_write_json(files["timing"], {**timing, "processors": processors})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
               "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
               "block": block, "rows": int(-(-config.iterations // block)), "env_steps": int(metrics.env_steps.max()),
