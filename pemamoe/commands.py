@@ -234,7 +234,8 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
             say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
             declared = notebook_parameters(nb)
             params = {"scale": scale, "figures_dir": str(staging), **{k: v for k, v in extra.items() if k in declared}}
-            run_notebook(nb, params, timeout=timeout, stream=stream)
+            # one folder per scale: a paper-scale run must not overwrite the medium scale's executed copies
+            run_notebook(nb, params, timeout=timeout, stream=stream, output_dir=REPO_ROOT / "build" / "executed" / scale)
             now = time.perf_counter()
             say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
             for p in staging.iterdir():
@@ -309,7 +310,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 404)
+# %% notebooks/09e_commands.py, cell 11 (line 405)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

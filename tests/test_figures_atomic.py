@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from pemamoe.commands import make_figures
-from pemamoe.core import current_umask
+from pemamoe.core import REPO_ROOT, current_umask
 
 pytestmark = pytest.mark.notebook
 
@@ -80,6 +80,17 @@ def test_when_every_notebook_succeeds_the_new_files_replace_the_folder(tmp_path)
     assert "| atomic_table.csv |" in text and "notebooks/98_atomic_writes.py | ci |" in text
     assert "| kept.txt | x | notebooks/old.py | small |" in text  # the provenance merge saw the old README
     assert _beside(tmp_path) == ["figs"]
+
+
+def test_each_scale_keeps_its_own_executed_notebooks(tmp_path):
+    """A paper-scale `make figures` must not overwrite the executed copies of the medium one."""
+    executed = REPO_ROOT / "build" / "executed"
+    for path in (executed / "98_atomic_writes.ipynb", executed / "ci" / "98_atomic_writes.ipynb"):
+        path.unlink(missing_ok=True)
+    make_figures(scale="ci", figures_dir=_figures(tmp_path), notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                 precompute=False, stream=False)
+    assert (executed / "ci" / "98_atomic_writes.ipynb").is_file()
+    assert not (executed / "98_atomic_writes.ipynb").exists()
 
 
 def test_a_new_figures_folder_gets_the_mode_mkdir_gives(tmp_path):
