@@ -529,9 +529,8 @@ def _markdown_table(df, floatfmt: str) -> str:
 # `run_notebook` is the one function that executes a notebook without a browser. Papermill only
 # reads JSON notebooks, so the percent-format `.py` file is converted in memory with Jupytext.
 # Papermill then injects the given parameters after the cell tagged `parameters`, runs every cell
-# with a per-cell timeout, and saves the executed copy under `build/executed/` (ignored by git;
-# `make figures` uses a folder per scale, `build/executed/<scale>/`), where a failing run can be
-# opened to see the traceback in context. The test suite calls it with
+# with a per-cell timeout, and saves the executed copy under `build/executed/` (git ignores it; `make
+# figures` a folder per scale), where a failing run can be opened to see the traceback in context. The test suite calls it with
 # `scale="ci"`; `make figures` calls it with the chosen scale and `figures_dir="paper_figures"`.
 #
 # **Transport encryption.** ipykernel ≥ 7 prints "Kernel is running over TCP without encryption"

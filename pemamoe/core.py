@@ -381,7 +381,7 @@ def _markdown_table(df, floatfmt: str) -> str:
     return "\n".join([header, rule, *rows])
 
 
-# %% notebooks/00b_core.py, cell 22 (line 549)
+# %% notebooks/00b_core.py, cell 22 (line 548)
 def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1800, cwd=None,
                  stream: bool = False):
     """Execute `notebook` (a notebooks/*.py file) with papermill; return the executed notebook.
@@ -423,7 +423,7 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
     )
 
 
-# %% notebooks/00b_core.py, cell 23 (line 592)
+# %% notebooks/00b_core.py, cell 23 (line 591)
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -439,7 +439,7 @@ def _kernel_manager_config():
     return config
 
 
-# %% notebooks/00b_core.py, cell 25 (line 619)
+# %% notebooks/00b_core.py, cell 25 (line 618)
 class Progress:
     """Progress of `total` steps on stderr, starting at `initial`: a tqdm bar in a sized terminal,
     plain lines elsewhere (see above). enabled: True, False or None (only when stderr is a
@@ -512,7 +512,7 @@ class Progress:
         self._last, self._reported = self._clock(), self.n
 
 
-# %% notebooks/00b_core.py, cell 26 (line 693)
+# %% notebooks/00b_core.py, cell 26 (line 692)
 def _is_terminal(stream) -> bool:
     try:
         return bool(stream.isatty())
@@ -530,7 +530,7 @@ def _terminal_columns(stream) -> int:
         return 0
 
 
-# %% notebooks/00b_core.py, cell 30 (line 745)
+# %% notebooks/00b_core.py, cell 30 (line 744)
 # Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
@@ -647,7 +647,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 31 (line 863)
+# %% notebooks/00b_core.py, cell 31 (line 862)
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}
