@@ -127,10 +127,9 @@
 #   in its parameters cell to another folder, or `git checkout paper_figures` afterwards.
 # * `python -m pemamoe sweep --experiment campaign --scale paper --backend ray --address auto` runs the
 #   training behind the figures on a Ray cluster; `make figures SCALE=paper BACKEND=ray` then
-#   plots from the cached runs (or trains what is missing, on Ray). The campaign is still
-#   being trained in stages (its SMoE and PE-MAMoE runs are under way:
-#   `python -m pemamoe sweep --experiment campaign --scale paper --status`), so `make figures SCALE=paper`
-#   would train what has no record: wait for the committed campaign.
+#   plots from the cached runs (or trains what is missing, on Ray). The campaign's 18 runs are
+#   committed records, so on a fresh clone `make figures SCALE=paper` trains nothing and takes
+#   minutes (`python -m pemamoe sweep --experiment campaign --scale paper --status` says so).
 #
 # The utilities every notebook shares (scales, the configuration validator, atomic file writes,
 # figure and table saving, the headless notebook runner) are explained in the appendix notebook
