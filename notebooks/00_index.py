@@ -48,13 +48,19 @@
 # (appendix 05d). Built the paper's way the same actor levels off with the MLP in every fixed
 # phase (within 0.013 coverage) and with the dense MoE in phase 0, about 0.03 below it in phases 1
 # and 2 (appendix 09b), so the gap that remains on the cycling runs is not the sparse network's
-# plateau. Every method was tuned alike, and the paper's longer regime is being
-# run in stages. Its first populations show the paper's premise, plasticity loss, faintly in an
-# MLP (a revisited phase starts higher than its first visit and mostly levels off a little below
-# it; shrink-and-perturb lifts that ceiling, ReDo does not) and clearly in the dense MoE (every
-# phase-0 revisit ends below the first visit, by 0.08 on average, with no dormant units); its
-# sparse populations, SMoE and PE-MAMoE, come next. A top-2 arm (notebook 10) shows that keeping
-# two experts does not change the medium verdict.
+# plateau. Every method was tuned alike; a top-2 arm (notebook 10) shows that keeping two experts
+# does not change the medium verdict.
+#
+# At the paper's own scale (its campaign: 18 committed runs of 22M steps, the four methods and two
+# plasticity baselines on the MLP) the claims are contradicted more plainly: PE-MAMoE's return
+# IQM is 48 % below the best baseline's, MLP + shrink-and-perturb, and 34 % below SMoE's, the same
+# network without the controller (notebook 10). The premise, plasticity loss, shows faintly in an
+# MLP, clearly in the dense MoE and late in SMoE, and shrink-and-perturb removes it (notebook 09).
+# A probe of the first switch (notebook 10) finds what happens there: our log-std reset to
+# σ = 0.3 narrows a policy that had widened to σ ≈ 0.86, and that is all the controller costs on
+# that visit; and with top-1 routing and the PPO ratio on the current routes, the few rows the
+# router moves stop most updates at the target KL (letting them run on is worse), so after the
+# first switch the sparse networks train with a fraction of the paper's gradient steps.
 #
 # ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #

@@ -386,12 +386,12 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # and one advantage, this is the same estimator as shuffling agent rows, without evaluating each
 # state $U$ times.
 #
-# **Per-minibatch KL stop.** Before each gradient step we estimate the KL between the behaviour
-# policy and the current one on the minibatch with CleanRL's low-variance estimator
-# $\widehat{\mathrm{KL}} = \mathbb E[(\rho - 1) - \log\rho]$; once it exceeds the iteration's
-# target KL, the update stops (that minibatch gets no step, and no further epoch runs), as in
-# Stable-Baselines3. CleanRL checks the same quantity only at epoch ends; checking every minibatch
-# keeps the policy inside the trust region at a finer grain.
+# **Per-minibatch KL stop.** Before each gradient step the KL between behaviour and current policy
+# on the minibatch is estimated with CleanRL's $\widehat{\mathrm{KL}} = \mathbb E[(\rho - 1) - \log\rho]$;
+# past the iteration's target the update stops (no step on that minibatch, no further epoch), as in
+# Stable-Baselines3 (CleanRL checks only at epoch ends). A top-1 sparse actor's ratio is taken on the
+# current routes, so a row moved to another expert jumps in probability: at the paper's scale such
+# rows stop most of its updates after the first switch (notebook 10).
 #
 # **Parameter groups.** `RunAdamW` (appendix 06d, `pemamoe.optim`) knows five named groups,
 # `router`, `experts`, `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller

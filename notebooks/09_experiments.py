@@ -886,6 +886,9 @@ Markdown(revisit_words(campaign_revisits))
 # * **PE-MAMoE** ends 16 of its 18 revisits below their first visit, its rank held near 17. But its
 #   first visit of phase 1, which revisits nothing, is already 0.09 below SMoE's: the controller
 #   costs at the switch itself (notebook 10), and the loss it is meant to prevent comes on top.
+# * **A caveat for both sparse networks.** From the first switch on, their updates stop early: a
+#   visit gets 13k to 86k of the 307k gradient steps an MLP's takes (`benchmarks/CONTROLLER_SWITCH.md`;
+#   notebook 10 says why), so their shortfall mixes lost plasticity with less training.
 #
 # Part of every revisit's shortfall is the entropy schedule (it anneals over the run, so a revisit
 # explores less); the MLP with shrink-and-perturb, on the same schedule, shows it is not all of it.

@@ -493,3 +493,56 @@ if top2_runs:
 # test the paper's own budget, which the paper-scale campaign does (notebook 09). At this budget
 # the ranking is the dense MoE first and the three others together, with PE-MAMoE lowest in return;
 # nothing here shows its switch-time mechanisms paying off.
+
+# %% [markdown]
+# ### What the paper-scale campaign says
+#
+# Read at `paper` from the campaign's committed records (`records/paper/`, 18 runs of 22M
+# environment steps: the four compared methods and MLP + ReDo and MLP + shrink-and-perturb, three
+# seeds each; the tables are `paper_figures/paper_scale/`, written by `make figures SCALE=paper`),
+# the paper's picture is contradicted, more plainly than at `medium`:
+#
+# * **Every headline claim points the other way.** The best baseline at this scale is MLP +
+#   shrink-and-perturb. Against it PE-MAMoE's return IQM is 48 % lower [−51, −45] (the paper: 26 %
+#   higher), its served users 26 % fewer [−30, −23] (paper: 13 % more) and its collisions 54 % more
+#   [+42, +65] (paper: 75 % fewer). Against MLP + ReDo its return is 39 % lower [−45, −31].
+# * **The phase controller costs, where at `medium` it was neutral.** Against SMoE, the same
+#   sparse network without it, PE-MAMoE's return is 34 % lower [−45, −19], its coverage 19 %
+#   [−25, −12] and its served users 19 % [−24, −14], its collisions 37 % more [+2, +82].
+# * **The ranking.** By return IQM: MLP + shrink-and-perturb (1,986), MLP (1,799), MLP + ReDo
+#   (1,684), SMoE (1,559), MoE (1,305), PE-MAMoE (1,035); every learned policy covers less than the
+#   k-means heuristic, which does not learn (0.83 against at most 0.59 over the whole run).
+#
+# ### Why, at the first switch: a probe
+#
+# PE-MAMoE and SMoE train alike until the first switch (iteration 1,200), so the controller's cost
+# starts there. `benchmarks/controller_switch_probe.py` retrains both up to iteration 1,800 (the
+# first visit of phase 1, three seeds; the records cannot be extended bit for bit on this machine,
+# their first stretch having run on other float kernels) beside variants that change one thing
+# after the switch, and writes `benchmarks/CONTROLLER_SWITCH.md`. Mean coverage over that visit:
+#
+# * **The log-std reset is the controller's whole cost here.** SMoE 0.526, PE-MAMoE 0.487 (lower
+#   in each seed), PE-MAMoE without the log-std reset 0.526, and with the other reading of "0.3"
+#   (log σ = 0.3, σ = 1.35) 0.540. By the switch the policy has widened to σ ≈ 0.86 (log σ −0.15),
+#   so our reading, σ = 0.3, narrows it where the paper means to re-open exploration (notebook 06);
+#   the controller's other mechanisms neither help nor hurt this visit.
+# * **After the switch the sparse networks' updates stop early, because of routing.** Their
+#   updates reach the target KL within a fraction of their 256 minibatch steps: over the visit SMoE
+#   takes 97 per iteration, PE-MAMoE 50 (its narrower σ makes the stop come sooner). The committed
+#   records show the same over the whole run: after the first visit (307k gradient steps, like
+#   every method) SMoE's visits get 13k–86k, PE-MAMoE's 15k–48k, the dense MoE's 201k–294k and the
+#   MLPs' all 307k. Each of the 48 stops the probe caught (4 iterations on, every variant and
+#   seed) came from the rows, about 1 % of a minibatch, that the router had sent to another expert
+#   since the rollout: the PPO ratio is taken on the current routes (the paper's reading, appendix
+#   05d), so such a row's probability jumps, while the kept rows' part of the estimate stays under
+#   a tenth of the target. Letting the update run on regardless (the stop reading the kept rows
+#   only) is worse, not better: SMoE 0.381, PE-MAMoE 0.411 (the probe does not say why; the same
+#   rows' unbounded ratios, which still enter the loss, are the likely reason). So the early stop
+#   protects these networks, and top-1 routing with a ratio on the current routes leaves them a
+#   fraction of the paper's updates.
+#
+# The verdict at `paper` is therefore on the method as we read it, with two readings that the
+# probe shows matter: the log-std reset's value, and the routes the PPO ratio uses (replaying the
+# rollout's routes is the other reading, not yet run at this scale). The first does not rescue the
+# claims: without its reset PE-MAMoE only equals SMoE, which trails the three MLPs in return,
+# coverage and served users. Whether the second changes the ranking is open.

@@ -17,7 +17,7 @@ from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, S
 from pemamoe.popnets import gaussian_kl
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 184)
+# %% notebooks/06_plasticity.py, cell 8 (line 186)
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
 
@@ -95,7 +95,7 @@ class PhaseControllerConfig:
         return PhaseControllerConfig(**{**asdict(self), mechanism: False})
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 285)
+# %% notebooks/06_plasticity.py, cell 10 (line 287)
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -136,7 +136,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return base_entropy_coef(iteration, base)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 342)
+# %% notebooks/06_plasticity.py, cell 12 (line 344)
 def n_experts_of(actor) -> int:
     """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
     return len({0 if e is None else e for _, e in actor.trunk_parameters()})
@@ -154,7 +154,7 @@ def expert_parameters(actor, expert: int) -> list:
             for name, e in actor.trunk_parameters() if e is None or e == expert]
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 438)
+# %% notebooks/06_plasticity.py, cell 15 (line 440)
 @register_plasticity
 class PhaseController(NoPlasticity):
     """PE-MAMoE's phase controller (Algorithm 1) for each member whose config enables it;
@@ -324,7 +324,7 @@ class PhaseController(NoPlasticity):
             self.reference[r] = state["reference"].to(self.reference.device)
 
 
-# %% notebooks/06_plasticity.py, cell 18 (line 641)
+# %% notebooks/06_plasticity.py, cell 18 (line 643)
 @dataclass(frozen=True)
 class MemberConfig:
     """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
