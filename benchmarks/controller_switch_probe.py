@@ -19,10 +19,11 @@ the gradient steps per iteration the target-KL early stop lets through (of 8 x 3
 with `--kl-split`, where the stopping estimate comes from: the share of each minibatch's KL
 estimate carried by the rows whose expert changed since the rollout.
 
-`python benchmarks/controller_switch_probe.py [--iterations 1800] [--variant ...]` trains into
-results/switch_probe/ (resumable, one population of 3 seeds per variant) and writes
-benchmarks/CONTROLLER_SWITCH.md from every variant trained so far. About 15 minutes per variant on
-one core of the 2-core machine.
+`python benchmarks/controller_switch_probe.py [--iterations 1800] [--variant ...]
+[--stop-on-kept-rows ...]` trains into results/switch_probe/ (resumable, one population of 3 seeds
+per variant) and writes benchmarks/CONTROLLER_SWITCH.md from every variant trained so far. A
+variant to iteration 1,800 takes about an hour on one core of the 2-core machine (2-3 s per
+iteration before the switch, under 1 s after it: benchmarks/HISTORY.md, session 29).
 """
 
 import argparse
@@ -46,9 +47,10 @@ VARIANTS = {
     "log-std reset to 0.3": ("pemamoe", lambda cfg: cfg.replace(
         controller=dataclasses.replace(cfg.controller, log_std_value=0.3))),
 }
-# name: the retrained run it continues from its checkpoint at the first switch (copied there into
-# results/switch_probe_snap/), with the target-KL stop reading a minibatch's KL estimate over the rows
-# whose expert is the rollout's only: the same runs, the same switch, one reading of the stop changed.
+# name: the retrained run it continues from its checkpoint at the first switch (which training it
+# keeps in results/switch_probe_snap/), with the target-KL stop reading a minibatch's KL estimate over the rows
+# whose expert is the rollout's only: the same runs, the same switch, one reading of the stop changed
+# (their logged approx_kl is that estimate too).
 STOP_ON_KEPT_ROWS = {
     "SMoE, stop on kept rows": "SMoE (retrained)",
     "PE-MAMoE, stop on kept rows": "PE-MAMoE (retrained)",
@@ -72,6 +74,15 @@ def train_variant(name: str, seeds, iterations: int) -> list:
     method, change = VARIANTS[name]
     configs = [change(TrainConfig.for_scale("paper", method, seed)) for seed in seeds]
     dirs = [ROOT / "results" / "switch_probe" / f"{slug(name)}-s{seed}" for seed in seeds]
+    if name in STOP_ON_KEPT_ROWS.values():  # keep a copy at the first switch to continue from
+        import shutil
+
+        train_population(configs, dirs, max_iterations=SWITCH)
+        for run_dir in dirs:
+            snapshot = ROOT / "results" / "switch_probe_snap" / run_dir.name
+            if int(pd.read_parquet(run_dir / "metrics.parquet").iteration.max()) == SWITCH - 1 \
+                    and not snapshot.exists():
+                shutil.copytree(run_dir, snapshot, ignore=shutil.ignore_patterns(".lock"))
     train_population(configs, dirs, max_iterations=iterations)
     return dirs
 
@@ -95,14 +106,11 @@ def kl_stop_split(name: str, seeds, iterations: int, extra: int) -> dict:
 
     def split_loss(population, coef, batch):
         loss, stats = original(population, coef, batch)
-        with torch.no_grad():
-            ratio = stats["ratio"]
-            per_row = (ratio - 1) - ratio.log()  # the estimator's terms, (R, rows)
-            R, n = per_row.shape
-            moved = _rerouted_rows(stats, batch)
-            latest[:] = [{"KL estimate": float(per_row[r].mean()),
-                          "kept rows' part": float(torch.where(moved[r], 0.0, per_row[r]).sum() / n),
-                          "rerouted share of rows": float(moved[r].float().mean())} for r in range(R)]
+        per_row, moved = _estimate_terms(population, batch)
+        n = per_row.shape[1]
+        latest[:] = [{"KL estimate": float(per_row[r].mean()),
+                      "kept rows' part": float(torch.where(moved[r], 0.0, per_row[r]).sum() / n),
+                      "rerouted share of rows": float(moved[r].float().mean())} for r in range(len(per_row))]
         return loss, stats
 
     def check(stop, approx_kl, epoch):  # keep the minibatches of members still stepping before this one
@@ -151,11 +159,20 @@ def gradient_steps_by_visit(seeds) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _rerouted_rows(stats: dict, batch) -> "torch.Tensor":
-    """(R, rows) bool: the rows whose experts under the current parameters differ from the rollout's."""
-    R, n = stats["ratio"].shape
-    return (stats["experts"].reshape(R, n, -1).sort(-1).values
-            != batch.routing.experts.reshape(R, n, -1).sort(-1).values).any(-1)
+def _estimate_terms(population, batch) -> tuple:
+    """The target-KL estimate's per-row terms (R, rows), computed as the trainer computes them
+    (from the log-ratio, so finite where the ratio underflows), and (R, rows) bool: the rows whose
+    experts under the current parameters differ from the rollout's. A second, gradient-free pass
+    of the actor over the minibatch (the same numbers as the loss's pass)."""
+    import torch
+
+    with torch.no_grad():
+        new_logp, _, _, _, _, chosen = population.actor.evaluate(batch.obs, batch.actions, batch.routing)
+        logratio = new_logp - batch.logprobs
+        R, n = logratio.shape
+        moved = (chosen.reshape(R, n, -1).sort(-1).values
+                 != batch.routing.experts.reshape(R, n, -1).sort(-1).values).any(-1)
+        return (logratio.exp() - 1) - logratio, moved
 
 
 def train_stop_on_kept_rows(name: str, seeds, iterations: int) -> None:
@@ -174,7 +191,8 @@ def train_stop_on_kept_rows(name: str, seeds, iterations: int) -> None:
         source = ROOT / "results" / "switch_probe_snap" / f"{slug(STOP_ON_KEPT_ROWS[name])}-s{seed}"
         target = ROOT / "results" / "switch_probe" / f"{slug(name)}-s{seed}"
         if not target.exists():
-            if not (source / "checkpoint.pt").is_file():
+            if not (source / "checkpoint.pt").is_file() or \
+                    int(pd.read_parquet(source / "metrics.parquet").iteration.max()) != SWITCH - 1:
                 raise SystemExit(f"{name}: no snapshot at the first switch in {source}; train "
                                  f"{STOP_ON_KEPT_ROWS[name]!r} and copy its folder there at iteration {SWITCH}")
             shutil.copytree(source, target, ignore=shutil.ignore_patterns(".lock"))
@@ -183,11 +201,8 @@ def train_stop_on_kept_rows(name: str, seeds, iterations: int) -> None:
 
     def kept_rows_loss(population, coef, batch):
         loss, stats = original(population, coef, batch)
-        with torch.no_grad():
-            ratio = stats["ratio"]
-            kept = ~_rerouted_rows(stats, batch)
-            per_row = (ratio - 1) - ratio.log()  # inf where a rerouted row's ratio underflows: where, not *
-            stats["approx_kl"] = torch.where(kept, per_row, 0.0).sum(1) / ratio.shape[1]
+        per_row, moved = _estimate_terms(population, batch)
+        stats["approx_kl"] = torch.where(moved, 0.0, per_row).sum(1) / per_row.shape[1]  # also what is logged
         return loss, stats
 
     mappo._minibatch_loss = kept_rows_loss
@@ -252,7 +267,7 @@ def main() -> int:
     trained = [name for name in VARIANTS if name in logs]
     for name in [*trained[1:], *(n for n in STOP_ON_KEPT_ROWS if n in logs)]:  # the controller is inert before the switch: every retraining is equal there
         for seed, run, first in zip(args.seeds, logs[name], logs[trained[0]]):
-            if not run[run.iteration < SWITCH].coverage.equals(first[first.iteration < SWITCH].coverage):
+            if not run[run.iteration < SWITCH].equals(first[first.iteration < SWITCH]):  # every logged column
                 print(f"{name}, seed {seed}: its log before the switch differs from {trained[0]}'s", file=sys.stderr)
                 return 1
     table = summarise(logs, args.iterations)
@@ -264,7 +279,8 @@ def main() -> int:
 
     text = (f"# The first switch at the paper scale (`benchmarks/controller_switch_probe.py`)\n\n"
             f"Written by `python benchmarks/controller_switch_probe.py --iterations {args.iterations}` at commit "
-            f"`{commit}`: iterations {SWITCH:,} to {args.iterations - 1:,} (the first visit of phase 1), mean over "
+            f"`{commit}`: iterations {SWITCH:,} to {args.iterations - 1:,} (of the first visit of phase 1, "
+            f"iterations {SWITCH:,} to {2 * SWITCH - 1:,}), mean over "
             f"seeds {', '.join(map(str, args.seeds))}. The runs retrained here are equal bit for bit before the "
             f"switch; the committed records differ from them from the first iteration on (their first "
             f"stretch was trained on another processor's float kernels), so compare retrained with retrained."
@@ -278,7 +294,7 @@ def main() -> int:
                  f"after iteration {args.iterations - 1:,} (on a copy), every minibatch a member stepped on or "
                  f"stopped at split into the rows the router sent to another expert than the rollout's and the "
                  f"rest (`--kl-split`). Over: the minibatches whose KL estimate passed the member's target "
-                 f"(each stops its member's update); under: the rest. The kept rows' part is the estimate's sum over the rows that kept their expert, divided by all rows; an estimate is infinite where a rerouted row's probability ratio underflows to 0.\n\n{_markdown_table(split, '.3g')}\n")
+                 f"(each stops its member's update); under: the rest. The kept rows' part is the estimate's sum over the rows that kept their expert, divided by all rows.\n\n{_markdown_table(split, '.3g')}\n")
     atomic_write_text(ROOT / "benchmarks" / "CONTROLLER_SWITCH.md", text)
     print(text)
     return 0
