@@ -55,12 +55,14 @@
 # plasticity baselines on the MLP) the claims are contradicted more plainly: PE-MAMoE's return
 # IQM is 48 % below the best baseline's, MLP + shrink-and-perturb, and 34 % below SMoE's, the same
 # network without the controller (notebook 10). The premise, plasticity loss, shows faintly in an
-# MLP, clearly in the dense MoE and late in SMoE, and shrink-and-perturb removes it (notebook 09).
-# A probe of the first switch (notebook 10) finds what happens there: our log-std reset to
-# σ = 0.3 narrows a policy that had widened to σ ≈ 0.86, and that is all the controller costs on
-# that visit; and with top-1 routing and the PPO ratio on the current routes, the few rows the
-# router moves stop most updates at the target KL (letting them run on is worse), so after the
-# first switch the sparse networks train with a fraction of the paper's gradient steps.
+# MLP, clearly in the dense MoE and late in SMoE (which trains with far fewer updates after the
+# first switch); shrink-and-perturb removes the MLP's (notebook 09). A probe of the first switch
+# (notebook 10) finds two readings that matter there: our log-std reset to σ = 0.3 narrows a
+# policy that had widened to σ ≈ 0.86, and that makes the controller's whole gap over the first
+# 600 iterations after it; and with top-1 routing and the PPO ratio on the current routes, the few
+# rows the router moves tripped every target-KL stop the probe examined: after the first switch
+# the sparse networks take a fraction of the gradient steps an MLP takes (letting the update run
+# on is worse).
 #
 # ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
 #

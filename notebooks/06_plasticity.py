@@ -91,10 +91,10 @@ from pemamoe.popnets import gaussian_kl
 # 1.35$, a spread larger than the whole action box $[-1, 1]$: a reset to near-uniform random
 # actions. Setting $\sigma = 0.3$ matches the actors' initial spread (notebook 05 initialises
 # `log_std = log(0.3)`), so the reset returns the policy to the width it started training with,
-# which is what "re-open exploration" after a switch asks for. We take $\sigma = 0.3$; the value is
-# a config field, so the other reading is one argument away. At the paper's scale the reading does
-# the opposite of what it means to: the entropy bonus has widened the sparse actor's policy to
-# $\sigma \approx 0.86$ by the first switch, so the reset *narrows* it; notebook 10 measures the cost.
+# meant to "re-open exploration" after a switch. We take $\sigma = 0.3$; the value is a config
+# field, so the other reading is one argument away. It re-opens only a policy that has narrowed: at
+# the paper's scale the sparse actor's has widened to $\sigma \approx 0.86$ (log σ −0.15) by the
+# first switch, so the reset *narrows* it; notebook 10 measures the cost.
 #
 # **Two windows called "warm".** Algorithm 1 uses one $K_\text{warm}$ for both the LR warm-up
 # and the conservative PPO window, while the table gives 80 iterations for the "warm window" and

@@ -391,7 +391,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # past the iteration's target the update stops (no step on that minibatch, no further epoch), as in
 # Stable-Baselines3 (CleanRL checks only at epoch ends). A top-1 sparse actor's ratio is taken on the
 # current routes, so a row moved to another expert jumps in probability: at the paper's scale such
-# rows stop most of its updates after the first switch (notebook 10).
+# rows tripped every stop notebook 10's probe examined after the first switch.
 #
 # **Parameter groups.** `RunAdamW` (appendix 06d, `pemamoe.optim`) knows five named groups,
 # `router`, `experts`, `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller

@@ -516,33 +516,37 @@ if top2_runs:
 # ### Why, at the first switch: a probe
 #
 # PE-MAMoE and SMoE train alike until the first switch (iteration 1,200), so the controller's cost
-# starts there. `benchmarks/controller_switch_probe.py` retrains both up to iteration 1,800 (the
-# first visit of phase 1, three seeds; the records cannot be extended bit for bit on this machine,
-# their first stretch having run on other float kernels) beside variants that change one thing
-# after the switch, and writes `benchmarks/CONTROLLER_SWITCH.md`. Mean coverage over that visit:
+# starts there. `benchmarks/controller_switch_probe.py` retrains both over the first 600
+# iterations of the first phase-1 visit (three seeds; the records cannot be continued bit for bit
+# on this machine, their first stretch having run on other float kernels) beside variants that
+# change one thing after the switch, and writes `benchmarks/CONTROLLER_SWITCH.md`. Mean coverage
+# over those 600 iterations:
 #
-# * **The log-std reset is the controller's whole cost here.** SMoE 0.526, PE-MAMoE 0.487 (lower
-#   in each seed), PE-MAMoE without the log-std reset 0.526, and with the other reading of "0.3"
-#   (log σ = 0.3, σ = 1.35) 0.540. By the switch the policy has widened to σ ≈ 0.86 (log σ −0.15),
-#   so our reading, σ = 0.3, narrows it where the paper means to re-open exploration (notebook 06);
-#   the controller's other mechanisms neither help nor hurt this visit.
-# * **After the switch the sparse networks' updates stop early, because of routing.** Their
-#   updates reach the target KL within a fraction of their 256 minibatch steps: over the visit SMoE
-#   takes 97 per iteration, PE-MAMoE 50 (its narrower σ makes the stop come sooner). The committed
-#   records show the same over the whole run: after the first visit (307k gradient steps, like
-#   every method) SMoE's visits get 13k–86k, PE-MAMoE's 15k–48k, the dense MoE's 201k–294k and the
-#   MLPs' all 307k. Each of the 48 stops the probe caught (4 iterations on, every variant and
-#   seed) came from the rows, about 1 % of a minibatch, that the router had sent to another expert
-#   since the rollout: the PPO ratio is taken on the current routes (the paper's reading, appendix
-#   05d), so such a row's probability jumps, while the kept rows' part of the estimate stays under
-#   a tenth of the target. Letting the update run on regardless (the stop reading the kept rows
-#   only) is worse, not better: SMoE 0.381, PE-MAMoE 0.411 (the probe does not say why; the same
-#   rows' unbounded ratios, which still enter the loss, are the likely reason). So the early stop
-#   protects these networks, and top-1 routing with a ratio on the current routes leaves them a
-#   fraction of the paper's updates.
+# * **The log-std reset makes the controller's whole gap in this window.** SMoE 0.526, PE-MAMoE
+#   0.487 (lower in each seed), PE-MAMoE without the log-std reset 0.526, and with the other
+#   reading of "0.3" (log σ = 0.3, σ = 1.35) 0.540; the other mechanisms make no measurable
+#   difference here (3 seeds). By the switch the policy has widened to σ ≈ 0.86 (log σ −0.15), so
+#   our reading, σ = 0.3, narrows it (notebook 06). The records' gap over the same iterations is
+#   larger (0.431 against 0.537), mostly one seed's (0.217). At `medium` removing the reset was not
+#   resolved either way; the paper reports its removal as its costliest ablation (−101 %).
+# * **After the switch the sparse networks' updates stop early.** Their updates reach the target
+#   KL within a fraction of their 256 minibatch steps: over the window SMoE takes 97 per iteration,
+#   PE-MAMoE 50. The records show fewer steps over the whole run: after the first visit (307k
+#   gradient steps, like every method) SMoE's visits get 13k–86k, PE-MAMoE's 15k–48k, the dense
+#   MoE's 201k–294k (it has no routes to change, so it stops for another reason) and the MLPs'
+#   306k–307k. Why, the probe measured at one point only: in the 4 iterations after iteration 1,800
+#   (48 stops over the variants and seeds) every stop came from the rows, about 1 % of a
+#   minibatch, that the router had sent to another expert since the rollout. The PPO ratio is taken
+#   on the current routes (the paper's reading, appendix 05d), so such a row's probability jumps;
+#   the other rows' part of the estimate was never over the target by itself (0 of 48). Letting
+#   the update run on regardless (the stop reading the kept rows only, from the switch on) is worse,
+#   not better: SMoE 0.381, PE-MAMoE 0.411 (the probe does not say why; the same rows' large
+#   ratios, which still enter the loss, are the likely reason). So the early stop protects these
+#   networks, and they train with a fraction of the gradient steps an MLP takes.
 #
-# The verdict at `paper` is therefore on the method as we read it, with two readings that the
-# probe shows matter: the log-std reset's value, and the routes the PPO ratio uses (replaying the
-# rollout's routes is the other reading, not yet run at this scale). The first does not rescue the
-# claims: without its reset PE-MAMoE only equals SMoE, which trails the three MLPs in return,
-# coverage and served users. Whether the second changes the ranking is open.
+# The verdict at `paper` is therefore on the method as we read it, with two readings the probe
+# shows to matter: the log-std reset's value, and the routes the PPO ratio uses (replaying the
+# rollout's routes is the other reading, not run at this scale). Neither has been run over the
+# whole campaign: in this window PE-MAMoE without its reset only matches SMoE, which over the
+# whole run trails the three MLPs in return, coverage and served users; whether either reading
+# changes the ranking is open.
