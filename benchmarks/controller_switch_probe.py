@@ -3,21 +3,23 @@
 PE-MAMoE and SMoE are the same network and train bit for bit alike until the first phase switch
 (iteration 1,200 at the paper scale), where the phase controller acts. The committed paper-scale
 records show PE-MAMoE learning the first phase-1 visit worse than SMoE (notebook 10). This probe
-retrains PE-MAMoE variants with one reading of the log-std reset changed, up to `--iterations`
-(the first switch and part of the visit after it), and sets them beside the committed records of
-SMoE and PE-MAMoE over the same iterations:
+retrains runs up to `--iterations` (the first switch and part of the visit after it) and sets them
+beside the committed records of SMoE and PE-MAMoE over the same iterations:
 
+* `SMoE (retrained)`, `PE-MAMoE (retrained)`: the two methods as committed;
 * `no log-std reset`: the controller without its log-std reset (every other mechanism on);
 * `log-std reset to 0.3`: the other reading of the paper's "log-std reset 0.3" (log sigma = 0.3,
-  sigma = 1.35, where our default resets sigma to 0.3, log sigma = -1.20; notebook 06).
+  sigma = 1.35, where our default resets sigma to 0.3, log sigma = -1.20; notebook 06);
+* `SMoE, stop on kept rows` and `PE-MAMoE, stop on kept rows`: the retrained runs continued from the
+  switch with the target-KL stop reading only the rows whose expert is the rollout's.
 
 The committed records' first stretch was trained on a processor whose float kernels differ from
 this machine's, so SMoE and PE-MAMoE are retrained here too; every retrained log before the switch
-must equal the others' bit for bit (the controller is inert before it): the probe checks that. Per variant, mean over
-seeds: coverage over the visit so far, the policy's log-std just before and after the switch, and
-the gradient steps per iteration the target-KL early stop lets through (of 8 x 32 = 256). Then,
-with `--kl-split`, where the stopping estimate comes from: the share of each minibatch's KL
-estimate carried by the rows whose expert changed since the rollout.
+must equal the others' bit for bit (the controller is inert before it): the probe checks that.
+Per variant, mean over seeds: coverage over the visit so far, the policy's log-std just before and
+after the switch, and the gradient steps per iteration the target-KL early stop lets through (of
+8 x 32 = 256). Then, with `--kl-split`, where the stopping estimate comes from: each minibatch's
+KL estimate beside the part of it carried by the rows whose expert did not change since the rollout.
 
 `python benchmarks/controller_switch_probe.py [--iterations 1800] [--variant ...]
 [--stop-on-kept-rows ...]` trains into results/switch_probe/ (resumable, one population of 3 seeds
@@ -48,9 +50,9 @@ VARIANTS = {
         controller=dataclasses.replace(cfg.controller, log_std_value=0.3))),
 }
 # name: the retrained run it continues from its checkpoint at the first switch (which training it
-# keeps in results/switch_probe_snap/), with the target-KL stop reading a minibatch's KL estimate over the rows
-# whose expert is the rollout's only: the same runs, the same switch, one reading of the stop changed
-# (their logged approx_kl is that estimate too).
+# keeps in results/switch_probe_snap/), with the target-KL stop reading a minibatch's KL estimate
+# over the rows whose expert is the rollout's only: the same runs, the same switch, one reading of
+# the stop changed (their logged approx_kl is that estimate too).
 STOP_ON_KEPT_ROWS = {
     "SMoE, stop on kept rows": "SMoE (retrained)",
     "PE-MAMoE, stop on kept rows": "PE-MAMoE (retrained)",
@@ -59,30 +61,47 @@ RECORDED = {"SMoE (record)": "smoe", "PE-MAMoE (record)": "pemamoe"}
 
 
 def record_log(method: str, seed: int) -> pd.DataFrame:
-    [path] = [p for p in (ROOT / "records" / "paper").glob(f"{method}-s{seed}-*.parquet")
-              if not p.name.endswith(".actor.parquet")]
-    return pd.read_parquet(path)
+    """The committed paper-scale record's log of `method`, `seed` (verified against its marker)."""
+    from pemamoe.mappo import TrainConfig
+    from pemamoe.records import RECORDS_DIR, read_record, record_files
+
+    run_name = TrainConfig.for_scale("paper", method, seed).run_name()
+    return read_record(record_files(RECORDS_DIR, "paper", run_name)["marker"])[1]
 
 
-def slug(name: str) -> str:
-    return "".join(c for c in name.replace(" ", "_") if c not in ".(),")
+def probe_dir(name: str, seed: int, folder: str = "switch_probe") -> Path:
+    """The run folder of one seed of a probe run, under results/`folder`/."""
+    return ROOT / "results" / folder / f"{''.join(c for c in name.replace(' ', '_') if c not in '.(),')}-s{seed}"
+
+
+def variant_configs(name: str, seeds) -> list:
+    from pemamoe.mappo import TrainConfig
+
+    method, change = VARIANTS[name]
+    return [change(TrainConfig.for_scale("paper", method, seed)) for seed in seeds]
+
+
+def copy_run(source: Path, target: Path) -> Path:
+    """A copy of a run folder to resume elsewhere (without its writer's lock file)."""
+    import shutil
+
+    return shutil.copytree(source, target, ignore=shutil.ignore_patterns(".lock"))
+
+
+def last_iteration(run_dir: Path) -> int:
+    return int(pd.read_parquet(run_dir / "metrics.parquet").iteration.max())
 
 
 def train_variant(name: str, seeds, iterations: int) -> list:
-    from pemamoe.mappo import TrainConfig, train_population
+    from pemamoe.mappo import train_population
 
-    method, change = VARIANTS[name]
-    configs = [change(TrainConfig.for_scale("paper", method, seed)) for seed in seeds]
-    dirs = [ROOT / "results" / "switch_probe" / f"{slug(name)}-s{seed}" for seed in seeds]
+    configs, dirs = variant_configs(name, seeds), [probe_dir(name, seed) for seed in seeds]
     if name in STOP_ON_KEPT_ROWS.values():  # keep a copy at the first switch to continue from
-        import shutil
-
         train_population(configs, dirs, max_iterations=SWITCH)
-        for run_dir in dirs:
-            snapshot = ROOT / "results" / "switch_probe_snap" / run_dir.name
-            if int(pd.read_parquet(run_dir / "metrics.parquet").iteration.max()) == SWITCH - 1 \
-                    and not snapshot.exists():
-                shutil.copytree(run_dir, snapshot, ignore=shutil.ignore_patterns(".lock"))
+        for seed, run_dir in zip(seeds, dirs):
+            snapshot = probe_dir(name, seed, "switch_probe_snap")
+            if last_iteration(run_dir) == SWITCH - 1 and not snapshot.exists():
+                copy_run(run_dir, snapshot)
     train_population(configs, dirs, max_iterations=iterations)
     return dirs
 
@@ -93,15 +112,13 @@ def kl_stop_split(name: str, seeds, iterations: int, extra: int) -> dict:
     rows the router sent to another expert than the rollout's (the PPO ratio is taken on the current
     routes) and the rest. Mean over minibatches and seeds, of those whose estimate is over the member's
     target (the minibatch that stops it) and of those under it."""
-    import shutil
     import tempfile
 
     import torch
 
     import pemamoe.mappo as mappo
 
-    method, change = VARIANTS[name]
-    configs = [change(mappo.TrainConfig.for_scale("paper", method, seed)) for seed in seeds]
+    configs = variant_configs(name, seeds)
     rows, latest, original, original_check = [], [], mappo._minibatch_loss, mappo._KLStop.check
 
     def split_loss(population, coef, batch):
@@ -120,10 +137,7 @@ def kl_stop_split(name: str, seeds, iterations: int, extra: int) -> dict:
         return stepping
 
     with tempfile.TemporaryDirectory() as tmp:
-        dirs = []
-        for seed in seeds:
-            source = ROOT / "results" / "switch_probe" / f"{slug(name)}-s{seed}"
-            dirs.append(shutil.copytree(source, Path(tmp) / source.name, ignore=shutil.ignore_patterns(".lock")))
+        dirs = [copy_run(probe_dir(name, seed), Path(tmp) / probe_dir(name, seed).name) for seed in seeds]
         mappo._minibatch_loss, mappo._KLStop.check = split_loss, check
         try:
             mappo.train_population(configs, dirs, max_iterations=iterations + extra)
@@ -131,8 +145,7 @@ def kl_stop_split(name: str, seeds, iterations: int, extra: int) -> dict:
             mappo._minibatch_loss, mappo._KLStop.check = original, original_check
     frame = pd.DataFrame(rows)
     over, under = frame[frame["over target"]], frame[~frame["over target"]]
-    target = [c.target_kl for c in configs][0]
-    # a rerouted row's ratio can underflow to 0: its term, and the estimate, are then infinite
+    target = configs[0].target_kl
     return {"run": name, "minibatches": len(frame), "over target": len(over),
             "over target on the kept rows alone": int((over["kept rows' part"] > target).sum()),
             "KL estimate, median (over)": over["KL estimate"].median(),
@@ -178,24 +191,20 @@ def _estimate_terms(population, batch) -> tuple:
 def train_stop_on_kept_rows(name: str, seeds, iterations: int) -> None:
     """Continue the retrained runs from their snapshot at the first switch with the early stop
     reading the KL estimate over the rows that kept their expert (the loss itself unchanged)."""
-    import shutil
-
     import torch
 
     import pemamoe.mappo as mappo
 
-    method, change = VARIANTS[STOP_ON_KEPT_ROWS[name]]
-    configs = [change(mappo.TrainConfig.for_scale("paper", method, seed)) for seed in seeds]
+    base = STOP_ON_KEPT_ROWS[name]
+    configs = variant_configs(base, seeds)
     dirs = []
     for seed in seeds:
-        source = ROOT / "results" / "switch_probe_snap" / f"{slug(STOP_ON_KEPT_ROWS[name])}-s{seed}"
-        target = ROOT / "results" / "switch_probe" / f"{slug(name)}-s{seed}"
+        source, target = probe_dir(base, seed, "switch_probe_snap"), probe_dir(name, seed)
         if not target.exists():
-            if not (source / "checkpoint.pt").is_file() or \
-                    int(pd.read_parquet(source / "metrics.parquet").iteration.max()) != SWITCH - 1:
-                raise SystemExit(f"{name}: no snapshot at the first switch in {source}; train "
-                                 f"{STOP_ON_KEPT_ROWS[name]!r} and copy its folder there at iteration {SWITCH}")
-            shutil.copytree(source, target, ignore=shutil.ignore_patterns(".lock"))
+            if not (source / "checkpoint.pt").is_file() or last_iteration(source) != SWITCH - 1:
+                raise SystemExit(f"{name}: no snapshot at the first switch in {source}; train it with "
+                                 f"--variant {base!r} (which keeps one)")
+            copy_run(source, target)
         dirs.append(target)
     original = mappo._minibatch_loss
 
@@ -255,7 +264,7 @@ def main() -> int:
         train_stop_on_kept_rows(name, args.seeds, args.iterations)
     logs = {name: [record_log(method, s) for s in args.seeds] for name, method in RECORDED.items()}
     for name in (*VARIANTS, *STOP_ON_KEPT_ROWS):
-        paths = [ROOT / "results" / "switch_probe" / f"{slug(name)}-s{s}" / "metrics.parquet" for s in args.seeds]
+        paths = [probe_dir(name, s) / "metrics.parquet" for s in args.seeds]
         if not all(p.is_file() for p in paths):
             continue
         runs = [pd.read_parquet(p) for p in paths]
@@ -265,9 +274,10 @@ def main() -> int:
         runs = [record_frame(run[run.iteration < args.iterations], RECORD_BLOCK) for run in runs]
         logs[name] = runs
     trained = [name for name in VARIANTS if name in logs]
-    for name in [*trained[1:], *(n for n in STOP_ON_KEPT_ROWS if n in logs)]:  # the controller is inert before the switch: every retraining is equal there
+    # the controller is inert before the switch: every retraining is equal there, in every logged column
+    for name in [*trained[1:], *(n for n in STOP_ON_KEPT_ROWS if n in logs)]:
         for seed, run, first in zip(args.seeds, logs[name], logs[trained[0]]):
-            if not run[run.iteration < SWITCH].equals(first[first.iteration < SWITCH]):  # every logged column
+            if not run[run.iteration < SWITCH].equals(first[first.iteration < SWITCH]):
                 print(f"{name}, seed {seed}: its log before the switch differs from {trained[0]}'s", file=sys.stderr)
                 return 1
     table = summarise(logs, args.iterations)
@@ -294,7 +304,9 @@ def main() -> int:
                  f"after iteration {args.iterations - 1:,} (on a copy), every minibatch a member stepped on or "
                  f"stopped at split into the rows the router sent to another expert than the rollout's and the "
                  f"rest (`--kl-split`). Over: the minibatches whose KL estimate passed the member's target "
-                 f"(each stops its member's update); under: the rest. The kept rows' part is the estimate's sum over the rows that kept their expert, divided by all rows.\n\n{_markdown_table(split, '.3g')}\n")
+                 f"(each stops its member's update); under: the rest. The kept rows' part is the estimate's "
+                 f"sum over the rows that kept their expert, divided by all rows.\n\n"
+                 f"{_markdown_table(split, '.3g')}\n")
     atomic_write_text(ROOT / "benchmarks" / "CONTROLLER_SWITCH.md", text)
     print(text)
     return 0
