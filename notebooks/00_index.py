@@ -57,7 +57,7 @@
 # network without the controller (notebook 10). The premise, plasticity loss, shows faintly in an
 # MLP, clearly in the dense MoE and late in SMoE (which trains with far fewer updates after the
 # first switch); shrink-and-perturb removes the MLP's (notebook 09). A probe of the first switch
-# (notebook 10) finds two readings that matter there: our log-std reset to σ = 0.3 narrows a
+# (notebook 10) points to two readings there: our log-std reset to σ = 0.3 narrows a
 # policy that had widened to σ ≈ 0.86, and that makes the controller's whole gap over the first
 # 600 iterations after it; and with top-1 routing and the PPO ratio on the current routes, the few
 # rows the router moves tripped every target-KL stop the probe examined: after the first switch

@@ -545,8 +545,9 @@ if top2_runs:
 #   networks, and they train with a fraction of the gradient steps an MLP takes.
 #
 # The verdict at `paper` is therefore on the method as we read it, with two readings the probe
-# shows to matter: the log-std reset's value, and the routes the PPO ratio uses (replaying the
-# rollout's routes is the other reading, not run at this scale). Neither has been run over the
+# points to: the log-std reset's value (shown to matter in this window), and the routes the PPO
+# ratio uses (their changes trip the stops; replaying the rollout's routes, the other reading, was
+# not run at this scale, so whether it matters is not known). Neither has been run over the
 # whole campaign: in this window PE-MAMoE without its reset only matches SMoE, which over the
 # whole run trails the three MLPs in return, coverage and served users; whether either reading
 # changes the ranking is open.
