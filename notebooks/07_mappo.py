@@ -138,8 +138,7 @@ from pemamoe.train_config import (  # re-export (public names only)
 #
 # The trainer owns the phase: iteration $t$ runs in phase $\lfloor t/L \rfloor \bmod 3$, and a
 # switch happens at every $t > 0$ with $t \bmod L = 0$ (Algorithm 1's "iteration mod L"), counted
-# by notebook 03's `PhaseSchedule` in iterations. The environment (`phase_clock="external"`) is
-# told the phase with `set_phase` before each rollout; the phase never enters an observation.
+# by notebook 03's `PhaseSchedule`; the environment is told it (`set_phase`), never observes it.
 
 # %%
 #| export
@@ -237,12 +236,10 @@ _adv.squeeze().tolist()
 # A slot's team reward is a QoS sum of up to several hundred minus energy, collision and overlap
 # penalties, so discounted returns reach the thousands and change scale at each phase switch (the
 # class rewards go 5 → 10 → 20). A critic regressing such targets directly produces huge
-# value-loss gradients. We use MAPPO's remedy: a running mean $\mu$ and standard deviation
-# $\sigma$ of every return seen so far, updated with each new batch before the update. The critic
-# regresses the normalised return $(\hat R - \mu)/\sigma$, and the rollout reads its values back
-# as $\mu + \sigma\,\hat v$ for GAE. Switch it off with `value_norm=False`. The statistics are
-# bookkeeping (`RunningNorm`, a parallel Welford update in float64, checkpointed with the run, and
-# `ValueNorms`, one per member of a population): appendix 07e.
+# value-loss gradients. MAPPO's remedy: a running mean $\mu$ and deviation $\sigma$ of all returns
+# so far (updated before each update); the critic regresses $(\hat R - \mu)/\sigma$ and the rollout
+# reads values back as $\mu + \sigma\,\hat v$ for GAE (`value_norm=False` switches it off; the
+# bookkeeping, `RunningNorm` and `ValueNorms`, is appendix 07e's).
 
 # %% [markdown]
 # ## Rollout
@@ -252,8 +249,8 @@ _adv.squeeze().tolist()
 # keep it for the update. With `update_routing="current"` (the default, notebook 05) the update
 # replays the stored noise and temperature and lets the current router choose the experts again,
 # so a change of route is a change of policy that PPO's ratio $\pi_\theta(a|o)/\pi_{\text{old}}(a|o)$
-# sees and clips; `"replay"` also reuses the rollout's experts. The critic's routing is stored too. Actions are stored unclipped (the log-probability belongs to the sampled Gaussian
-# action); the environment clips them to $[-1, 1]^2$ and reports it in `info`.
+# sees and clips; `"replay"` also reuses the rollout's experts. The critic's routing is stored too.
+# Actions are stored unclipped (their log-probability is the Gaussian's); the environment clips.
 #
 # `EpisodeTracker` (appendix 07e) accumulates each environment's running episode (team return and
 # the system metrics) and emits one row per finished episode.
@@ -361,7 +358,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 
 
 # %% [markdown]
-# ## The update: clipped surrogate, value regression, per-minibatch KL stop
+# ## The update: clipped surrogate, value regression, KL stop
 #
 # For an agent row with stored action $a$, behaviour log-probability $\log\pi_{\text{old}}(a|o)$
 # and advantage $A$ (the team advantage of its environment step, normalised per minibatch), the
@@ -386,12 +383,16 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # and one advantage, this is the same estimator as shuffling agent rows, without evaluating each
 # state $U$ times.
 #
-# **Per-minibatch KL stop.** Before each gradient step the KL between behaviour and current policy
-# on the minibatch is estimated with CleanRL's $\widehat{\mathrm{KL}} = \mathbb E[(\rho - 1) - \log\rho]$;
-# past the iteration's target the update stops (no step on that minibatch, no further epoch), as in
-# Stable-Baselines3 (CleanRL checks only at epoch ends). A top-1 sparse actor's ratio is taken on the
-# current routes, so a row moved to another expert jumps in probability: at the paper's scale such
-# rows tripped every stop notebook 10's probe examined after the first switch.
+# **KL stop.** The KL between behaviour and current policy on a minibatch is estimated, before
+# that minibatch's step, with CleanRL's $\widehat{\mathrm{KL}} = \mathbb E[(\rho - 1) - \log\rho]$.
+# Where the estimate is read is a reading (the paper's Algorithm 1 draws no stop; its table names
+# a target KL, in CleanRL's words), set per run by `target_kl_check`: `"minibatch"` checks before
+# every step and stops at once past the target (no step on that minibatch, no further epoch; SB3
+# does this, at 1.5 times its target); `"epoch"` checks after each full epoch, on its last
+# minibatch's estimate, and skips the remaining epochs (CleanRL's continuous PPO); `target_kl=None`
+# never stops. A top-1 sparse actor's ratio is taken on the current routes, so a row moved to
+# another expert jumps in probability: at the paper's scale such rows tripped every per-minibatch
+# stop notebook 10's probe examined after the first switch.
 #
 # **Parameter groups.** `RunAdamW` (appendix 06d, `pemamoe.optim`) knows five named groups,
 # `router`, `experts`, `head`, `log_std` (actor) and `critic` (`group_index`). The phase controller
@@ -531,21 +532,28 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: _Minibat
 
 
 class _KLStop:
-    """Each member's early stop at its target KL: once a minibatch's estimate exceeds it, the member
-    takes no step on that minibatch nor on any later one of this update."""
+    """Each member's early stop at its target KL, read where its `target_kl_check` says (above):
+    per minibatch, before the step (`check`), or per epoch, on its last minibatch (`end_epoch`)."""
 
-    def __init__(self, target_kl: torch.Tensor):
-        self.target_kl = target_kl
+    def __init__(self, target_kl: torch.Tensor, per_epoch: torch.Tensor):
+        self.target_kl, self.per_epoch, self.any_per_epoch = target_kl, per_epoch, bool(per_epoch.any())
         self.stopped = torch.zeros(target_kl.shape, dtype=torch.bool, device=target_kl.device)
         self.epoch = torch.full(target_kl.shape, -1, dtype=torch.long, device=target_kl.device)  # -1: never stopped
 
     @torch.no_grad()
-    def check(self, approx_kl: torch.Tensor, epoch: int) -> torch.Tensor:
-        """The members that step on this minibatch, (R,) bool."""
-        over = approx_kl > self.target_kl
+    def _stop(self, over: torch.Tensor, epoch: int) -> torch.Tensor:
         self.epoch = torch.where(over & ~self.stopped, epoch, self.epoch)
         self.stopped = self.stopped | over
         return ~self.stopped
+
+    def check(self, approx_kl: torch.Tensor, epoch: int) -> torch.Tensor:
+        """The members that step on this minibatch, (R,) bool."""
+        over = approx_kl > self.target_kl
+        return self._stop(over & ~self.per_epoch if self.any_per_epoch else over, epoch)
+
+    def end_epoch(self, last_approx_kl: torch.Tensor, epoch: int) -> None:
+        if self.any_per_epoch:
+            self._stop((last_approx_kl > self.target_kl) & self.per_epoch, epoch)
 
 
 class _UpdateStatistics:
@@ -607,7 +615,8 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
                          sched.value_temperature.to(device), sched.lr_actor.to(device), sched.lr_critic.to(device))
     frozen = population.frozen_groups(sched)
     frozen_rows = None if frozen is None else frozen.index_select(1, population.actor_opt.group_of)  # (R, P)
-    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl)
+    per_epoch = torch.tensor([c.target_kl_check == "epoch" for c in population.configs], device=device)
+    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl, per_epoch)
     first_ratio_dev, noised = None, [0] * R
     sparse = actor.gated and actor.k < actor.n_experts
     offsets = torch.arange(R, device=device).unsqueeze(1) * N  # member r's steps are rows r*N.. of `steps`
@@ -634,6 +643,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
                 if counts is not None:
                     chosen = F.one_hot(mb_stats["experts"].reshape(R, -1), actor.n_experts).sum(1).float()
                     counts += chosen * stepping.unsqueeze(1)
+        kl_stop.end_epoch(mb_stats["approx_kl"], epoch)
         for r, n in enumerate(plasticity.after_epoch(counts, stepped_epoch)):
             noised[r] += n
         if bool(kl_stop.stopped.all()):
@@ -646,18 +656,14 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # %% [markdown]
 # ## Probe batch, checkpoints and the training loop
 #
-# The plasticity diagnostics of appendix 06e need a **fixed** probe batch, so that a change in
-# expert rank or dormant fraction reflects the network and not the data: `collect_probe`
-# (appendix 07e) draws it once per run, from the config alone, so a resumed run rebuilds the same.
+# The diagnostics of appendix 06e read a **fixed** probe batch (so rank or dormancy changes are the
+# network's): `collect_probe` (07e) draws it from the config alone, the same after a resume.
 #
-# A **checkpoint** holds everything the next iteration reads (both networks, the optimiser's
-# moments and step counts, the return normaliser, the phase controller, the random states, the
-# environments' complete state, the current observations, the running episodes and the log rows
-# so far), so a run resumed from it continues bit for bit. How a checkpoint is encoded, the run
-# folder's files and the columns of the per-iteration log row are in appendix 07e; how the loop
-# writes and reads its members' checkpoints (`MemberStates`) and how `train_population` resumes
-# members and lets them catch up, in 07d; how a folder is locked, sealed and checked before it is
-# trusted, in 07b.
+# A **checkpoint** holds everything the next iteration reads (networks, optimiser moments and step
+# counts, return normaliser, phase controller, random states, the environments' full state, current
+# observations, running episodes, log rows), so a resumed run continues bit for bit. Its encoding,
+# the folder's files and the log row's columns are in appendix 07e; `MemberStates` and resuming
+# members that catch up with each other in 07d; locking, sealing and checking a folder in 07b.
 
 # %% [markdown]
 # ### `train`
@@ -667,8 +673,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # checkpoint stores beyond the population (the running episodes, the log rows) is `MemberStates`'s
 # (appendix 07d), and what the loop reports after each iteration (the log rows with their
 # diagnostics, the progress bar) is `IterationLogger`'s (appendix 07e), so the loop holds the
-# algorithm and little else. `max_iterations` stops a run early with a checkpoint (it simulates an
-# interruption; `train(..., resume=True)` continues it).
+# algorithm and little else. `max_iterations` stops a run early with a checkpoint (`resume` continues).
 
 # %%
 #| export
@@ -872,21 +877,16 @@ for method, res in results.items():
 pd.concat(_summary).round(3)
 
 # %% [markdown]
-# **What this run shows, honestly.** At `ci` scale the runs last six iterations: they only prove
-# that the loop executes end to end, that the phase switches fire at iterations 2 and 4 (the
-# controller's KL weight, LR drop and log-std reset appear in the logged columns), and that every
-# column the figures need is produced.
+# **What this run shows, honestly.** At `ci` scale six iterations prove only that the loop runs,
+# the switches fire at iterations 2 and 4 (the controller's settings show in the logged columns)
+# and every column the figures need is produced.
 #
-# At the larger scales the table above is the place to look, phase by phase. Two things help in
-# reading it. Raw returns compare only *within* a phase type: the class reward per served user
-# rises from phase to phase (5, 10, 20), so the return curve is a staircase that follows the
-# phases whether or not the policy improves. And the PPO statistics say whether the updates are
-# healthy (an approximate KL far below the early-stop budget and clip fractions of a few per cent
-# mean small, stable steps; an explained variance near 0 means the critic has not yet learned the
-# return). The expert-rank panel is not a like-for-like comparison (the MLP's single trunk against
-# the mean of three experts). One seed shows what a run looks like, not which method is better:
-# the comparison over seeds, with IQM intervals and each phase's plateau as the yardstick, is
-# notebook 09's.
+# At larger scales read the table phase by phase. Raw returns compare only *within* a phase type
+# (the class reward per served user rises 5, 10, 20 from phase to phase, so the return is a
+# staircase whether or not the policy improves). A small approximate KL and clip fractions of a
+# few per cent mean healthy updates; an explained variance near 0, a critic that has not learned
+# the return. The MLP's rank (one trunk) is not like for like with the mean of three experts. One
+# seed shows what a run looks like; which method is better is notebook 09's question.
 #
 # Quick checks of the invariants the trainer promises (they also live in `tests/test_mappo.py`):
 

@@ -186,6 +186,10 @@ MLP_INERT_NET_IDENTITY = {"n_experts": 3, "top_k": 1, "load_balance_coef": 0.01,
 # NetConfig fields added after runs were first recorded, with the value those runs computed under:
 # a run that keeps it has the identity it had before the field existed.
 NET_FIELDS_ADDED = {"expert_heads": "shared", "update_routing": "replay"}
+# TrainConfig fields added after runs were first recorded, likewise.
+TRAIN_FIELDS_ADDED = {"target_kl_check": "minibatch"}
+# Where the target-KL early stop reads its estimate (see the field `target_kl_check`).
+TARGET_KL_CHECKS = ("minibatch", "epoch")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -239,7 +243,10 @@ class TrainConfig:
     ent_start: float = 0.01
     ent_end: float = 0.003
     ent_anneal_portion: float = 0.3  # of the whole run (baselines)
-    target_kl: float | None = 0.1  # per minibatch; None disables the early stop
+    target_kl: float | None = 0.1  # None disables the early stop
+    # "minibatch": before each minibatch's step, on that minibatch's estimate (a reading of ours);
+    # "epoch": after each full epoch, on its last minibatch's estimate (CleanRL's continuous PPO)
+    target_kl_check: str = "minibatch"
     max_grad_norm: float = 0.5
     norm_adv: bool = True
     value_norm: bool = True
@@ -286,6 +293,7 @@ class TrainConfig:
             require_field(self, name, "real", ge=0)
         require_field(self, "ent_anneal_portion", "real", gt=0, le=1)
         require_field(self, "target_kl", "real", gt=0, optional=True)
+        require_field(self, "target_kl_check", "choice", TARGET_KL_CHECKS)
         require_field(self, "max_grad_norm", "real", gt=0)
         for name in ("force_controller", "anneal_lr", "clip_vloss", "norm_adv", "value_norm"):
             require_field(self, name, "bool")
@@ -366,6 +374,7 @@ class TrainConfig:
         d = dict(d)
         # a config written before a NetConfig field existed computed under that field's value then
         d["net"] = NetConfig(**{**NET_FIELDS_ADDED, **d.get("net", {})})
+        d = {**TRAIN_FIELDS_ADDED, **d}
         d["controller"] = PhaseControllerConfig(**d.get("controller", {}))
         d["adam_betas"] = tuple(d.get("adam_betas", (0.9, 0.999)))
         d.pop("label", None)
@@ -384,6 +393,9 @@ class TrainConfig:
         for name, value in NET_FIELDS_ADDED.items():  # at the value every earlier run had: absent, as then
             if d["net"].get(name) == value:
                 d["net"].pop(name)
+        for name, value in TRAIN_FIELDS_ADDED.items():
+            if d.get(name) == value:
+                d.pop(name)
         d["env"] = json.loads(json.dumps(asdict(self.env_config()), sort_keys=True))
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged
@@ -406,8 +418,10 @@ class TrainConfig:
         """Preset for scale "ci" | "small" | "medium" | "paper", then `overrides`.
 
         An override may name a TrainConfig field, a PhaseControllerConfig field (e.g.
-        noise_gamma=0.01), a NetConfig field, or `without=("noise_injection", ...)`.
-        Controller windows are rescaled to the preset's phase length unless overridden.
+        noise_gamma=0.01), a NetConfig field, or `without=("noise_injection", ...)`; a dotted name
+        says which config it is in ("controller.log_std_value", "net.top_k", "env.n_users" for an
+        environment override). Controller windows are rescaled to the preset's phase length unless
+        overridden.
         """
         check_scale(scale)
         preset = by_scale(
@@ -427,8 +441,12 @@ class TrainConfig:
         ctrl_names = {f.name for f in fields(PhaseControllerConfig)}
         net_names = {f.name for f in fields(NetConfig)}
         top, ctrl_over, net_over, without = {}, {}, {}, ()
+        env_over = {}
         for key, value in overrides.items():
-            if key == "without":
+            part, _, name = key.rpartition(".")
+            if part:
+                {"controller": ctrl_over, "net": net_over, "env": env_over}[_setting_part(key)][name] = value
+            elif key == "without":
                 without = (value,) if isinstance(value, str) else tuple(value)
             elif key in own:
                 top[key] = value
@@ -441,6 +459,8 @@ class TrainConfig:
                     f"TrainConfig.for_scale: unknown override {key!r}; use a field of TrainConfig, "
                     f"PhaseControllerConfig or NetConfig, or without=(mechanisms...)")
         settings = {**preset, **top}
+        if env_over:
+            settings["env_overrides"] = {**settings.get("env_overrides", {}), **env_over}
         preset = PhaseControllerConfig(**dict(method_spec(method).plasticity_preset))  # the method's preset
         ctrl = settings.pop("controller", None) or scale_controller(
             preset, settings["phase_length_iters"], settings["update_epochs"])
@@ -485,12 +505,86 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 # %% [markdown]
+# **Any field, by name.** A reading the paper leaves open is tried by changing one field, so every
+# field can be set from the command line: `train` and `sweep` take `--set FIELD=VALUE`, repeatable.
+# `FIELD` is a `TrainConfig` field (`target_kl=0.15`), or a dotted name for the nested configs:
+# `controller.log_std_value=0.3`, `net.top_k=2`, `env.n_users=30` (an environment override).
+# `VALUE` is read as JSON (`0.3`, `true`, `[0.9, 0.99]`), `none` is `None`, anything else is a
+# string (`target_kl_check=epoch`); an integer given to a float field becomes a float, a list
+# given to a tuple field a tuple. The config's own validators then check the value, so `--set`
+# refuses exactly what the Python API refuses, and the changed field is part of the run's identity
+# like any other. The method and the seed keep their own flags.
+
+# %%
+#| export
+SETTING_PARTS = {"controller": PhaseControllerConfig, "net": NetConfig, "env": EnvConfig}
+_OWN_FLAGS = ("method", "seed")
+
+
+def _setting_part(key: str) -> str:
+    """The nested config a dotted setting names ("controller", "net" or "env"); ValueError otherwise."""
+    part, _, name = key.rpartition(".")
+    if part not in SETTING_PARTS or not name:
+        raise ValueError(f"setting {key!r}: a dotted name must be controller.FIELD, net.FIELD or env.FIELD")
+    return part
+
+
+def _setting_field(key: str):
+    """The dataclass field a setting names (None for an environment setting, which EnvConfig checks)."""
+    part, _, name = key.rpartition(".")
+    if part == "env":
+        return None
+    owner = SETTING_PARTS[_setting_part(key)] if part else TrainConfig
+    by_name = {f.name: f for f in fields(owner)}
+    nested = () if part else tuple(SETTING_PARTS) + ("env_overrides",)
+    if name not in by_name or name in nested or (not part and name in _OWN_FLAGS):
+        allowed = sorted(set(by_name) - set(nested) - (set() if part else set(_OWN_FLAGS)))
+        where = f"{owner.__name__} field" if part else "TrainConfig field, or controller.FIELD, net.FIELD, env.FIELD"
+        raise ValueError(f"setting {key!r}: not a {where}; allowed{' ' + part + '.' if part else ''}: "
+                         f"{', '.join(allowed)}" + ("; --method and --seed have flags of their own"
+                                                    if name in _OWN_FLAGS and not part else ""))
+    return by_name[name]
+
+
+def parse_setting(text: str) -> tuple:
+    """"FIELD=VALUE" -> (FIELD, value), for `TrainConfig.for_scale`'s overrides (see above).
+    ValueError naming the text when it is not FIELD=VALUE or FIELD names no field; the value
+    itself is checked by the config it lands in."""
+    key, sep, raw = str(text).partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ValueError(f"setting {text!r} is not FIELD=VALUE (e.g. controller.log_std_value=0.3)")
+    field_ = _setting_field(key)
+    if raw.strip().lower() in ("none", "null"):
+        return key, None
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        value = {"True": True, "False": False}.get(raw.strip(), raw)
+    kind = "" if field_ is None else str(field_.type)
+    if "float" in kind and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if "tuple" in kind and isinstance(value, list):
+        value = tuple(value)
+    return key, value
+
+
+def parse_settings(texts) -> dict:
+    """Every "FIELD=VALUE" of `texts` (the last one wins for a field named twice) as overrides."""
+    return dict(parse_setting(t) for t in texts or ())
+
+
+# %% [markdown]
 # A config survives its own file, and a bad value is refused with a message that says what to
 # change:
 
 # %%
 _cfg = TrainConfig.for_scale("ci", method="pemamoe", seed=seed)
 assert TrainConfig.from_dict(json.loads(json.dumps(_cfg.to_dict()))) == _cfg
+_widened = TrainConfig.for_scale("ci", "pemamoe", seed, **parse_settings(["controller.log_std_value=0.3",
+                                                                         "target_kl_check=epoch"]))
+assert _widened.controller.log_std_value == 0.3 and _widened.target_kl_check == "epoch"
+assert _widened.config_hash() != _cfg.config_hash()
 try:
     TrainConfig.for_scale("ci", num_minibatches=3)
 except ValueError as err:

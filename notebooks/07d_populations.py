@@ -133,9 +133,10 @@ from pemamoe.train_config import TrainConfig, resolve_device
 #| export
 # Fields that members of one population may set differently; every other field is shared.
 # (fixed_phase: members may sit in different fixed phases, but either all cycle or none does;
-# lr and the entropy anneal reach the update only through each member's schedule, so a grid over
-# them trains as one population.)
-MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase", "lr", "ent_start", "ent_end")
+# lr, the entropy anneal and the target KL reach the update only through each member's schedule,
+# and target_kl_check through a per-member mask, so a grid over them trains as one population.)
+MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase", "lr", "ent_start", "ent_end", "target_kl",
+                 "target_kl_check")
 
 
 def population_key(config: TrainConfig) -> str:

@@ -108,6 +108,10 @@ class RunSpec:
             extra["noise_gamma"] = self.noise_gamma
         return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
 
+    def with_overrides(self, settings: dict) -> "RunSpec":
+        """The same run with `settings` (for_scale overrides, e.g. from `--set`) over its own."""
+        return dataclasses.replace(self, overrides=tuple({**dict(self.overrides), **settings}.items()))
+
     def run_dir(self, results_dir) -> Path:
         """The run's folder on this machine: in the results store's folder, or in its local cache
         when the store is a URL (appendix 09f)."""

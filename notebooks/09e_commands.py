@@ -66,6 +66,11 @@ from pemamoe.store import StoreAccessError, StoreLeaseError, check_access, open_
 
 # %%
 #| export
+SET_HELP = ("set any config field (repeatable), part of the run's identity: a TrainConfig field (target_kl=0.15, "
+            "target_kl_check=epoch) or a dotted nested one (controller.log_std_value=0.3, net.top_k=2, env.n_users=30); "
+            "VALUE is JSON, none, or a string (notebook 07c)")
+
+
 def sweep_cli(argv=None) -> int:
     import argparse
 
@@ -111,7 +116,10 @@ def sweep_cli(argv=None) -> int:
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
                         help="print where the sweep stands (populations, iterations, hours left) and train nothing")
+    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
+                        help=SET_HELP + "; applied to every run of the experiment")
     args = parser.parse_args(argv)  # --scale's choices are SCALES: argparse refuses any other
+    args.parser = parser
     if args.reading is not None and args.experiment not in READABLE_EXPERIMENTS:
         parser.error(f"--reading applies to the experiments {', '.join(READABLE_EXPERIMENTS)}; "
                      f"{args.experiment!r} fixes its own actor readings")
@@ -146,6 +154,16 @@ def _sweep(args) -> int:
 
     methods = tuple(args.methods) if args.methods else compared_methods()
     specs = experiment_specs(args.experiment, args.scale, args.seeds, methods, args.reading)
+    if args.settings:
+        from pemamoe.train_config import parse_settings
+
+        try:
+            settings = parse_settings(args.settings)
+            specs = [spec.with_overrides(settings) for spec in specs]
+            for spec in specs:
+                spec.to_config()  # the config's own validators, before anything trains
+        except ValueError as err:
+            args.parser.error(f"--set: {err}")
     if args.status:
         _print_status(specs, args)
         return 0

@@ -173,6 +173,7 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     # Light modules only (no torch): --help and an argument error must not wait for the trainer to
     # import. Every value is checked here, while the arguments are parsed (the seed's range too).
     from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, int_arg, real_arg
+    from pemamoe.commands import SET_HELP
     from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
     load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
@@ -204,6 +205,8 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
                    help="training iterations, overriding the preset's")
     p.add_argument("--no-resume", action="store_true",
                    help="start afresh even if --out holds a checkpoint or a finished run of this config")
+    p.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
+                   help=SET_HELP)
     p.set_defaults(train_parser=p)
     return p
 
@@ -252,8 +255,12 @@ def _train(args, parser: argparse.ArgumentParser) -> int:
     from pemamoe import mappo
     from pemamoe.mappo import METHODS
     from pemamoe.methods import method_spec
+    from pemamoe.train_config import parse_settings
 
-    overrides = {}
+    try:
+        overrides = parse_settings(args.settings)
+    except ValueError as err:
+        parser.error(f"--set: {err}")
     if args.iterations is not None:
         overrides["iterations"] = args.iterations
     if args.without:

@@ -37,13 +37,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 8 (line 144)
+# %% notebooks/07_mappo.py, cell 8 (line 143)
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 11 (line 186)
+# %% notebooks/07_mappo.py, cell 11 (line 185)
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -76,7 +76,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 261)
+# %% notebooks/07_mappo.py, cell 16 (line 258)
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -177,7 +177,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 417)
+# %% notebooks/07_mappo.py, cell 18 (line 418)
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -293,21 +293,28 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: _Minibat
 
 
 class _KLStop:
-    """Each member's early stop at its target KL: once a minibatch's estimate exceeds it, the member
-    takes no step on that minibatch nor on any later one of this update."""
+    """Each member's early stop at its target KL, read where its `target_kl_check` says (above):
+    per minibatch, before the step (`check`), or per epoch, on its last minibatch (`end_epoch`)."""
 
-    def __init__(self, target_kl: torch.Tensor):
-        self.target_kl = target_kl
+    def __init__(self, target_kl: torch.Tensor, per_epoch: torch.Tensor):
+        self.target_kl, self.per_epoch, self.any_per_epoch = target_kl, per_epoch, bool(per_epoch.any())
         self.stopped = torch.zeros(target_kl.shape, dtype=torch.bool, device=target_kl.device)
         self.epoch = torch.full(target_kl.shape, -1, dtype=torch.long, device=target_kl.device)  # -1: never stopped
 
     @torch.no_grad()
-    def check(self, approx_kl: torch.Tensor, epoch: int) -> torch.Tensor:
-        """The members that step on this minibatch, (R,) bool."""
-        over = approx_kl > self.target_kl
+    def _stop(self, over: torch.Tensor, epoch: int) -> torch.Tensor:
         self.epoch = torch.where(over & ~self.stopped, epoch, self.epoch)
         self.stopped = self.stopped | over
         return ~self.stopped
+
+    def check(self, approx_kl: torch.Tensor, epoch: int) -> torch.Tensor:
+        """The members that step on this minibatch, (R,) bool."""
+        over = approx_kl > self.target_kl
+        return self._stop(over & ~self.per_epoch if self.any_per_epoch else over, epoch)
+
+    def end_epoch(self, last_approx_kl: torch.Tensor, epoch: int) -> None:
+        if self.any_per_epoch:
+            self._stop((last_approx_kl > self.target_kl) & self.per_epoch, epoch)
 
 
 class _UpdateStatistics:
@@ -369,7 +376,8 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
                          sched.value_temperature.to(device), sched.lr_actor.to(device), sched.lr_critic.to(device))
     frozen = population.frozen_groups(sched)
     frozen_rows = None if frozen is None else frozen.index_select(1, population.actor_opt.group_of)  # (R, P)
-    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl)
+    per_epoch = torch.tensor([c.target_kl_check == "epoch" for c in population.configs], device=device)
+    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl, per_epoch)
     first_ratio_dev, noised = None, [0] * R
     sparse = actor.gated and actor.k < actor.n_experts
     offsets = torch.arange(R, device=device).unsqueeze(1) * N  # member r's steps are rows r*N.. of `steps`
@@ -396,6 +404,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
                 if counts is not None:
                     chosen = F.one_hot(mb_stats["experts"].reshape(R, -1), actor.n_experts).sum(1).float()
                     counts += chosen * stepping.unsqueeze(1)
+        kl_stop.end_epoch(mb_stats["approx_kl"], epoch)
         for r, n in enumerate(plasticity.after_epoch(counts, stepped_epoch)):
             noised[r] += n
         if bool(kl_stop.stopped.all()):
@@ -406,7 +415,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
     return out
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 673)
+# %% notebooks/07_mappo.py, cell 21 (line 678)
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

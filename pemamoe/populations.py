@@ -32,9 +32,10 @@ from pemamoe.train_config import TrainConfig, resolve_device
 # %% notebooks/07d_populations.py, cell 6 (line 132)
 # Fields that members of one population may set differently; every other field is shared.
 # (fixed_phase: members may sit in different fixed phases, but either all cycle or none does;
-# lr and the entropy anneal reach the update only through each member's schedule, so a grid over
-# them trains as one population.)
-MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase", "lr", "ent_start", "ent_end")
+# lr, the entropy anneal and the target KL reach the update only through each member's schedule,
+# and target_kl_check through a per-member mask, so a grid over them trains as one population.)
+MEMBER_FIELDS = ("seed", "controller", "force_controller", "fixed_phase", "lr", "ent_start", "ent_end", "target_kl",
+                 "target_kl_check")
 
 
 def population_key(config: TrainConfig) -> str:
@@ -75,7 +76,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07d_populations.py, cell 8 (line 188)
+# %% notebooks/07d_populations.py, cell 8 (line 189)
 @dataclass
 class RunResult:
     """What `train` returns (also rebuilt from a finished run directory by `load_run`)."""
@@ -116,7 +117,7 @@ def load_run(run_dir) -> RunResult:
                      actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
-# %% notebooks/07d_populations.py, cell 10 (line 239)
+# %% notebooks/07d_populations.py, cell 10 (line 240)
 @dataclasses.dataclass
 class Population:
     """What learns in a population of R runs, and what the update reads (see `build_population`)."""
@@ -178,7 +179,7 @@ def build_population(configs: list) -> Population:
                       ValueNorms(configs), generators, rngs, device)
 
 
-# %% notebooks/07d_populations.py, cell 12 (line 320)
+# %% notebooks/07d_populations.py, cell 12 (line 321)
 def _is_int(value) -> bool:
     """An int or a numpy integer, and not a bool (which Python counts as an int)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
@@ -252,7 +253,7 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
     return results
 
 
-# %% notebooks/07d_populations.py, cell 14 (line 409)
+# %% notebooks/07d_populations.py, cell 14 (line 410)
 @dataclass
 class MemberStates:
     """What a checkpoint stores of a population's members besides the `Population` itself (lists:
@@ -361,7 +362,7 @@ class MemberStates:
         return results
 
 
-# %% notebooks/07d_populations.py, cell 16 (line 527)
+# %% notebooks/07d_populations.py, cell 16 (line 528)
 EVAL_ROUTINGS = ("noiseless", "trained")
 
 

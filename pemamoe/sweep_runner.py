@@ -66,6 +66,10 @@ class RunSpec:
             extra["noise_gamma"] = self.noise_gamma
         return TrainConfig.for_scale(self.scale, self.method, self.seed, **extra)
 
+    def with_overrides(self, settings: dict) -> "RunSpec":
+        """The same run with `settings` (for_scale overrides, e.g. from `--set`) over its own."""
+        return dataclasses.replace(self, overrides=tuple({**dict(self.overrides), **settings}.items()))
+
     def run_dir(self, results_dir) -> Path:
         """The run's folder on this machine: in the results store's folder, or in its local cache
         when the store is a URL (appendix 09f)."""
@@ -80,7 +84,7 @@ class RunSpec:
         return ", ".join(parts)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 8 (line 136)
+# %% notebooks/09c_sweep_runner.py, cell 8 (line 140)
 def group_specs(specs, population: int, workers: int = 1) -> list:
     """Pending runs as populations: runs whose configs share everything but the member fields
     (seed, controller settings, force_controller) go together, at most `population` per group,
@@ -255,7 +259,7 @@ def _record_ok(marker, config) -> bool:
         return False
 
 
-# %% notebooks/09c_sweep_runner.py, cell 10 (line 334)
+# %% notebooks/09c_sweep_runner.py, cell 10 (line 338)
 class SweepInterrupted(KeyboardInterrupt):
     """The sweep was stopped by SIGINT or SIGTERM (`signum`); running runs were killed, queued
     ones never started, and a rerun resumes them from their checkpoints."""
@@ -334,7 +338,7 @@ def _report_finished(group, finished, report) -> None:
             report(spec)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 12 (line 428)
+# %% notebooks/09c_sweep_runner.py, cell 12 (line 432)
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -526,7 +530,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 17 (line 690)
+# %% notebooks/09c_sweep_runner.py, cell 17 (line 694)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
