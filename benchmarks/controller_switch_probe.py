@@ -180,11 +180,14 @@ def _estimate_terms(population, batch) -> tuple:
     import torch
 
     with torch.no_grad():
-        new_logp, _, _, _, _, chosen = population.actor.evaluate(batch.obs, batch.actions, batch.routing)
-        logratio = new_logp - batch.logprobs
-        R, n = logratio.shape
+        R, steps, U = batch.logprobs.shape  # a minibatch of the trainer's Batch: its m*U agent rows
+        n = steps * U
+        routing = batch.routing.reshape(R, n)
+        new_logp, _, _, _, _, chosen = population.actor.evaluate(batch.obs.reshape(R, n, -1),
+                                                                 batch.actions.reshape(R, n, -1), routing)
+        logratio = new_logp - batch.logprobs.reshape(R, n)
         moved = (chosen.reshape(R, n, -1).sort(-1).values
-                 != batch.routing.experts.reshape(R, n, -1).sort(-1).values).any(-1)
+                 != routing.experts.reshape(R, n, -1).sort(-1).values).any(-1)
         return (logratio.exp() - 1) - logratio, moved
 
 

@@ -99,7 +99,8 @@ import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shri
 from pemamoe.phases import PhaseSchedule
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
     EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, Population, RunResult, build_population, check_population,
-    evaluate_policy, load_run, member_networks, plasticity_name, population_key, train_members)
+    TrainState, evaluate_policy, load_run, member_networks, phase_schedule, plasticity_name, population_key,
+    train_members)
 from pemamoe.runs import write_done
 # the configuration (appendix 07c): callers import TrainConfig and the presets from here
 from pemamoe.train_config import (  # re-export (public names only)
@@ -138,13 +139,13 @@ from pemamoe.train_config import (  # re-export (public names only)
 #
 # The trainer owns the phase: iteration $t$ runs in phase $\lfloor t/L \rfloor \bmod 3$, and a
 # switch happens at every $t > 0$ with $t \bmod L = 0$ (Algorithm 1's "iteration mod L"), counted
-# by notebook 03's `PhaseSchedule`; the environment is told it (`set_phase`), never observes it.
+# by notebook 03's `PhaseSchedule` (`phase_schedule(config)`, built by the driver of appendix 07d);
+# the environment is told the phase (`set_phase`), never observes it. At the paper's scale:
 
 # %%
-#| export
-def phase_schedule(config: TrainConfig) -> PhaseSchedule:
-    """The iteration-counted phase clock of a run."""
-    return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
+_clock = phase_schedule(TrainConfig.for_scale("paper"))
+assert [bool(_clock.is_switch(t)) for t in (0, 1199, 1200)] == [False, False, True]
+[int(_clock.phase_at(t)) for t in (0, 1200, 2400, 3600)]
 
 # %% [markdown]
 # ## What learns: the population
@@ -254,6 +255,12 @@ _adv.squeeze().tolist()
 #
 # `EpisodeTracker` (appendix 07e) accumulates each environment's running episode (team return and
 # the system metrics) and emits one row per finished episode.
+#
+# **One `Batch` from rollout to minibatch.** The rollout is a `Batch` with leading axes (R, T, B);
+# `with_gae` adds each member's advantages and returns; `for_update` keeps what the update reads,
+# normalises returns and values by each member's normaliser and `flatten`s member and step into one
+# axis; `take(rows)` draws a minibatch of every member at once, (R, m, ...). The type never changes
+# on the way, only the leading axes (PureJaxRL's `Transition`, reshaped and split).
 
 # %%
 #| export
@@ -262,18 +269,58 @@ _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
 
 
-class Rollout(NamedTuple):
-    """One iteration's data of a population; leading axes (R, T, B) = (members, rollout_steps, num_envs)."""
+class Batch(NamedTuple):
+    """One iteration's data of a population, the one type from rollout to minibatch. The member axis
+    R leads, then the step axes: (R, T, B) as collected (T = rollout_steps, B = num_envs); one
+    (R*N,) axis once `flatten`ed over member and step (N = T*B); (R, m) in a minibatch (`take`).
+    Agent rows (U) follow where a field has them. advantages and returns are None until `with_gae`;
+    a field the update does not read is None in its flattened batch (`for_update`)."""
 
     obs: torch.Tensor  # (R, T, B, U, obs_dim)
     states: torch.Tensor  # (R, T, B, state_dim)
     actions: torch.Tensor  # (R, T, B, U, act_dim), unclipped samples
-    logprobs: torch.Tensor  # (R, T, B, U)
-    values: torch.Tensor  # (R, T, B) V(s_t), de-normalised, float64
-    rewards: torch.Tensor  # (R, T, B) team reward, float64
-    dones: torch.Tensor  # (R, T, B) the episode ended at step t (terminated or truncated)
-    next_values: torch.Tensor  # (R, T, B) value that follows step t (see bootstrap_values)
-    actor_routing: RoutingSample | None  # leading (R, T, B, U)
+    logprobs: torch.Tensor  # (R, T, B, U) behaviour log-probabilities
+    values: torch.Tensor  # (R, T, B) V(s_t), de-normalised, float64 (for the update: normalised, float32)
+    rewards: torch.Tensor | None  # (R, T, B) team reward, float64
+    dones: torch.Tensor | None  # (R, T, B) the episode ended at step t (terminated or truncated)
+    next_values: torch.Tensor | None  # (R, T, B) value that follows step t (see bootstrap_values)
+    routing: RoutingSample | None  # leading (R, T, B, U): the rollout's routing, replayed in the update
+    advantages: torch.Tensor | None = None  # (R, T, B) GAE
+    returns: torch.Tensor | None = None  # (R, T, B) advantages + values (for the update: normalised, float32)
+
+    def with_gae(self, gamma: float, gae_lambda: float) -> "Batch":
+        """The batch with each member's GAE advantages and returns (compute_gae over the time axis)."""
+        adv, ret = compute_gae(*(x.transpose(0, 1) for x in (self.rewards, self.values, self.next_values,
+                                                               self.dones)), gamma, gae_lambda)
+        return self._replace(advantages=adv.transpose(0, 1).contiguous(), returns=ret.transpose(0, 1).contiguous())
+
+    def for_update(self, norms, device) -> "Batch":
+        """What PPO's update reads, flattened, on `device`: returns and values normalised by each
+        member's normaliser (the critic's targets, and where value clipping starts), float32."""
+        return self._replace(
+            actions=self.actions.to(device), logprobs=self.logprobs.to(device),
+            values=norms.normalize(self.values).float().to(device), rewards=None, dones=None, next_values=None,
+            routing=None if self.routing is None else self.routing.to(device),
+            advantages=self.advantages.float().to(device), returns=norms.normalize(self.returns).float().to(device),
+        ).flatten()
+
+    def flatten(self) -> "Batch":
+        """(R, T, B, ...) -> (R*N, ...): one index_select per field then draws a minibatch of every member."""
+        R, T, B = self.obs.shape[:3]
+        return self._map(lambda x: x.reshape(R * T * B, *x.shape[3:]))
+
+    def take(self, rows: torch.Tensor, R: int) -> "Batch":
+        """The minibatch of a flattened batch's rows `rows` (R*m,) = member * N + step, member by member:
+        (R, m, ...)."""
+        return self._map(lambda x: x.index_select(0, rows).reshape(R, -1, *x.shape[1:]))
+
+    def _map(self, f) -> "Batch":
+        def apply(x):
+            if isinstance(x, RoutingSample):
+                return RoutingSample(*(f(t) for t in x))
+            return None if x is None else f(x)
+
+        return Batch(*(apply(x) for x in self))
 
 
 def _member_view(x, R: int):
@@ -297,7 +344,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     """Run `steps` (default: the config's rollout_steps) slots of every environment of a population.
 
     venv holds R*B environments, member r's in rows r*B..(r+1)*B-1. Values come from the critic
-    with noiseless gating (they enter GAE; see above). Returns (Rollout, next obs, next state,
+    with noiseless gating (they enter GAE; see above). Returns (Batch (R, T, B), next obs, next state,
     per-member step statistics {key: (R,) array}, per-member lists of finished-episode rows).
     """
     actor, critic, norms, generators = population.actor, population.critic, population.norms, population.generators
@@ -347,14 +394,14 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     values, dones = stack("values"), stack("dones")
     next_values = bootstrap_values(values.transpose(0, 1), norms.denormalize(last_v.double().cpu()),
                                    dones.transpose(0, 1), stack("final").transpose(0, 1)).transpose(0, 1)
-    rollout = Rollout(
+    batch = Batch(
         obs=stack("obs", device), states=stack("states", device), actions=stack("actions"), logprobs=stack("logprobs"),
         values=values, rewards=stack("rewards"), dones=dones, next_values=next_values,
-        actor_routing=RoutingSample.cat(routes, dim=1) if routes else None,
+        routing=RoutingSample.cat(routes, dim=1) if routes else None,
     )
     stats = {f"step/{k}": v / steps for k, v in step_sums.items()}
-    stats.update(actor.routing_readings(rollout.obs, rollout.actor_routing, rollout.dones, noise_std))
-    return rollout, obs, state, stats, episode_rows
+    stats.update(actor.routing_readings(batch.obs, batch.routing, batch.dones, noise_std))
+    return batch, obs, state, stats, episode_rows
 
 
 # %% [markdown]
@@ -403,10 +450,10 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # every minibatch loss, `after_epoch(expert_counts, stepped)` after each epoch. A method may also
 # keep rollout rows for its next switch (`observe_rollout`) and log columns (`metrics`).
 #
-# **How the code reads.** `ppo_update(population, sched, data)` takes the `Population` above, the
-# iteration's settings and the rollout's data, and has the shape of CleanRL's update loop. Each
+# **How the code reads.** `ppo_update(population, sched, batch)` takes the `Population` above, the
+# iteration's settings and the rollout's `Batch`, and has the shape of CleanRL's update loop. Each
 # epoch draws one permutation per member; each minibatch is gathered for every member at once
-# (`_minibatch`), scored (`_minibatch_loss` returns the loss of each member and the statistics it
+# (`Batch.take`), scored (`_minibatch_loss` returns the loss of each member and the statistics it
 # logs), checked against the KL budget (`_KLStop`: a member over it takes no step now, nor later in
 # this update), back-propagated, clipped and stepped (`_gradient_step`), and added to the sums of
 # the logged statistics (`_UpdateStatistics`). The members' losses are summed into one number
@@ -421,33 +468,6 @@ _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
 
-class _Steps(NamedTuple):
-    """The update's data, one entry per environment step, flattened over (member, step) to
-    (R*N, ...): one index_select per tensor then draws a minibatch of every member at once."""
-
-    obs: torch.Tensor  # (R*N, U, obs_dim)
-    actions: torch.Tensor  # (R*N, U, A)
-    logprobs: torch.Tensor  # (R*N, U) behaviour log-probabilities
-    advantages: torch.Tensor  # (R*N,)
-    states: torch.Tensor  # (R*N, S)
-    returns: torch.Tensor  # (R*N,) normalised: the critic's targets
-    values: torch.Tensor  # (R*N,) normalised: the rollout's values (value clipping starts from them)
-    routing: tuple | None  # the rollout's (noise, experts, temperature), leading (R*N, U); None without gates
-
-
-class _Minibatch(NamedTuple):
-    """One minibatch of every member: m environment steps, their m*U agent rows for the actor."""
-
-    obs: torch.Tensor  # (R, m*U, obs_dim)
-    actions: torch.Tensor  # (R, m*U, A)
-    logprobs: torch.Tensor  # (R, m*U)
-    advantages: torch.Tensor  # (R, m)
-    states: torch.Tensor  # (R, m, S)
-    returns: torch.Tensor  # (R, m)
-    values: torch.Tensor  # (R, m)
-    routing: RoutingSample | None  # leading (R, m*U): the rollout's routing, replayed
-
-
 class _Coefficients(NamedTuple):
     """The iteration's per-member settings on the update's device: clip (R, 1), the others (R,)."""
 
@@ -459,47 +479,17 @@ class _Coefficients(NamedTuple):
     lr_critic: torch.Tensor
 
 
-def _flatten_steps(population: Population, data: dict) -> _Steps:
-    """`data` (see ppo_update) as flattened per-step tensors on the population's device, returns
-    and values normalised by each member's normaliser."""
-    R, N = data["obs"].shape[:2]
-    device, norms = population.device, population.norms
-
-    def flat(x):
-        return x.reshape(R * N, *x.shape[2:])
-
-    route = data["actor_routing"]
-    return _Steps(obs=flat(data["obs"]), actions=flat(data["actions"].to(device)),
-                  logprobs=flat(data["logprobs"].to(device)), advantages=flat(data["advantages"].float().to(device)),
-                  states=flat(data["states"].to(device)), returns=flat(norms.normalize(data["returns"]).float().to(device)),
-                  values=flat(norms.normalize(data["values"]).float().to(device)),
-                  routing=None if route is None else tuple(flat(x) for x in (route.noise, route.experts,
-                                                                              route.temperature)))
-
-
-def _minibatch(steps: _Steps, rows: torch.Tensor, R: int) -> _Minibatch:
-    """The minibatch of the flattened rows `rows` (R*m,) = member * N + step, member by member."""
-
-    def take(x):  # one index_select on the (R*N, ...) view: the numbers of x[member, step], through a cheaper kernel
-        return x.index_select(0, rows).reshape(R, -1, *x.shape[1:])
-
-    def agent_rows(x):  # (R*N, U, ...) -> (R, m*U, ...): the U agent rows of each chosen step
-        return take(x).reshape(R, agent_count, *x.shape[2:])
-
-    agent_count = (rows.numel() // R) * steps.obs.shape[1]
-    routing = None if steps.routing is None else RoutingSample(*(agent_rows(x) for x in steps.routing))
-    return _Minibatch(agent_rows(steps.obs), agent_rows(steps.actions), agent_rows(steps.logprobs),
-                      take(steps.advantages), take(steps.states), take(steps.returns), take(steps.values), routing)
-
-
-def _minibatch_loss(population: Population, coef: _Coefficients, batch: _Minibatch) -> tuple:
-    """PPO's loss on one minibatch, per member (R,), and the statistics it logs ({name: (R,) tensor}:
-    `_UPDATE_STATS` but the gradient norms, and "ratio" (R, m*U) and the chosen "experts")."""
+def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -> tuple:
+    """PPO's loss on one minibatch `batch` (R, m, ...), per member (R,), and the statistics it logs
+    ({name: (R,) tensor}: `_UPDATE_STATS` but the gradient norms, and "ratio" (R, m*U) and the
+    chosen "experts"). The actor sees the m*U agent rows of the minibatch's m steps."""
     actor, critic, config = population.actor, population.critic, population.config
-    R, rows = batch.logprobs.shape
-    steps = batch.advantages.shape[1]
-    new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(batch.obs, batch.actions, batch.routing)
-    logratio = new_logp - batch.logprobs
+    R, steps, U = batch.logprobs.shape
+    rows = steps * U
+    route = None if batch.routing is None else batch.routing.reshape(R, rows)
+    new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(
+        batch.obs.reshape(R, rows, -1), batch.actions.reshape(R, rows, -1), route)
+    logratio = new_logp - batch.logprobs.reshape(R, rows)
     ratio = logratio.exp()
     # every agent row of a step takes the step's team advantage, normalised over the member's minibatch
     adv = batch.advantages.unsqueeze(2).expand(R, steps, rows // steps).reshape(R, rows)
@@ -513,9 +503,9 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: _Minibat
         v_loss = torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean(1)
     else:
         v_loss = ((v - batch.returns) ** 2).mean(1)
-    route, sparse = batch.routing, actor.gated and actor.k < actor.n_experts
+    sparse = actor.gated and actor.k < actor.n_experts
     kl_ref = population.plasticity.extra_loss({
-        "obs": batch.obs, "tau": None if route is None else route.temperature,
+        "obs": batch.obs.reshape(R, rows, -1), "tau": None if route is None else route.temperature,
         "noise": None if route is None else route.noise, "experts": chosen if sparse else None,
         "mean": mean, "log_std": log_std})
     loss = pg_loss + config.vf_coef * v_loss - coef.ent_coef * entropy + actor.lb_coef * lb + critic.lb_coef * c_lb
@@ -598,19 +588,17 @@ def _gradient_step(population: Population, coef: _Coefficients, stepping, frozen
     return norms
 
 
-def ppo_update(population: Population, sched, data: dict) -> dict:
+def ppo_update(population: Population, sched, batch: Batch) -> dict:
     """`update_epochs` x `num_minibatches` PPO steps for every member of a population at once.
 
-    sched: the iteration's Schedules (from the plasticity method's `begin_iteration`); data (member
-    axis R, then N = T*B environment steps): obs (R, N, U, obs_dim), actions (R, N, U, A), logprobs
-    (R, N, U), advantages (R, N), returns (R, N), values (R, N) de-normalised, states (R, N, S),
-    actor_routing (leading (R, N, U)) or None. Each member stops at its own target KL (its later
-    minibatches leave it untouched, bit for bit). Returns {stat: (R,) list}.
+    sched: the iteration's Schedules (from the plasticity method's `begin_iteration`); batch: the
+    iteration's Batch (R, T, B) with its advantages and returns. Each member stops at its own target
+    KL (its later minibatches leave it untouched, bit for bit). Returns {stat: (R,) list}.
     """
     config, actor, plasticity = population.config, population.actor, population.plasticity
-    R, N = data["obs"].shape[:2]
+    R, N = batch.obs.shape[0], batch.obs.shape[1] * batch.obs.shape[2]
     device, mb = population.device, N // config.num_minibatches
-    steps = _flatten_steps(population, data)
+    steps = batch.for_update(population.norms, device)
     coef = _Coefficients(sched.clip_coef.to(device).unsqueeze(1), sched.target_kl.to(device), sched.ent_coef.to(device),
                          sched.value_temperature.to(device), sched.lr_actor.to(device), sched.lr_critic.to(device))
     frozen = population.frozen_groups(sched)
@@ -627,8 +615,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
         counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None  # experts chosen by stepped rows
         stepped_epoch = torch.zeros(R, dtype=torch.bool, device=device)
         for k in range(config.num_minibatches):
-            batch = _minibatch(steps, flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R)
-            loss, mb_stats = _minibatch_loss(population, coef, batch)
+            loss, mb_stats = _minibatch_loss(population, coef, steps.take(flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R))
             with torch.no_grad():
                 if first_ratio_dev is None:  # 0 up to rounding: the rollout's routing is replayed
                     first_ratio_dev = (mb_stats["ratio"] - 1.0).abs().amax(1)
@@ -666,14 +653,17 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
 # members that catch up with each other in 07d; locking, sealing and checking a folder in 07b.
 
 # %% [markdown]
-# ### `train`
+# ### One iteration, and `train`
 #
-# The loop below is the whole algorithm; read it top to bottom. It builds the population (above),
-# the environments and the phase clock, then runs the five steps of an iteration. What a
-# checkpoint stores beyond the population (the running episodes, the log rows) is `MemberStates`'s
-# (appendix 07d), and what the loop reports after each iteration (the log rows with their
-# diagnostics, the progress bar) is `IterationLogger`'s (appendix 07e), so the loop holds the
-# algorithm and little else. `max_iterations` stops a run early with a checkpoint (`resume` continues).
+# `iteration_step(state)` is one iteration of Algorithm 1 for every member, read top to bottom: the
+# phase clock and the plasticity method's switch, the rollout, GAE and the return normalisers, the
+# PPO update. It takes the `TrainState` (the population, its environments, the phase clock, the
+# running episodes, the current observations, the iteration and the environment steps so far) and
+# returns the next one with the iteration's `IterationLog`, PureJaxRL's `_update_step` with the
+# population axis. Everything around it is the driver's (`train_members`, appendix 07d): building
+# the population from its configs, resuming from checkpoints, the loop `state, log = step(state)`,
+# the log rows and diagnostics (`IterationLogger`, 07e), checkpoints and the deadline.
+# `max_iterations` stops a run early with a checkpoint (`resume` continues it).
 
 # %%
 #| export
@@ -707,85 +697,65 @@ def train_population(configs: list, run_dirs: list | None = None, resume: bool =
     with a checkpoint of every member; members that had not started by then are None. Returns one
     RunResult per config.
     """
-    return train_members(configs, run_dirs, resume, _train_group, max_iterations=max_iterations, threads=threads,
-                         verbose=verbose, progress=progress, deadline=deadline)
+    return train_members(configs, run_dirs, resume, iteration_step, max_iterations=max_iterations,
+                         threads=threads, verbose=verbose, progress=progress, deadline=deadline)
 
 
-def _train_group(configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress, deadline=None) -> list:
-    """The training loop for members that start at the same iteration (read top to bottom)."""
-    wall_start = time.perf_counter()
-    c0, R, B = configs[0], len(configs), configs[0].num_envs
-    # --- construction: every member from its own config and seed ----------------------------------
-    pop = build_population(configs)
-    venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=c0.env_config())
-    clock = phase_schedule(c0)
-    fixed = c0.fixed_phase is not None  # all members or none (check_population)
-    member_phase = [c.fixed_phase for c in configs]
-    venv.set_phase(np.repeat(member_phase, B) if fixed else clock.phase_at(0))
-    obs, state, _ = venv.reset()
-    members = MemberStates(pop, EpisodeTracker(R * B, members=R), wall_start)  # what a checkpoint adds (07d)
-    tracker = members.tracker
-    start, global_step, resumed_from = 0, 0, None
-    if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
-        start, global_step = members.restore(ckpts, venv, obs, state)
-        resumed_from = start
-    stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
-    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as log:  # 07e
-        for it in range(start, stop):
-            # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----
-            phase = member_phase if fixed else [int(clock.phase_at(it))] * R
-            switch = False if fixed else bool(clock.is_switch(it))
-            if not fixed:
-                venv.set_phase(phase[0])
-            if switch:
-                obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
-                tracker.discard_running()
-                pop.plasticity.on_switch(it)
-            sched = pop.plasticity.begin_iteration(it)
-            if c0.anneal_lr:
-                frac = 1.0 - it / c0.iterations
-                sched = dataclasses.replace(sched, lr_actor=sched.lr_actor * frac, lr_critic=sched.lr_critic * frac)
+class IterationLog(NamedTuple):
+    """What one iteration hands the log (appendix 07e's IterationLogger), every member at once."""
 
-            # --- 2. rollout of every member's environments -------------------------------------------
-            t0 = time.perf_counter()
-            ro, obs, state, step_stats, new_episodes = collect_rollout(pop, venv, obs, state, sched, tracker, it)
-            global_step += c0.batch_env_steps
-            rollout_time = time.perf_counter() - t0
+    iteration: int
+    phases: list  # each member's phase
+    switch: bool  # the phase switched at this iteration's first slot
+    global_step: int  # environment steps so far, per member
+    settings: object  # the iteration's Schedules
+    batch: Batch  # the rollout (R, T, B), with advantages and returns
+    step_stats: dict  # {key: (R,)}: the rollout's per-step means and routing readings
+    episodes: list  # per member, the rows of the episodes that finished
+    update: dict  # ppo_update's statistics, {stat: (R,) list}
+    rollout_time: float  # seconds
+    update_time: float  # seconds: GAE and the update
 
-            # --- 3. advantages (GAE) per member and return normalisers --------------------------------
-            t0 = time.perf_counter()
-            adv, ret = compute_gae(ro.rewards.transpose(0, 1), ro.values.transpose(0, 1),
-                                   ro.next_values.transpose(0, 1), ro.dones.transpose(0, 1), c0.gamma, c0.gae_lambda)
-            adv, ret = adv.transpose(0, 1).contiguous(), ret.transpose(0, 1).contiguous()  # (R, T, B)
-            pop.norms.update(ret)
-            N, U = c0.batch_env_steps, venv.n_agents
-            data = {
-                "obs": ro.obs.reshape(R, N, U, -1), "actions": ro.actions.reshape(R, N, U, -1),
-                "logprobs": ro.logprobs.reshape(R, N, U), "advantages": adv.reshape(R, N), "returns": ret.reshape(R, N),
-                "values": ro.values.reshape(R, N), "states": ro.states.reshape(R, N, -1),
-                "actor_routing": None if ro.actor_routing is None else ro.actor_routing.reshape(R, N, U).to(pop.device),
-            }
-            pop.plasticity.observe_rollout(data["obs"])  # rows for the next switch's probe batch, if it keeps any
 
-            # --- 4. PPO update of every member ------------------------------------------------------
-            upd = ppo_update(pop, sched, data)
-            update_time = time.perf_counter() - t0
-            # {} unless the update re-chooses routes:
-            step_stats.update(pop.actor.reroute_readings(data["obs"], data["actor_routing"]))
+def iteration_step(ts: TrainState) -> tuple:
+    """One iteration of every member: (the next TrainState, this iteration's IterationLog)."""
+    pop, venv, it, c0 = ts.population, ts.venv, ts.iteration, ts.population.config
+    obs, state = ts.obs, ts.state
+    # --- 1. phase clock and plasticity method: the new phase from the switch's first slot -----------
+    switch = ts.fixed_phases is None and bool(ts.clock.is_switch(it))
+    phases = ts.fixed_phases or [int(ts.clock.phase_at(it))] * len(pop.configs)
+    if ts.fixed_phases is None:
+        venv.set_phase(phases[0])
+    if switch:
+        obs, state, _ = venv.reset()  # episodes restart under the new phase (Algorithm 1's order)
+        ts.tracker.discard_running()
+        pop.plasticity.on_switch(it)
+    settings = pop.plasticity.begin_iteration(it)
+    if c0.anneal_lr:
+        frac = 1.0 - it / c0.iterations
+        settings = dataclasses.replace(settings, lr_actor=settings.lr_actor * frac, lr_critic=settings.lr_critic * frac)
 
-            # --- 5. logging and diagnostics, then checkpoints, per member ----------------------------
-            log.record(it, phase, switch, global_step, sched, ro, ret, step_stats, new_episodes, upd, rollout_time,
-                       update_time)
-            out_of_time = deadline is not None and time.time() >= deadline and it + 1 < stop
-            if (it + 1) % c0.checkpoint_every == 0 or it == stop - 1 or out_of_time:
-                members.save_all(run_dirs, venv, it + 1, global_step, obs, state)
-            if out_of_time:  # the checkpoint above holds everything: a resume continues bit for bit
-                stop = it + 1
-                break
-    finished = stop == c0.iterations
-    if finished and start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
-        members.save_all(run_dirs, venv, stop, global_step, obs, state)
-    return members.results(run_dirs, finished, global_step, resumed_from)
+    # --- 2. rollout of every member's environments ----------------------------------------------------
+    t0 = time.perf_counter()
+    batch, obs, state, step_stats, episodes = collect_rollout(pop, venv, obs, state, settings, ts.tracker, it)
+    rollout_time, t0 = time.perf_counter() - t0, time.perf_counter()
+
+    # --- 3. advantages (GAE) per member, then the return normalisers ------------------------------------
+    batch = batch.with_gae(c0.gamma, c0.gae_lambda)
+    pop.norms.update(batch.returns)
+    agent_rows = batch.obs.flatten(1, 2)  # (R, N, U, obs_dim)
+    pop.plasticity.observe_rollout(agent_rows)  # rows for the next switch's probe batch, if it keeps any
+
+    # --- 4. PPO update of every member --------------------------------------------------------------------
+    update = ppo_update(pop, settings, batch)
+    update_time = time.perf_counter() - t0
+    routes = None if batch.routing is None else batch.routing.reshape(*agent_rows.shape[:3]).to(pop.device)
+    step_stats.update(pop.actor.reroute_readings(agent_rows, routes))  # {} unless the update re-chooses routes
+
+    global_step = ts.global_step + c0.batch_env_steps
+    log = IterationLog(it, phases, switch, global_step, settings, batch, step_stats, episodes, update,
+                       rollout_time, update_time)
+    return ts._replace(obs=obs, state=state, iteration=it + 1, global_step=global_step), log
 
 # %% [markdown]
 # ## Demonstration: one PE-MAMoE run and one MLP run

@@ -98,6 +98,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -109,7 +110,9 @@ import pemamoe.plasticity_baselines  # noqa: F401  registers ReDo and shrink-and
 from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, ValueNorms, decode_arrays,
                                   encode_arrays, merge_env_states, split_env_state, write_checkpoint,
                                   write_rows_parquet)
-from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim
+from pemamoe.bookkeeping import IterationLogger, collect_probe  # the log rows and the probe batch (appendix 07e)
+from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
+from pemamoe.phases import PhaseSchedule
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.optim import RunAdamW, group_index
 from pemamoe.plasticity import plasticity_method
@@ -325,15 +328,15 @@ def _is_int(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
-def train_members(configs: list, run_dirs: list | None, resume: bool, train_group, *, max_iterations: int | None,
+def train_members(configs: list, run_dirs: list | None, resume: bool, step, *, max_iterations: int | None,
                   threads: int | None, verbose: bool, progress: bool | None, deadline: float | None) -> list:
-    """`train_population`'s bookkeeping around the training loop `train_group` (the trainer's, notebook 07).
+    """`train_population`'s driver around one iteration `step` (the trainer's `iteration_step`, notebook 07).
 
     Checks the arguments, reads back finished members, locks and prepares every other member's
     folder, loads its checkpoint, and trains members grouped by the iteration they start from: the
     group furthest behind trains up to the next group's iteration, checkpoints and joins it.
-    train_group(configs, run_dirs, ckpts, stop, verbose, progress, deadline) trains one group that
-    starts at one iteration and returns one RunResult per member. Returns one RunResult per config.
+    Each group trains in `_train_group`, iteration after iteration of `step(TrainState) ->
+    (TrainState, IterationLog)`. Returns one RunResult per config.
     """
     configs = list(configs)
     check_population(configs)
@@ -375,8 +378,8 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
                 catch_up = bool(pending) and all(dirs[r] is not None for r, _ in members)
                 after = min(pending) if catch_up else None
                 stop = max_iterations if after is None else min(after, max_iterations or after)
-                group = train_group([configs[r] for r, _ in members], [dirs[r] for r, _ in members],
-                                    [ck for _, ck in members], stop, verbose, progress, deadline)
+                group = _train_group(step, [configs[r] for r, _ in members], [dirs[r] for r, _ in members],
+                                     [ck for _, ck in members], stop, verbose, progress, deadline)
                 if deadline is not None and time.time() >= deadline:  # out of time: start nothing more
                     for (r, _), res in zip(members, group):
                         results[r] = dataclasses.replace(res, resumed_from=first_start[r] or None)
@@ -391,6 +394,72 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, train_grou
         for lock in locks:
             lock.release()
     return results
+
+
+# %% [markdown]
+# ## The driver: one group of members, iteration after iteration
+#
+# `_train_group` is everything around the algorithm for members that start at one iteration: it
+# builds the population, its environments (member r's in rows r·B..(r+1)·B−1) and the phase clock,
+# restores the members' checkpoints, and then calls the trainer's `step` once per iteration:
+# `state, log = step(state)` over a `TrainState`. After each step it records the log
+# (`IterationLogger`, appendix 07e), writes every member's checkpoint every `checkpoint_every`
+# iterations, at the stop and when the deadline has passed (the checkpoint holds everything, so a
+# resume continues bit for bit), and at the end each member's result.
+
+# %%
+#| export
+class TrainState(NamedTuple):
+    """What one iteration of a population reads and advances (notebook 07's `iteration_step`)."""
+
+    population: Population
+    venv: UAVVectorEnv  # R*B environments, member r's in rows r*B..(r+1)*B-1
+    clock: PhaseSchedule  # the iteration-counted phase clock
+    fixed_phases: list | None  # each member's fixed phase, or None: the phases cycle
+    tracker: EpisodeTracker  # running episodes of all R*B environments
+    obs: np.ndarray  # (R*B, U, obs_dim) current observations
+    state: np.ndarray  # (R*B, state_dim) current global states
+    iteration: int  # the next iteration to run
+    global_step: int  # environment steps so far, per member
+
+
+def phase_schedule(config: TrainConfig) -> PhaseSchedule:
+    """The iteration-counted phase clock of a run."""
+    return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
+
+
+def _train_group(step, configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress,
+                 deadline=None) -> list:
+    """Train members that start at one iteration up to `max_iterations` (or their end), one `step`
+    per iteration; returns one RunResult per member."""
+    wall_start = time.perf_counter()
+    c0, R, B = configs[0], len(configs), configs[0].num_envs
+    pop = build_population(configs)
+    venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=c0.env_config())
+    fixed = None if c0.fixed_phase is None else [c.fixed_phase for c in configs]  # all members or none
+    clock = phase_schedule(c0)
+    venv.set_phase(clock.phase_at(0) if fixed is None else np.repeat(fixed, B))
+    obs, state, _ = venv.reset()
+    members = MemberStates(pop, EpisodeTracker(R * B, members=R), wall_start)  # what a checkpoint adds
+    start, global_step, resumed_from = 0, 0, None
+    if any(ck is not None for ck in ckpts):  # every member of a group resumes from the same iteration
+        start, global_step = members.restore(ckpts, venv, obs, state)
+        resumed_from = start
+    ts = TrainState(pop, venv, clock, fixed, members.tracker, obs, state, start, global_step)
+    stop = c0.iterations if max_iterations is None else min(c0.iterations, max_iterations)
+    with IterationLogger(pop, members, [collect_probe(c) for c in configs], start, progress, verbose) as logger:
+        while ts.iteration < stop:
+            ts, log = step(ts)
+            logger.record(log)
+            out_of_time = deadline is not None and time.time() >= deadline and ts.iteration < stop
+            if ts.iteration % c0.checkpoint_every == 0 or ts.iteration == stop or out_of_time:
+                members.save_all(run_dirs, venv, ts.iteration, ts.global_step, ts.obs, ts.state)
+            if out_of_time:
+                stop = ts.iteration
+    finished = stop == c0.iterations
+    if finished and start >= stop:  # nothing ran (a finished checkpoint without done.json): rewrite the logs
+        members.save_all(run_dirs, venv, stop, ts.global_step, ts.obs, ts.state)
+    return members.results(run_dirs, finished, ts.global_step, resumed_from)
 
 
 # %% [markdown]

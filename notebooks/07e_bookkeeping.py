@@ -190,17 +190,15 @@ class IterationLogger:
         self.bar = Progress(config.iterations, start, label=config.method if R == 1 else f"{config.method} x{R}",
                             enabled=progress)
 
-    def record(self, it, phases, switch, global_step, sched, rollout, returns, step_stats, episodes, update,
-               rollout_time, update_time) -> None:
-        """Log iteration `it`: phases (one per member), switch, global_step (environment steps so far),
-        sched (the iteration's Schedules), rollout and returns (R, T, B), step_stats ({key: (R,)}),
-        episodes (per member, the finished episodes' rows), update (ppo_update's statistics) and the
-        seconds the rollout and the update took."""
+    def record(self, log) -> None:
+        """Log one iteration from its IterationLog (notebook 07): every member's row of the trainer's
+        columns, the plasticity method's own columns and, at diagnostic iterations, the plasticity
+        diagnostics; the timing columns; the finished episodes' rows."""
         pop, members, config = self.population, self.members, self.population.config
-        diagnose = it % config.diag_every == 0 or switch or it == config.iterations - 1
+        it, sched = log.iteration, log.settings
+        diagnose = it % config.diag_every == 0 or log.switch or it == config.iterations - 1
         for r in range(len(pop.configs)):
-            row = self._row(r, it, phases[r], switch, global_step, sched, rollout, returns, step_stats, episodes[r],
-                            update)
+            row = self._row(r, log)
             own = pop.plasticity.metrics(r)  # the method's own columns (none for most methods)
             if own.keys() & row.keys():
                 raise ValueError(f"{type(pop.plasticity).__name__}.metrics names trainer columns: "
@@ -212,20 +210,21 @@ class IterationLogger:
                 row.update(plasticity_diagnostics(actor, critic, self.probes[r][0], self.probes[r][1],
                                                   sched.members[r].policy_temperature))
             diag_time, seconds = time.perf_counter() - t1, members.seconds(r)
-            row.update(sps=config.batch_env_steps / max(rollout_time + update_time, 1e-9),
-                       sps_total=global_step / max(seconds, 1e-9), rollout_time=rollout_time,
-                       update_time=update_time, diag_time=diag_time, wall_time=seconds, population=len(pop.configs))
+            row.update(sps=config.batch_env_steps / max(log.rollout_time + log.update_time, 1e-9),
+                       sps_total=log.global_step / max(seconds, 1e-9), rollout_time=log.rollout_time,
+                       update_time=log.update_time, diag_time=diag_time, wall_time=seconds, population=len(pop.configs))
             members.metrics_rows[r].append(row)
-            members.episode_rows[r] += episodes[r]
-        self._show(it, phases)
+            members.episode_rows[r] += log.episodes[r]
+        self._show(it, log.phases)
 
-    def _row(self, r, it, phase, switch, global_step, sched, rollout, returns, step_stats, episodes, update) -> dict:
+    def _row(self, r, log) -> dict:
         """Member r's row of the trainer's own columns."""
-        pop = self.population
+        pop, batch, sched, global_step = self.population, log.batch, log.settings, log.global_step
         actor, norm = pop.actor, pop.norms.norms[r]
-        agents = rollout.obs.shape[3]  # (R, T, B, U, obs_dim)
-        row = {"iteration": it, "phase": phase, "switch": switch, "env_steps": global_step,
+        agents = batch.obs.shape[3]  # (R, T, B, U, obs_dim)
+        row = {"iteration": log.iteration, "phase": log.phases[r], "switch": log.switch, "env_steps": global_step,
                "agent_steps": global_step * agents}
+        episodes, step_stats, update = log.episodes[r], log.step_stats, log.update
         ep = pd.DataFrame(episodes)
         row["episodes"] = len(ep)
         for name, col in (("episode_return", "return"), ("episode_length", "length"), ("coverage", "coverage"),
@@ -234,7 +233,7 @@ class IterationLogger:
             row[name] = float(ep[col].mean()) if len(ep) else float("nan")
         row.update({k: float(v[r]) for k, v in step_stats.items()})
         row.update({k: v[r] for k, v in update.items()})  # ppo_update's statistics, in its order
-        row["explained_variance"] = explained_variance(rollout.values[r].reshape(-1), returns[r].reshape(-1))
+        row["explained_variance"] = explained_variance(batch.values[r].reshape(-1), batch.returns[r].reshape(-1))
         s = sched.members[r]
         lr_a, lr_c = float(sched.lr_actor[r]), float(sched.lr_critic[r])
         for name in pop.group_names:
@@ -247,8 +246,8 @@ class IterationLogger:
                     "noise_epochs_left": s.noise_epochs_left,
                     "log_std_mean": float(actor.params()["log_std"][r].detach().double().mean()),
                     "value_norm/mean": float(norm._mean()), "value_norm/std": float(norm.std)})
-        if rollout.actor_routing is not None and actor.k < actor.n_experts:
-            counts = torch.bincount(rollout.actor_routing.experts[r].reshape(-1).cpu(),
+        if batch.routing is not None and actor.k < actor.n_experts:
+            counts = torch.bincount(batch.routing.experts[r].reshape(-1).cpu(),
                                     minlength=actor.n_experts).double()
             for j, c in enumerate(counts / counts.sum()):
                 row[f"rollout/expert_frac{j}"] = float(c)

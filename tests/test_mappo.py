@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import pemamoe.mappo as mappo
+import pemamoe.populations as populations
 from pemamoe.mappo import (
     METHODS,
     TIMING_COLUMNS,
@@ -157,8 +158,8 @@ def test_first_ratio_is_one_directly():
         idx = torch.stack([torch.randperm(N)[: N // 2] for _ in range(R)])
         rows = torch.arange(R).unsqueeze(1)
         route = None
-        if ro.actor_routing is not None:
-            r = ro.actor_routing.reshape(R, N, U)
+        if ro.routing is not None:
+            r = ro.routing.reshape(R, N, U)
             route = mappo.RoutingSample(r.noise[rows, idx].reshape(R, -1, r.noise.shape[-1]),
                                         r.experts[rows, idx].reshape(R, -1, r.experts.shape[-1]),
                                         r.temperature[rows, idx].reshape(R, -1))
@@ -301,7 +302,7 @@ def test_done_json_short_circuits(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("recomputed a finished run")
 
-    monkeypatch.setattr(mappo, "_train_group", boom)
+    monkeypatch.setattr(populations, "_train_group", boom)
     again = train(cfg, tmp_path, resume=True)
     assert again.from_cache
     pd.testing.assert_frame_equal(again.metrics, first.metrics)

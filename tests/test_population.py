@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import pemamoe.mappo as mappo
+import pemamoe.populations as populations
 from pemamoe.bookkeeping import _unpack_rows
 from pemamoe.mappo import TIMING_COLUMNS, TrainConfig, train, train_population
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
@@ -319,16 +320,16 @@ def test_a_member_behind_catches_up_and_joins_the_population(tmp_path, monkeypat
     cfgs = [ci("moe", s, iterations=6, checkpoint_every=1) for s in (0, 1, 2)]
     train(cfgs[0], tmp_path / "m0", max_iterations=3)
     calls = []
-    real = mappo._train_group
+    real = populations._train_group
 
-    def spy(configs, run_dirs, ckpts, max_iterations, *args):
+    def spy(step, configs, run_dirs, ckpts, max_iterations, *args):
         calls.append((len(configs), None if ckpts[0] is None else int(ckpts[0]["iteration"]), max_iterations))
-        return real(configs, run_dirs, ckpts, max_iterations, *args)
+        return real(step, configs, run_dirs, ckpts, max_iterations, *args)
 
-    monkeypatch.setattr(mappo, "_train_group", spy)
+    monkeypatch.setattr(populations, "_train_group", spy)
     out = train_population(cfgs, [tmp_path / f"m{s}" for s in range(3)])
     assert calls == [(2, None, 3), (3, 3, None)]
     assert [r.resumed_from for r in out] == [3, None, None] and all(r.finished for r in out)
-    monkeypatch.setattr(mappo, "_train_group", real)
+    monkeypatch.setattr(populations, "_train_group", real)
     for s in range(3):
         _assert_same_run(out[s], train(cfgs[s], tmp_path / f"alone{s}"), tmp_path / f"m{s}", tmp_path / f"alone{s}")
