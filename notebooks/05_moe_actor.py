@@ -64,8 +64,8 @@ from pemamoe.methods import METHOD_REGISTRY, load_plugins
 # building blocks of the forward, the population), used by the classes below and re-exported here:
 from pemamoe.methods import (ACTOR_PARAM_GROUPS, CRITIC_PARAM_GROUPS, NETWORKS, check_param_groups,  # re-export
                              network_kind, register_network)
-from pemamoe.popnets import (EXPERT_IMPLS, ExpertBank, ParamLayout, PopulationActor, PopulationCritic,  # re-export  # noqa: F401
-                             RoutingSample, draw_routing_noise, gaussian_entropy, gaussian_kl, gaussian_log_prob,
+from pemamoe.popnets import (EXPERT_IMPLS, ActorEvaluation, ActorStep, ExpertBank, ParamLayout,  # re-export  # noqa: F401
+                             PopulationActor, PopulationCritic, RoutingSample, draw_routing_noise, gaussian_entropy, gaussian_kl, gaussian_log_prob,
                              loop_experts, masked_mixed, routing_noise_std, run_experts, run_linear, run_load_balance,
                              run_noise_scale)
 from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balance_loss, run_gate,  # re-export  # noqa: F401

@@ -474,6 +474,25 @@ class _Population:
         return self.layout.load_member(self.flat[r].detach().cpu(), module)
 
 
+class ActorStep(NamedTuple):
+    """What `PopulationActor.act` returns: the rollout's sample of every member."""
+
+    action: torch.Tensor  # (R, n, A) unclipped Gaussian samples
+    log_prob: torch.Tensor  # (R, n) their behaviour log-probabilities
+    routing: RoutingSample | None  # leading (R, n): the gate's random choices, None without gates
+
+
+class ActorEvaluation(NamedTuple):
+    """What `PopulationActor.evaluate` returns: the PPO update's pass over stored actions."""
+
+    log_prob: torch.Tensor  # (R, n) of the stored actions under the current parameters
+    entropy: torch.Tensor  # (R,) of the Gaussian (state-independent log-std)
+    load_balance: torch.Tensor  # (R,) the router's load-balance loss (0 without gates)
+    mean: torch.Tensor  # (R, n, A)
+    log_std: torch.Tensor  # (R, A)
+    experts: torch.Tensor | None  # (R, n, k) the experts chosen in this pass, None without gates
+
+
 class PopulationActor(_Population):
     """R actors of one kind with batched forward passes."""
 
@@ -493,7 +512,7 @@ class PopulationActor(_Population):
         """Sample actions for every member. obs (R, n, obs_dim), tau (R,) router temperature,
         generators: one torch.Generator per member (its gate noise, then its action noise),
         noise_std (R,): sigma of `fixed` or `annealed` routing noise (None: the config's noise_std).
-        Returns (action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None)."""
+        Returns an ActorStep: action (R, n, A), log_prob (R, n), RoutingSample with leading (R, n) or None."""
         R, n, _ = obs.shape
         tau_rows = tau.reshape(R, 1).expand(R, n).contiguous()
         noise = None
@@ -513,7 +532,7 @@ class PopulationActor(_Population):
                 noise = obs.new_zeros(R, n, self.n_experts)
             experts = gate[1] if gate[1] is not None else torch.arange(self.n_experts, device=obs.device).expand(R, n, -1)
             routing = RoutingSample(noise, experts, tau_rows)
-        return action, logp, routing
+        return ActorStep(action, logp, routing)
 
     @torch.no_grad()
     def routing_readings(self, obs, routing, dones, noise_std=None) -> dict:
@@ -562,8 +581,8 @@ class PopulationActor(_Population):
         return {"update/reroute_rate": moved.cpu().numpy()}
 
     def evaluate(self, obs, action, routing=None, flat=None):
-        """PPO update pass with the stored routing: (log_prob (R, n), entropy (R,), load-balance
-        loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None). The stored noise and
+        """PPO update pass with the stored routing, an ActorEvaluation: log_prob (R, n), entropy (R,),
+        load-balance loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None. The stored noise and
         temperature are always replayed; the stored experts only under update_routing="replay"
         (under "current" the router chooses again, so a changed route shows in the ratio)."""
         R, n, _ = obs.shape
@@ -577,11 +596,11 @@ class PopulationActor(_Population):
         logp = gaussian_log_prob(action, mean, log_std)
         entropy = gaussian_entropy(log_std)
         if gate is None:
-            return logp, entropy, obs.new_zeros(R), mean, log_std, None
+            return ActorEvaluation(logp, entropy, obs.new_zeros(R), mean, log_std, None)
         probs, chosen, _ = gate
         if chosen is None:  # dense mixing: the balance loss counts each row's top expert
             chosen = probs.argmax(-1, keepdim=True)
-        return logp, entropy, run_load_balance(probs, chosen, self.n_experts), mean, log_std, chosen
+        return ActorEvaluation(logp, entropy, run_load_balance(probs, chosen, self.n_experts), mean, log_std, chosen)
 
 
 class PopulationCritic(_Population):

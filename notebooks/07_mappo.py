@@ -359,9 +359,9 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     for _ in range(steps):
         o, s = _member_view(obs, R), _member_view(state, R)
         od, sd = o.to(device), s.to(device)
-        action, logp, routing = actor.act(od.reshape(R, B * U, -1), tau_pi, generators, noise_std=noise_std)
+        sample = actor.act(od.reshape(R, B * U, -1), tau_pi, generators, noise_std=noise_std)
         v, _, _ = critic(sd, tau_v)
-        obs, state, reward, terminated, truncated, info = venv.step(action.reshape(R * B, U, -1).cpu().numpy())
+        obs, state, reward, terminated, truncated, info = venv.step(sample.action.reshape(R * B, U, -1).cpu().numpy())
         done = terminated | truncated
         final = torch.zeros(R * B, dtype=torch.float64)
         boot = truncated & ~terminated
@@ -374,12 +374,13 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
             pick = rows[boot[rows]]
             final[pick] = fv[pick]
         buf["obs"].append(o), buf["states"].append(s)
-        buf["actions"].append(action.reshape(R, B, U, -1)), buf["logprobs"].append(logp.reshape(R, B, U))
+        buf["actions"].append(sample.action.reshape(R, B, U, -1))
+        buf["logprobs"].append(sample.log_prob.reshape(R, B, U))
         buf["values"].append(norms.denormalize(v.double().cpu()))
         buf["rewards"].append(torch.as_tensor(reward, dtype=torch.float64).reshape(R, B))
         buf["dones"].append(torch.as_tensor(done).reshape(R, B)), buf["final"].append(final.reshape(R, B))
-        if routing is not None:
-            routes.append(routing.reshape(R, 1, B, U))
+        if sample.routing is not None:
+            routes.append(sample.routing.reshape(R, 1, B, U))
         for k in _STEP_KEYS + _AGENT_FLAGS:
             step_sums[k] += np.asarray(info[k], dtype=float).reshape(R, -1).mean(axis=1)
         finished = tracker.update_members(np.asarray(reward, dtype=float), info, terminated, truncated, iteration)
@@ -487,9 +488,8 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -
     R, steps, U = batch.logprobs.shape
     rows = steps * U
     route = None if batch.routing is None else batch.routing.reshape(R, rows)
-    new_logp, entropy, lb, mean, log_std, chosen = actor.evaluate(
-        batch.obs.reshape(R, rows, -1), batch.actions.reshape(R, rows, -1), route)
-    logratio = new_logp - batch.logprobs.reshape(R, rows)
+    new = actor.evaluate(batch.obs.reshape(R, rows, -1), batch.actions.reshape(R, rows, -1), route)
+    logratio = new.log_prob - batch.logprobs.reshape(R, rows)
     ratio = logratio.exp()
     # every agent row of a step takes the step's team advantage, normalised over the member's minibatch
     adv = batch.advantages.unsqueeze(2).expand(R, steps, rows // steps).reshape(R, rows)
@@ -506,18 +506,19 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -
     sparse = actor.gated and actor.k < actor.n_experts
     kl_ref = population.plasticity.extra_loss({
         "obs": batch.obs.reshape(R, rows, -1), "tau": None if route is None else route.temperature,
-        "noise": None if route is None else route.noise, "experts": chosen if sparse else None,
-        "mean": mean, "log_std": log_std})
-    loss = pg_loss + config.vf_coef * v_loss - coef.ent_coef * entropy + actor.lb_coef * lb + critic.lb_coef * c_lb
+        "noise": None if route is None else route.noise, "experts": new.experts if sparse else None,
+        "mean": new.mean, "log_std": new.log_std})
+    loss = (pg_loss + config.vf_coef * v_loss - coef.ent_coef * new.entropy + actor.lb_coef * new.load_balance
+            + critic.lb_coef * c_lb)
     if kl_ref is not None:
         loss = loss + kl_ref
     with torch.no_grad():
-        stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy,
+        stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": new.entropy,
                  "kl_ref": torch.zeros(R, device=loss.device) if kl_ref is None else kl_ref,  # 0 when none is added
-                 "load_balance": lb, "critic_load_balance": c_lb,
+                 "load_balance": new.load_balance, "critic_load_balance": c_lb,
                  "approx_kl": ((ratio - 1) - logratio).mean(1),  # CleanRL's low-variance estimator
                  "clip_frac": ((ratio - 1.0).abs() > coef.clip).float().mean(1),
-                 "ratio": ratio, "experts": chosen}
+                 "ratio": ratio, "experts": new.experts}
     return loss, stats
 
 
