@@ -15,7 +15,8 @@ population with a checkpoint and packs each unfinished member's portable state i
 benchmarks/readings_probe/paper/in_progress/ (commit it: `unpack` restores it on another machine,
 then `train` goes on bit for bit). `report` writes benchmarks/READINGS_PROBE.md from the run folders:
 per method, reading and phase visit, mean coverage and return over the visit so far, gradient steps
-per iteration, and the policy's sigma just before and after each switch.
+per iteration, and the policy's sigma just before and after each switch; and the same per member in
+records/paper/probes/readings_probe.csv, which notebook 10b reads for the readings table.
 
     python benchmarks/readings_probe.py train --methods smoe --hours 2.5
     python benchmarks/readings_probe.py unpack     # on a fresh machine, before train
@@ -34,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results" / "readings_probe"
 STATES = ROOT / "benchmarks" / "readings_probe"  # its own records folder: portable states only
 REPORT = ROOT / "benchmarks" / "READINGS_PROBE.md"
+SUMMARY = ROOT / "records" / "paper" / "probes" / "readings_probe.csv"  # per member and visit, for notebook 10b
 ITERATIONS = 3600  # the first three phase visits at the paper scale (L = 1,200)
 SEEDS = (0, 1)
 KL_READINGS = {
@@ -92,10 +94,8 @@ def unpack(methods) -> None:
                 print(f"[probe] restored {config.run_name()}", flush=True)
 
 
-def visit_table(method: str, iterations: int) -> pd.DataFrame:
-    """One row per reading and phase visit: means over the seeds of what the members logged so far."""
-    from pemamoe.mappo import TrainConfig
-
+def visit_rows(method: str, iterations: int) -> pd.DataFrame:
+    """One row per member and phase visit of what the member logged so far (its run folder)."""
     rows = []
     for label, seed, config in members(method):
         path = RESULTS / config.run_name() / "metrics.parquet"
@@ -104,21 +104,28 @@ def visit_table(method: str, iterations: int) -> pd.DataFrame:
         m = pd.read_parquet(path)
         m = m[m.iteration < iterations]
         L = config.phase_length_iters
+        sigma = np.exp(m["log_std_mean"].to_numpy())
         for visit, g in m.groupby(m.iteration // L):
-            sigma = np.exp(g["log_std_mean"])
-            rows.append({"reading": label, "seed": seed, "visit": int(visit), "phase": int(g.phase.iloc[0]),
-                         "iterations": len(g), "coverage": g.coverage.mean(), "return": g.episode_return.mean(),
-                         "steps/iter": g.gradient_steps.mean(), "sigma first": float(sigma.iloc[0]),
-                         "sigma last": float(sigma.iloc[-1])})
-    if not rows:
-        return pd.DataFrame()
-    table = pd.DataFrame(rows)
-    return (table.groupby(["reading", "visit", "phase"], sort=False)
-            .agg(seeds=("seed", "nunique"), iterations=("iterations", "min"), coverage=("coverage", "mean"),
-                 ret=("return", "mean"), steps=("steps/iter", "mean"), sigma_first=("sigma first", "mean"),
-                 sigma_last=("sigma last", "mean"))
-            .reset_index().rename(columns={"ret": "return", "steps": "gradient steps/iter",
-                                           "sigma_first": "sigma at visit start", "sigma_last": "sigma at visit end"}))
+            first = int(g.index[0])
+            rows.append({"method": method, "reading": label, "seed": seed, "run": config.run_name(),
+                         "visit": int(visit), "phase": int(g.phase.iloc[0]), "iterations": len(g),
+                         "coverage": g.coverage.mean(), "return": g.episode_return.mean(),
+                         "gradient_steps": int(g.gradient_steps.sum()),
+                         "sigma_before": float(sigma[first - 1]) if first > 0 else np.nan,
+                         "sigma_first": float(sigma[first]), "sigma_last": float(sigma[int(g.index[-1])])})
+    return pd.DataFrame(rows)
+
+
+def visit_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """Means over the seeds, one row per reading and visit."""
+    table = (rows.assign(steps_per_iteration=rows.gradient_steps / rows.iterations)
+             .groupby(["reading", "visit", "phase"], sort=False)
+             .agg(seeds=("seed", "nunique"), iterations=("iterations", "min"), coverage=("coverage", "mean"),
+                  ret=("return", "mean"), steps=("steps_per_iteration", "mean"), sigma_before=("sigma_before", "mean"),
+                  sigma_first=("sigma_first", "mean"), sigma_last=("sigma_last", "mean"))
+             .reset_index())
+    return table.rename(columns={"ret": "return", "steps": "gradient steps/iter", "sigma_before": "sigma before",
+                                 "sigma_first": "sigma at visit start", "sigma_last": "sigma at visit end"})
 
 
 def report(methods, iterations: int) -> Path:
@@ -131,11 +138,13 @@ def report(methods, iterations: int) -> Path:
              "results/readings_probe/ (do not edit by hand). Means over the seeds trained so far; a visit "
              "still in progress counts the iterations logged so far (column `iterations`: the fewest of any seed). "
              f"Gradient steps per iteration are out of 8 x 32 = 256. See the script's docstring for the readings.", ""]
-    for method in methods:
-        table = visit_table(method, iterations)
-        if table.empty:
-            continue
-        lines += [f"## {method}", "", table.to_markdown(index=False, floatfmt=".3f"), ""]
+    frames = [visit_rows(method, iterations) for method in methods]
+    frames = [f for f in frames if not f.empty]
+    for rows in frames:
+        lines += [f"## {rows.method.iloc[0]}", "", "```text", visit_table(rows).round(3).to_string(index=False), "```", ""]
+    if frames:  # what notebook 10b reads (committed): one row per member and visit
+        SUMMARY.parent.mkdir(parents=True, exist_ok=True)
+        pd.concat(frames).to_csv(SUMMARY, index=False, float_format="%.6g")
     REPORT.write_text("\n".join(lines))
     return REPORT
 

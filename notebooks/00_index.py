@@ -111,6 +111,7 @@
 # | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_results_store.py` | `pemamoe/store.py` | |
 # | (appendix to VI) reading results: the IQM and its bootstrap intervals, the heuristics' levels, curves over training | `09g_analysis.py` | `pemamoe/analysis.py` | |
 # | VI-G ablations; the headline claims against the paper's numbers | `10_ablations.py` | | noise sweep, tricks ablation, `headline_*` tables |
+# | the settings the paper leaves open that move the paper-scale verdict (Algorithm 1, training table) | `10b_readings.py` | | `readings`, `log_std_reset_direction`, `update_budget` tables (paper scale) |
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #
 # `paper_figures/README.md` lists every regenerated file with its paper counterpart, the notebook,

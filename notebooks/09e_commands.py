@@ -275,13 +275,14 @@ for _argv in (["--scale", "huge"], ["--results-dir", "/nonexistent/x", "--status
 #
 # The paper scale is a campaign, not a rerun of everything: its runs cost hours each, so it trains
 # the main comparison with the two plasticity baselines (the experiment `campaign`, notebook 09)
-# and draws only what reads them, notebooks 09 and 10 (`PAPER_SCALE_NOTEBOOKS`; notebook 10
-# without its ablations). Its figures go to `paper_figures/paper_scale/`, beside the medium
+# and draws only what reads them, notebooks 09, 10 and 10b (`PAPER_SCALE_NOTEBOOKS`; notebook 10
+# without its ablations; 10b, the readings table). Its figures go to `paper_figures/paper_scale/`, beside the medium
 # scale's, which stay what every other notebook draws (`figures_plan`).
 
 # %%
 #| export
-PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
+# what reads the paper-scale campaigns
+PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py", "10b_readings.py")
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
 
 

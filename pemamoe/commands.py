@@ -189,7 +189,8 @@ def _method(text: str) -> str:
 
 
 # %% notebooks/09e_commands.py, cell 10 (line 282)
-PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
+# what reads the paper-scale campaigns
+PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py", "10b_readings.py")
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
 
 
@@ -328,7 +329,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 423)
+# %% notebooks/09e_commands.py, cell 11 (line 424)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

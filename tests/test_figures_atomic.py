@@ -144,7 +144,7 @@ def test_provenance_names_the_commit_of_the_inputs_not_of_the_figures(tmp_path):
 
 def test_the_paper_scale_draws_its_campaign_into_its_own_folder():
     """`make figures SCALE=paper` trains the campaign (the main comparison and, at the paper scale,
-    MLP + ReDo and MLP + shrink-and-perturb) and runs only notebooks 09 and 10, into
+    MLP + ReDo and MLP + shrink-and-perturb) and runs only notebooks 09, 10 and 10b, into
     paper_figures/paper_scale/; every other scale keeps paper_figures/ and every notebook."""
     from pemamoe.commands import PAPER_SCALE_NOTEBOOKS, figures_plan
     from pemamoe.core import REPO_ROOT, figure_notebooks
@@ -152,7 +152,8 @@ def test_the_paper_scale_draws_its_campaign_into_its_own_folder():
 
     folder, notebooks, experiments = figures_plan("paper")
     assert folder == REPO_ROOT / "paper_figures" / "paper_scale"
-    assert [nb.name for nb in notebooks] == list(PAPER_SCALE_NOTEBOOKS) == ["09_experiments.py", "10_ablations.py"]
+    assert [nb.name for nb in notebooks] == list(PAPER_SCALE_NOTEBOOKS) == ["09_experiments.py", "10_ablations.py",
+                                                                          "10b_readings.py"]
     assert experiments == ("campaign", "budget")
     campaign = experiment_specs("campaign", "paper")
     assert sorted({s.method for s in campaign}) == ["mlp", "mlp_redo", "mlp_snp", "moe", "pemamoe", "smoe"]
