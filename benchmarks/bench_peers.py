@@ -4,8 +4,8 @@ One invocation, interleaved rounds (every contender once per round, so drift of 
 machine hits them alike), one torch thread each, the paper preset's batch: 64 environments x 32
 steps = 2,048 environment steps (6,144 agent rows) per iteration, 8 epochs x 32 minibatches.
 
-* pemamoe MLP and PE-MAMoE at R = 1 and R = 16 (the population trainer, benchmarks/bench_train.py's
-  `measure`: one warm-up iteration, the median of two timed ones);
+* pemamoe MLP and PE-MAMoE at R = 1, 5 (campaign v2's population) and 16 (the population trainer,
+  benchmarks/bench_train.py's `measure`: one warm-up iteration, the median of two timed ones);
 * Stable-Baselines3 PPO on the PettingZoo environment through SuperSuit (each UAV a vector entry,
   parameters shared, a critic on the agent's own observation: independent PPO, the common
   parameter-shared baseline), actor and critic 149 -> 32 -> 32 with ReLU as pemamoe's MLP;
@@ -43,8 +43,10 @@ from pemamoe.mappo import TrainConfig, build_population  # noqa: E402
 
 ROUNDS = 3
 TIMED = 2  # iterations timed after one warm-up, per round and contender
-CONTENDERS = (("pemamoe MLP", "mlp", 1), ("pemamoe MLP", "mlp", 16),
-              ("pemamoe PE-MAMoE", "pemamoe", 1), ("pemamoe PE-MAMoE", "pemamoe", 16))
+# R = 5: the population campaign v2 trains (five seeds of one method, issue 57)
+CONTENDERS = (("pemamoe MLP", "mlp", 1), ("pemamoe MLP", "mlp", 5), ("pemamoe MLP", "mlp", 16),
+              ("pemamoe PE-MAMoE", "pemamoe", 1), ("pemamoe PE-MAMoE", "pemamoe", 5),
+              ("pemamoe PE-MAMoE", "pemamoe", 16))
 
 
 def preset() -> TrainConfig:
