@@ -23,7 +23,7 @@
 # * `pemamoe/mobility.py`: users grouped around a few hotspots whose centres wander across the
 #   area (reference-point group mobility, RPGM), each user following its group with a
 #   Gauss–Markov velocity of its own;
-# * the phases: the per-phase parameter table, the demand classes, and one `PhaseSchedule` object
+# * the phases: the per-phase parameter table, the demand classes, and one `PhaseClock` object
 #   that says which phase is active at any tick, whether the ticks are training iterations (the
 #   trainer) or environment steps (a standalone environment). Their code is the module
 #   `pemamoe/phases.py`, in appendix `03b_phases.py`; this notebook describes them and draws them.
@@ -68,7 +68,7 @@ pd.DataFrame({"user speed (m/s)": _table.user_speed_mps, "direction jitter": _ta
              index=pd.RangeIndex(len(_table.user_speed_mps), name="phase"))
 
 # %% [markdown]
-# Which phase is active when is one object, `PhaseSchedule`: in the paper the phase advances every
+# Which phase is active when is one object, `PhaseClock`: in the paper the phase advances every
 # L = 1200 training iterations (3 phases x 3 cycles); a standalone environment can use it with
 # its own step counter. It can also draw a random order (no phase follows itself), random
 # durations, or insert the held-out regime every k-th segment (pictured at the end). The table's
@@ -225,7 +225,7 @@ def step_mobility(state: MobilityState, speed_mps, jitter, cfg: MobilityConfig, 
 import matplotlib.pyplot as plt
 
 from pemamoe.core import by_scale, save_figure
-from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values
+from pemamoe.phases import PhaseConfig, PhaseClock, phase_values
 
 mob_cfg, phase_cfg = MobilityConfig(), PhaseConfig()
 steps = by_scale(scale, ci=16, small=32, paper=64)
@@ -283,10 +283,10 @@ plt.show()
 
 # %%
 variants = {
-    "fixed cycle (paper)": PhaseSchedule(period=5),
-    "random durations 3-8": PhaseSchedule(period=5, min_period=3, max_period=8, seed=seed),
-    "random order": PhaseSchedule(period=5, order="random", seed=seed),
-    "held-out after every 3": PhaseSchedule(period=5, held_out_every=3),
+    "fixed cycle (paper)": PhaseClock(period=5),
+    "random durations 3-8": PhaseClock(period=5, min_period=3, max_period=8, seed=seed),
+    "random order": PhaseClock(period=5, order="random", seed=seed),
+    "held-out after every 3": PhaseClock(period=5, held_out_every=3),
 }
 ticks = np.arange(60)
 fig, ax = plt.subplots(figsize=(9, 3))

@@ -16,7 +16,7 @@
 # Notebook 03 describes the phases: the paper's three regimes of the disaster scene, the demand
 # classes, our held-out regime, and how the phase switches. This appendix holds their code, in the
 # module `pemamoe.phases`: `PhaseConfig` (the per-phase parameter table), the demand classes and
-# how a user's class is drawn, and `PhaseSchedule`, the one phase clock that the trainer (its
+# how a user's class is drawn, and `PhaseClock`, the one phase clock that the trainer (its
 # ticks are iterations) and a standalone environment (its ticks are steps) share.
 
 # %%
@@ -152,7 +152,7 @@ def sample_demand_classes(cfg: PhaseConfig, phase, n_users: int, rng) -> np.ndar
 # %% [markdown]
 # ## One phase clock for the trainer and the environment
 #
-# `PhaseSchedule` maps a tick to a phase. In the paper's setting the ticks are training iterations
+# `PhaseClock` maps a tick to a phase. In the paper's setting the ticks are training iterations
 # and the phase advances every L = 1200 of them (3 phases × 3 cycles over 10,800 iterations); a
 # standalone environment can use the same object with its own step counter as the tick. Options:
 #
@@ -167,7 +167,7 @@ def sample_demand_classes(cfg: PhaseConfig, phase, n_users: int, rng) -> np.ndar
 # %%
 #| export
 @dataclass(frozen=True)
-class PhaseSchedule:
+class PhaseClock:
     """Which phase is active at each tick (iteration or env step); see the notebook for options."""
 
     period: int = 1200
@@ -185,10 +185,10 @@ class PhaseSchedule:
         require_field(self, "n_phases", "int", ge=1)
         require_field(self, "order", "choice", ("cyclic", "random"))
         if self.order == "random" and self.n_phases < 2:
-            raise config_error("PhaseSchedule", "n_phases", self.n_phases,
+            raise config_error("PhaseClock", "n_phases", self.n_phases,
                                "an integer >= 2 for a random order that never repeats a phase")
         if (self.min_period is None) != (self.max_period is None):
-            raise config_error("PhaseSchedule", "min_period", self.min_period,
+            raise config_error("PhaseClock", "min_period", self.min_period,
                                f"set together with max_period (here {self.max_period!r}), or both None")
         if self.min_period is not None:
             require_field(self, "min_period", "int", ge=1)
@@ -255,10 +255,10 @@ class PhaseSchedule:
 # every multiple of 4; a random order never repeats a phase.
 
 # %%
-fixed = PhaseSchedule(period=4)
+fixed = PhaseClock(period=4)
 assert [fixed.phase_at(t) for t in range(13)] == [0] * 4 + [1] * 4 + [2] * 4 + [0]
 assert fixed.switch_ticks(13) == [4, 8, 12]
-shuffled = PhaseSchedule(period=4, order="random", seed=seed)
+shuffled = PhaseClock(period=4, order="random", seed=seed)
 phases = [shuffled.phase_at(t) for t in range(0, 200, 4)]
 assert all(a != b for a, b in zip(phases, phases[1:]))
 print("fixed:", [fixed.phase_at(t) for t in range(13)], "| random order:", phases[:10])

@@ -75,7 +75,7 @@ from pemamoe.channel import (
 from pemamoe.core import config_error, require_field
 from pemamoe.energy import EnergyConfig, battery_update, slot_energy
 from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
-from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
+from pemamoe.phases import PhaseConfig, PhaseClock, phase_values, sample_demand_classes
 from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04c)
 
 # %% [markdown]
@@ -238,7 +238,7 @@ def colour_weights(n_uavs: int, cfg: EnvConfig):
     return interference_weights(reuse_colours(n_uavs, cfg.channel.reuse_factor), cfg.channel.adjacent_leakage)
 
 
-class Schedule(NamedTuple):
+class Allocation(NamedTuple):
     """The scheduler's decisions for a batch; (B, N, U) arrays are per (user, UAV) link."""
 
     covered: np.ndarray  # (B, N) bool: the nearest UAV is within the service radius
@@ -250,7 +250,7 @@ class Schedule(NamedTuple):
 
 
 def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radius_m, cfg: EnvConfig,
-                   weights=None) -> Schedule:
+                   weights=None) -> Allocation:
     """Association, admission, equal bandwidth split and feasibility power for a batch.
 
     horizontal_m, expected_gain: (B, N, U); target_rate_bps: (B, N); priority: (B, N) int, higher
@@ -292,10 +292,10 @@ def schedule_users(horizontal_m, expected_gain, target_rate_bps, priority, radiu
     np.put_along_axis(power_w, order, np.where(take, chosen, 0.0), axis=1)
     band = ch.colour_bandwidth_hz / np.maximum(n_admitted, 1)
     bandwidth = np.where(admitted, band[:, None, :], 0.0)
-    return Schedule(covered, nearest, admitted, power_w, bandwidth, n_admitted)
+    return Allocation(covered, nearest, admitted, power_w, bandwidth, n_admitted)
 
 
-def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
+def realised_rates(schedule: Allocation, gain, cfg: EnvConfig, weights=None):
     """Realised per-user rate (B, N) and SINR (B, N, U) on this slot's channel `gain` (B, N, U)."""
     ch = cfg.channel
     weights = colour_weights(gain.shape[-1], cfg) if weights is None else weights
@@ -439,7 +439,7 @@ def build_observations(uav_xy, battery_frac, user_xy, rate_frac, serving, demand
 class UAVBatchCore:
     """State and dynamics of B environments, advanced together (numpy, no per-user loops)."""
 
-    def __init__(self, cfg: EnvConfig, num_envs: int, seeds=None, schedule: PhaseSchedule | None = None):
+    def __init__(self, cfg: EnvConfig, num_envs: int, seeds=None, schedule: PhaseClock | None = None):
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.cfg = cfg
@@ -448,7 +448,7 @@ class UAVBatchCore:
         if len(seeds) != self.B:
             raise ValueError(f"expected {self.B} seeds, got {len(seeds)}")
         self.rng = BatchRandom(seeds, cfg.rng_chunk)
-        self.schedule = schedule or PhaseSchedule(period=cfg.phase_period_steps, n_phases=cfg.phases.n_phases)
+        self.schedule = schedule or PhaseClock(period=cfg.phase_period_steps, n_phases=cfg.phases.n_phases)
         if self.schedule.n_phases != cfg.phases.n_phases:
             raise ValueError(f"the phase schedule has n_phases={self.schedule.n_phases}, but the environment's "
                              f"PhaseConfig defines {cfg.phases.n_phases} phases")

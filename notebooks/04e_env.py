@@ -32,7 +32,7 @@ seed = 0
 #| export
 from pemamoe.core import require
 from pemamoe.env_model import (  # re-export: the model above
-    STEP_ENGINES, EnvConfig, Schedule, UAVBatchCore, build_observations, colour_weights, observation_dim,
+    STEP_ENGINES, EnvConfig, Allocation, UAVBatchCore, build_observations, colour_weights, observation_dim,
     observation_layout, pair_distances, realised_rates, reward_terms, schedule_users, slot_draws, state_dim)
 from pemamoe.env_wrappers import (  # re-export: the public environments, rendering, reference policies (appendix 04d)
     HEURISTICS, UAVParallelEnv, UAVVectorEnv, compile_step_kernels, hover_policy, kmeans_policy, random_policy,

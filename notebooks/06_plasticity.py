@@ -62,7 +62,7 @@ import torch
 
 from pemamoe.core import MECHANISMS  # re-export: the mechanisms' names live in core, for the command line (00b)
 from pemamoe.core import require_field
-from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, Schedules, base_entropy_coef,
+from pemamoe.plasticity import (RunSettings, IterationSettings, NoPlasticity, PopulationSettings, base_entropy_coef,
                                 linear_anneal, register_plasticity)
 from pemamoe.popnets import gaussian_kl
 
@@ -177,10 +177,10 @@ from pemamoe.popnets import gaussian_kl
 # ## Configuration
 #
 # Two frozen dataclasses. `PhaseControllerConfig` holds the switches and the switch-time numbers
-# (the PE-MAMoE part). `BaseSchedule` holds what every method shares with PPO (learning rate,
+# (the PE-MAMoE part). `RunSettings` holds what every method shares with PPO (learning rate,
 # clip, target KL, entropy schedule, run and phase lengths, the router temperature); the trainer
 # builds it from its own PPO config so there is one source for each number. Since every plasticity
-# method reads it, the baselines' too, `BaseSchedule` lives with the methods' interface (appendix
+# method reads it, the baselines' too, `RunSettings` lives with the methods' interface (appendix
 # 06b, `pemamoe.plasticity`); the controller modifies its values.
 
 # %%
@@ -318,7 +318,7 @@ def temperature_formula(since, cfg: PhaseControllerConfig):
     return cfg.tau_min + (cfg.tau_max - cfg.tau_min) * (0.5 * (1.0 + np.tanh(0.5 * z)))
 
 
-def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControllerConfig | None):
+def entropy_coef(iteration, since_phase, base: RunSettings, cfg: PhaseControllerConfig | None):
     """Entropy coefficient: over the run (cfg None or entropy_reset False), or re-annealed within each phase."""
     if cfg is not None and cfg.entropy_reset:
         span = max(cfg.entropy_phase_portion * base.phase_length, 1e-12)
@@ -422,7 +422,7 @@ def expert_parameters(actor, expert: int) -> list:
 # perturbation, so the anchor is the pre-switch policy), Adam reset, noise on every expert, windows
 # start, log-std reset; the entropy, LR, clip and temperature changes follow from the new
 # $\Delta = 0$ in `begin_iteration`, which calls the schedule functions above and hands the trainer
-# each member's `IterationSettings` (appendix 06b) stacked into `Schedules`. Before a member's
+# each member's `IterationSettings` (appendix 06b) stacked into `PopulationSettings`. Before a member's
 # first switch, and for a member whose config disables the controller (the baselines with
 # `force_controller`, in a shared population), the member trains bit for bit as under
 # `NoPlasticity`. All state a resume needs is in `state_dict(r)`: the switch time, the remaining
@@ -532,14 +532,14 @@ class PhaseController(NoPlasticity):
             value_temperature=tau if cfg.temperature_routers in ("value", "both") else b.temperature,
             router_frozen=frozen, conservative=conservative, noise_epochs_left=self.noise_left[r])
 
-    def begin_iteration(self, iteration: int) -> Schedules:
+    def begin_iteration(self, iteration: int) -> PopulationSettings:
         for r in range(self.R):  # a window counted in iterations ends here (the default counts epochs)
             if self.enabled[r] and self.cfgs[r].noise_window_unit == "iterations" and self.noise_left[r] > 0 \
                     and self.last_switch[r] is not None and iteration > self.last_switch[r]:
                 self.noise_left[r] -= 1
         settings = [self.member_settings(r, iteration) for r in range(self.R)]
         self.settings = settings
-        return Schedules.stack(settings, [b.lr for b in self.bases], self.device)
+        return PopulationSettings.stack(settings, [b.lr for b in self.bases], self.device)
 
     def extra_loss(self, batch: dict):
         """(R,) kl_coef * mean KL(pi_theta || pi_ref) on the minibatch, routing replayed; None when no member has an anchor."""
@@ -647,11 +647,11 @@ class MemberConfig:
     """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
 
     controller: PhaseControllerConfig = PhaseControllerConfig()
-    base: BaseSchedule = BaseSchedule()
+    base: RunSettings = RunSettings()
     controller_enabled: bool = True
     seed: int = 0
 
-    def base_schedule(self) -> BaseSchedule:
+    def base_schedule(self) -> RunSettings:
         return self.base
 
 
@@ -673,7 +673,7 @@ from pemamoe.plasticity import population_method
 
 torch.manual_seed(seed)
 demo_phase = 400
-demo_base = BaseSchedule(total_iterations=3 * demo_phase, phase_length=demo_phase)
+demo_base = RunSettings(total_iterations=3 * demo_phase, phase_length=demo_phase)
 cfg = PhaseControllerConfig()
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
 

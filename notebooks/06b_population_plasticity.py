@@ -16,7 +16,7 @@
 # Notebook 06 gives the phase controller's mechanisms and the controller itself, `PhaseController`,
 # read for one run; all of it is one module, `pemamoe/phase_controller.py`. This appendix holds
 # what every plasticity method shares, which the trainer of notebook 07 needs and a reader of the
-# method can skip, in `pemamoe/plasticity.py`: the PPO schedule (`BaseSchedule`), the
+# method can skip, in `pemamoe/plasticity.py`: the PPO schedule (`RunSettings`), the
 # **interface** every plasticity method implements, the baselines' `NoPlasticity`, the registry
 # (`register_plasticity`, `plasticity_method`) through which the trainer and plug-ins find a
 # method by name, and `population_method`, which builds a method on a population outside the
@@ -60,7 +60,7 @@ from pemamoe.popnets import PopulationActor, PopulationCritic
 # | hook | when | returns |
 # |---|---|---|
 # | `on_switch(iteration)` | before the first rollout of a new phase | nothing |
-# | `begin_iteration(iteration)` | every iteration, before the rollout | `Schedules`: per-member learning rates, clip, target KL, entropy weight, temperatures, router freeze |
+# | `begin_iteration(iteration)` | every iteration, before the rollout | `PopulationSettings`: per-member learning rates, clip, target KL, entropy weight, temperatures, router freeze |
 # | `extra_loss(batch)` | every minibatch | an (R,) loss added to PPO's, or `None` for none |
 # | `after_minibatch(stepped)` | after each optimizer step | nothing |
 # | `after_epoch(expert_counts, stepped)` | after each update epoch | number of experts perturbed per member |
@@ -84,7 +84,7 @@ from pemamoe.popnets import PopulationActor, PopulationCritic
 # %% [markdown]
 # ## The shared PPO schedule
 #
-# `BaseSchedule` holds what every method shares with PPO (paper training table: learning rate,
+# `RunSettings` holds what every method shares with PPO (paper training table: learning rate,
 # clip, target KL, entropy schedule, run and phase lengths, the router temperature); the trainer
 # builds it from its own PPO config (`TrainConfig.base_schedule()`, notebook 07) so there is one
 # source for each number, and the phase controller of notebook 06 modifies its values after a
@@ -96,7 +96,7 @@ from pemamoe.popnets import PopulationActor, PopulationCritic
 # %%
 #| export
 @dataclass(frozen=True)
-class BaseSchedule:
+class RunSettings:
     """The PPO values every method shares (paper training table); the phase controller modifies them."""
 
     lr: float = 3e-4
@@ -127,7 +127,7 @@ def linear_anneal(step, span, start: float, end: float):
     return start + (end - start) * frac
 
 
-def base_entropy_coef(iteration, base: BaseSchedule):
+def base_entropy_coef(iteration, base: RunSettings):
     """Entropy coefficient of the shared schedule: start -> end over the first ent_anneal_portion of the run."""
     span = max(base.ent_anneal_portion * base.total_iterations, 1e-12)
     return linear_anneal(iteration, span, base.ent_start, base.ent_end)
@@ -135,7 +135,7 @@ def base_entropy_coef(iteration, base: BaseSchedule):
 
 @dataclass(frozen=True)
 class IterationSettings:
-    """What one member trains with in one iteration (one per member in Schedules.members)."""
+    """What one member trains with in one iteration (one per member in PopulationSettings.members)."""
 
     iteration: int
     since_switch: int | None  # iterations since the last switch (None before the first)
@@ -154,14 +154,14 @@ class IterationSettings:
 # %% [markdown]
 # ## Per-member schedules
 #
-# `begin_iteration` returns one `Schedules`: each number of the members' `IterationSettings` as an
-# (R,) tensor over the members (`Schedules.stack`), which the update reads without a Python loop,
+# `begin_iteration` returns one `PopulationSettings`: each number of the members' `IterationSettings` as an
+# (R,) tensor over the members (`PopulationSettings.stack`), which the update reads without a Python loop,
 # and the members' `IterationSettings` themselves for the logs.
 
 # %%
 #| export
 @dataclass(frozen=True)
-class Schedules:
+class PopulationSettings:
     """What the trainer uses in one iteration, per member (tensors of shape (R,))."""
 
     lr_actor: torch.Tensor
@@ -176,7 +176,7 @@ class Schedules:
     members: tuple  # one IterationSettings per member (for the logs)
 
     @classmethod
-    def stack(cls, settings: list, critic_lrs: list, device) -> "Schedules":
+    def stack(cls, settings: list, critic_lrs: list, device) -> "PopulationSettings":
         """The members' IterationSettings (and the critics' learning rates) as (R,) tensors on `device`."""
         def col(values, dtype=torch.float64):
             return torch.tensor(values, dtype=dtype, device=device)
@@ -199,7 +199,7 @@ class Schedules:
 # ## The interface, the registry and the baselines' method
 #
 # `NoPlasticity` is both the interface (every hook, doing nothing) and the baselines' method: the
-# shared PPO schedule of `BaseSchedule` above, entropy annealed over the run. Its helpers
+# shared PPO schedule of `RunSettings` above, entropy annealed over the run. Its helpers
 # serve subclasses: `member_generator(r)` (member r's own checkpointed random stream),
 # `expert_indices()` (where each expert's trunk lives in a flat row; the phase controller's
 # `perturb_experts` noises them), `fresh_parameters(r)` (a newly initialised actor's row, drawn
@@ -269,9 +269,9 @@ class NoPlasticity:
     def on_switch(self, iteration: int) -> None:
         pass
 
-    def begin_iteration(self, iteration: int) -> Schedules:
+    def begin_iteration(self, iteration: int) -> PopulationSettings:
         settings = [self.member_settings(r, iteration) for r in range(self.R)]
-        return Schedules.stack(settings, [b.lr for b in self.bases], self.device)
+        return PopulationSettings.stack(settings, [b.lr for b in self.bases], self.device)
 
     def extra_loss(self, batch: dict) -> torch.Tensor | None:
         """(R,) added to each member's loss; None when nothing is added (saves the work)."""
@@ -407,7 +407,7 @@ from pemamoe.phase_controller import MemberConfig, PhaseController, PhaseControl
 register_plasticity(PhaseController)  # run as a notebook, the cells above made a registry of their own
 
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
-demo_base = BaseSchedule(total_iterations=300, phase_length=100)
+demo_base = RunSettings(total_iterations=300, phase_length=100)
 members = [MemberConfig(base=demo_base, seed=0),
            MemberConfig(PhaseControllerConfig().without("noise_injection"), demo_base, seed=1),
            MemberConfig(base=demo_base, controller_enabled=False, seed=2)]
@@ -458,7 +458,7 @@ assert table["critic moments kept"].all()
 # %% [markdown]
 # **A member's schedules do not depend on its population.** Three phases of 100 iterations: the
 # population of three against each member alone (R = 1) on the same clock. Every number the trainer
-# reads of `Schedules` agrees bit for bit, and so do the parameters after the switches' noise.
+# reads of `PopulationSettings` agrees bit for bit, and so do the parameters after the switches' noise.
 
 # %%
 singles, actor, critic, actor_opt, critic_opt, names = population()

@@ -279,10 +279,10 @@ from pemamoe.core import by_scale
 from pemamoe.diagnostics import dormant_fraction_tau
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.optim import RunAdamW, group_index
-from pemamoe.plasticity import BaseSchedule
+from pemamoe.plasticity import RunSettings
 
 obs_dim, state_dim = by_scale(scale, ci=24, small=64, paper=177), by_scale(scale, ci=32, small=96, paper=240)
-base = BaseSchedule(total_iterations=300, phase_length=100)
+base = RunSettings(total_iterations=300, phase_length=100)
 members = [SimpleNamespace(seed=s, base_schedule=lambda: base) for s in (seed, seed + 1)]
 
 

@@ -94,12 +94,12 @@ from pemamoe.methods import METHOD_REGISTRY, method_spec
 from pemamoe.nets import NetConfig, PopulationActor, PopulationCritic, RoutingSample, routing_noise_std
 from pemamoe.optim import RunAdamW, group_index
 from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig  # importing it registers PhaseController (06)
-from pemamoe.plasticity import BaseSchedule, plasticity_method
+from pemamoe.plasticity import RunSettings, plasticity_method
 import pemamoe.plasticity_baselines  # noqa: F401, E402  registers ReDo and shrink-and-perturb (appendix 06c)
-from pemamoe.phases import PhaseSchedule
+from pemamoe.phases import PhaseClock
 from pemamoe.populations import (  # re-export (public names only): populations, resuming, evaluation (appendix 07d)
     EVAL_ROUTINGS, MEMBER_FIELDS, MemberStates, Population, RunResult, build_population, check_population,
-    TrainState, evaluate_policy, load_run, member_networks, phase_schedule, plasticity_name, population_key,
+    TrainState, evaluate_policy, load_run, member_networks, phase_clock_of, plasticity_name, population_key,
     train_members)
 from pemamoe.runs import write_done
 # the configuration (appendix 07c): callers import TrainConfig and the presets from here
@@ -139,11 +139,11 @@ from pemamoe.train_config import (  # re-export (public names only)
 #
 # The trainer owns the phase: iteration $t$ runs in phase $\lfloor t/L \rfloor \bmod 3$, and a
 # switch happens at every $t > 0$ with $t \bmod L = 0$ (Algorithm 1's "iteration mod L"), counted
-# by notebook 03's `PhaseSchedule` (`phase_schedule(config)`, built by the driver of appendix 07d);
+# by notebook 03's `PhaseClock` (`phase_clock_of(config)`, built by the driver of appendix 07d);
 # the environment is told the phase (`set_phase`), never observes it. At the paper's scale:
 
 # %%
-_clock = phase_schedule(TrainConfig.for_scale("paper"))
+_clock = phase_clock_of(TrainConfig.for_scale("paper"))
 assert [bool(_clock.is_switch(t)) for t in (0, 1199, 1200)] == [False, False, True]
 [int(_clock.phase_at(t)) for t in (0, 1200, 2400, 3600)]
 
@@ -339,7 +339,7 @@ def routing_noise_stds(population, iteration: int) -> torch.Tensor | None:
 
 
 @torch.no_grad()
-def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker, iteration: int,
+def collect_rollout(population, venv, obs, state, settings, tracker: EpisodeTracker, iteration: int,
                     steps: int | None = None):
     """Run `steps` (default: the config's rollout_steps) slots of every environment of a population.
 
@@ -352,7 +352,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     noise_std = routing_noise_stds(population, iteration)
     R, U = actor.R, venv.n_agents
     B = venv.num_envs // R
-    tau_pi, tau_v = sched.policy_temperature.to(device), sched.value_temperature.to(device)
+    tau_pi, tau_v = settings.policy_temperature.to(device), settings.value_temperature.to(device)
     buf = {k: [] for k in ("obs", "states", "actions", "logprobs", "values", "rewards", "dones", "final")}
     routes, episode_rows = [], [[] for _ in range(R)]
     step_sums = {k: np.zeros(R) for k in _STEP_KEYS + _AGENT_FLAGS}
@@ -451,7 +451,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
 # every minibatch loss, `after_epoch(expert_counts, stepped)` after each epoch. A method may also
 # keep rollout rows for its next switch (`observe_rollout`) and log columns (`metrics`).
 #
-# **How the code reads.** `ppo_update(population, sched, batch)` takes the `Population` above, the
+# **How the code reads.** `ppo_update(population, settings, batch)` takes the `Population` above, the
 # iteration's settings and the rollout's `Batch`, and has the shape of CleanRL's update loop. Each
 # epoch draws one permutation per member; each minibatch is gathered for every member at once
 # (`Batch.take`), scored (`_minibatch_loss` returns the loss of each member and the statistics it
@@ -469,24 +469,13 @@ _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
 
-class _Coefficients(NamedTuple):
-    """The iteration's per-member settings on the update's device: clip (R, 1), the others (R,)."""
-
-    clip: torch.Tensor
-    target_kl: torch.Tensor
-    ent_coef: torch.Tensor
-    value_temperature: torch.Tensor
-    lr_actor: torch.Tensor
-    lr_critic: torch.Tensor
-
-
-def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -> tuple:
+def _minibatch_loss(population: Population, settings, batch: Batch) -> tuple:
     """PPO's loss on one minibatch `batch` (R, m, ...), per member (R,), and the statistics it logs
     ({name: (R,) tensor}: `_UPDATE_STATS` but the gradient norms, and "ratio" (R, m*U) and the
     chosen "experts"). The actor sees the m*U agent rows of the minibatch's m steps."""
     actor, critic, config = population.actor, population.critic, population.config
     R, steps, U = batch.logprobs.shape
-    rows = steps * U
+    rows, clip = steps * U, settings.clip_coef.unsqueeze(1)  # each member's clip range, (R, 1)
     route = None if batch.routing is None else batch.routing.reshape(R, rows)
     new = actor.evaluate(batch.obs.reshape(R, rows, -1), batch.actions.reshape(R, rows, -1), route)
     logratio = new.log_prob - batch.logprobs.reshape(R, rows)
@@ -495,11 +484,11 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -
     adv = batch.advantages.unsqueeze(2).expand(R, steps, rows // steps).reshape(R, rows)
     if config.norm_adv:
         adv = (adv - adv.mean(1, keepdim=True)) / (adv.std(1, keepdim=True) + 1e-8)
-    pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - coef.clip, 1 + coef.clip)).mean(1)
+    pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - clip, 1 + clip)).mean(1)
 
-    v, c_lb, _ = critic(batch.states, coef.value_temperature)
+    v, c_lb, _ = critic(batch.states, settings.value_temperature)
     if config.clip_vloss:
-        v_clipped = batch.values + torch.clamp(v - batch.values, -coef.clip, coef.clip)
+        v_clipped = batch.values + torch.clamp(v - batch.values, -clip, clip)
         v_loss = torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean(1)
     else:
         v_loss = ((v - batch.returns) ** 2).mean(1)
@@ -508,7 +497,7 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -
         "obs": batch.obs.reshape(R, rows, -1), "tau": None if route is None else route.temperature,
         "noise": None if route is None else route.noise, "experts": new.experts if sparse else None,
         "mean": new.mean, "log_std": new.log_std})
-    loss = (pg_loss + config.vf_coef * v_loss - coef.ent_coef * new.entropy + actor.lb_coef * new.load_balance
+    loss = (pg_loss + config.vf_coef * v_loss - settings.ent_coef * new.entropy + actor.lb_coef * new.load_balance
             + critic.lb_coef * c_lb)
     if kl_ref is not None:
         loss = loss + kl_ref
@@ -517,7 +506,7 @@ def _minibatch_loss(population: Population, coef: _Coefficients, batch: Batch) -
                  "kl_ref": torch.zeros(R, device=loss.device) if kl_ref is None else kl_ref,  # 0 when none is added
                  "load_balance": new.load_balance, "critic_load_balance": c_lb,
                  "approx_kl": ((ratio - 1) - logratio).mean(1),  # CleanRL's low-variance estimator
-                 "clip_frac": ((ratio - 1.0).abs() > coef.clip).float().mean(1),
+                 "clip_frac": ((ratio - 1.0).abs() > clip).float().mean(1),
                  "ratio": ratio, "experts": new.experts}
     return loss, stats
 
@@ -575,7 +564,7 @@ def _clip_rows(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     return norm
 
 
-def _gradient_step(population: Population, coef: _Coefficients, stepping, frozen, frozen_rows) -> tuple:
+def _gradient_step(population: Population, settings, stepping, frozen, frozen_rows) -> tuple:
     """Clip each member's actor and critic gradients and step the members in `stepping` (none of a
     group in `frozen` (R, G), whose entries `frozen_rows` (R, P) get no gradient either). Returns
     the gradient norms before clipping, (R,) each."""
@@ -584,15 +573,15 @@ def _gradient_step(population: Population, coef: _Coefficients, stepping, frozen
         if frozen_rows is not None:
             actor.flat.grad.masked_fill_(frozen_rows, 0.0)
         norms = _clip_rows(actor.flat.grad, max_norm), _clip_rows(critic.flat.grad, max_norm)
-    population.actor_opt.step(coef.lr_actor, stepping, frozen)
-    population.critic_opt.step(coef.lr_critic, stepping)
+    population.actor_opt.step(settings.lr_actor, stepping, frozen)
+    population.critic_opt.step(settings.lr_critic, stepping)
     return norms
 
 
-def ppo_update(population: Population, sched, batch: Batch) -> dict:
+def ppo_update(population: Population, settings, batch: Batch) -> dict:
     """`update_epochs` x `num_minibatches` PPO steps for every member of a population at once.
 
-    sched: the iteration's Schedules (from the plasticity method's `begin_iteration`); batch: the
+    settings: the iteration's PopulationSettings (from the plasticity method's `begin_iteration`); batch: the
     iteration's Batch (R, T, B) with its advantages and returns. Each member stops at its own target
     KL (its later minibatches leave it untouched, bit for bit). Returns {stat: (R,) list}.
     """
@@ -600,12 +589,10 @@ def ppo_update(population: Population, sched, batch: Batch) -> dict:
     R, N = batch.obs.shape[0], batch.obs.shape[1] * batch.obs.shape[2]
     device, mb = population.device, N // config.num_minibatches
     steps = batch.for_update(population.norms, device)
-    coef = _Coefficients(sched.clip_coef.to(device).unsqueeze(1), sched.target_kl.to(device), sched.ent_coef.to(device),
-                         sched.value_temperature.to(device), sched.lr_actor.to(device), sched.lr_critic.to(device))
-    frozen = population.frozen_groups(sched)
+    frozen = population.frozen_groups(settings)
     frozen_rows = None if frozen is None else frozen.index_select(1, population.actor_opt.group_of)  # (R, P)
     per_epoch = torch.tensor([c.target_kl_check == "epoch" for c in population.configs], device=device)
-    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(coef.target_kl, per_epoch)
+    stats, kl_stop = _UpdateStatistics(R, device), _KLStop(settings.target_kl, per_epoch)
     first_ratio_dev, noised = None, [0] * R
     sparse = actor.gated and actor.k < actor.n_experts
     offsets = torch.arange(R, device=device).unsqueeze(1) * N  # member r's steps are rows r*N.. of `steps`
@@ -616,14 +603,14 @@ def ppo_update(population: Population, sched, batch: Batch) -> dict:
         counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None  # experts chosen by stepped rows
         stepped_epoch = torch.zeros(R, dtype=torch.bool, device=device)
         for k in range(config.num_minibatches):
-            loss, mb_stats = _minibatch_loss(population, coef, steps.take(flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R))
+            loss, mb_stats = _minibatch_loss(population, settings, steps.take(flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R))
             with torch.no_grad():
                 if first_ratio_dev is None:  # 0 up to rounding: the rollout's routing is replayed
                     first_ratio_dev = (mb_stats["ratio"] - 1.0).abs().amax(1)
                 stepping = kl_stop.check(mb_stats["approx_kl"], epoch)  # checked before the step it would take
             (loss * stepping.to(loss.dtype)).sum().backward()
             mb_stats["grad_norm_actor"], mb_stats["grad_norm_critic"] = _gradient_step(
-                population, coef, stepping, frozen, frozen_rows)
+                population, settings, stepping, frozen, frozen_rows)
             plasticity.after_minibatch(stepping)
             with torch.no_grad():
                 stats.add(mb_stats, stepping)
@@ -709,7 +696,7 @@ class IterationLog(NamedTuple):
     phases: list  # each member's phase
     switch: bool  # the phase switched at this iteration's first slot
     global_step: int  # environment steps so far, per member
-    settings: object  # the iteration's Schedules
+    settings: object  # the iteration's PopulationSettings
     batch: Batch  # the rollout (R, T, B), with advantages and returns
     step_stats: dict  # {key: (R,)}: the rollout's per-step means and routing readings
     episodes: list  # per member, the rows of the episodes that finished

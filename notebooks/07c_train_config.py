@@ -90,7 +90,7 @@ from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
 from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig
-from pemamoe.plasticity import BaseSchedule
+from pemamoe.plasticity import RunSettings
 
 # %% [markdown]
 # **Serialisation and identity.** `to_dict` is the content of `config.json`: the dataclass as
@@ -335,8 +335,8 @@ class TrainConfig:
         """The environment's config, with the phase clock owned by the trainer."""
         return EnvConfig.from_overrides(**{**self.env_overrides, "phase_clock": "external"})
 
-    def base_schedule(self) -> BaseSchedule:
-        return BaseSchedule(
+    def base_schedule(self) -> RunSettings:
+        return RunSettings(
             lr=self.lr, clip_coef=self.clip_coef, target_kl=self.target_kl, ent_start=self.ent_start,
             ent_end=self.ent_end, ent_anneal_portion=self.ent_anneal_portion,
             total_iterations=self.iterations, phase_length=self.phase_length_iters)

@@ -112,7 +112,7 @@ from pemamoe.bookkeeping import (DeterministicTorch, EpisodeTracker, RowLog, Val
                                   write_rows_parquet)
 from pemamoe.bookkeeping import IterationLogger, collect_probe  # the log rows and the probe batch (appendix 07e)
 from pemamoe.env import EnvConfig, UAVVectorEnv, observation_dim, state_dim, vector_seeds
-from pemamoe.phases import PhaseSchedule
+from pemamoe.phases import PhaseClock
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.optim import RunAdamW, group_index
 from pemamoe.plasticity import plasticity_method
@@ -414,7 +414,7 @@ class TrainState(NamedTuple):
 
     population: Population
     venv: UAVVectorEnv  # R*B environments, member r's in rows r*B..(r+1)*B-1
-    clock: PhaseSchedule  # the iteration-counted phase clock
+    clock: PhaseClock  # the iteration-counted phase clock
     fixed_phases: list | None  # each member's fixed phase, or None: the phases cycle
     tracker: EpisodeTracker  # running episodes of all R*B environments
     obs: np.ndarray  # (R*B, U, obs_dim) current observations
@@ -423,9 +423,9 @@ class TrainState(NamedTuple):
     global_step: int  # environment steps so far, per member
 
 
-def phase_schedule(config: TrainConfig) -> PhaseSchedule:
+def phase_clock_of(config: TrainConfig) -> PhaseClock:
     """The iteration-counted phase clock of a run."""
-    return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
+    return PhaseClock(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
 def _train_group(step, configs: list, run_dirs: list, ckpts: list, max_iterations, verbose, progress,
@@ -437,7 +437,7 @@ def _train_group(step, configs: list, run_dirs: list, ckpts: list, max_iteration
     pop = build_population(configs)
     venv = UAVVectorEnv(seeds=[s for c in configs for s in vector_seeds(c.seed, B)], cfg=c0.env_config())
     fixed = None if c0.fixed_phase is None else [c.fixed_phase for c in configs]  # all members or none
-    clock = phase_schedule(c0)
+    clock = phase_clock_of(c0)
     venv.set_phase(clock.phase_at(0) if fixed is None else np.repeat(fixed, B))
     obs, state, _ = venv.reset()
     members = MemberStates(pop, EpisodeTracker(R * B, members=R), wall_start)  # what a checkpoint adds

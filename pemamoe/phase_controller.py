@@ -12,7 +12,7 @@ import torch
 
 from pemamoe.core import MECHANISMS  # re-export: the mechanisms' names live in core, for the command line (00b)
 from pemamoe.core import require_field
-from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, Schedules, base_entropy_coef,
+from pemamoe.plasticity import (RunSettings, IterationSettings, NoPlasticity, PopulationSettings, base_entropy_coef,
                                 linear_anneal, register_plasticity)
 from pemamoe.popnets import gaussian_kl
 
@@ -128,7 +128,7 @@ def temperature_formula(since, cfg: PhaseControllerConfig):
     return cfg.tau_min + (cfg.tau_max - cfg.tau_min) * (0.5 * (1.0 + np.tanh(0.5 * z)))
 
 
-def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControllerConfig | None):
+def entropy_coef(iteration, since_phase, base: RunSettings, cfg: PhaseControllerConfig | None):
     """Entropy coefficient: over the run (cfg None or entropy_reset False), or re-annealed within each phase."""
     if cfg is not None and cfg.entropy_reset:
         span = max(cfg.entropy_phase_portion * base.phase_length, 1e-12)
@@ -248,14 +248,14 @@ class PhaseController(NoPlasticity):
             value_temperature=tau if cfg.temperature_routers in ("value", "both") else b.temperature,
             router_frozen=frozen, conservative=conservative, noise_epochs_left=self.noise_left[r])
 
-    def begin_iteration(self, iteration: int) -> Schedules:
+    def begin_iteration(self, iteration: int) -> PopulationSettings:
         for r in range(self.R):  # a window counted in iterations ends here (the default counts epochs)
             if self.enabled[r] and self.cfgs[r].noise_window_unit == "iterations" and self.noise_left[r] > 0 \
                     and self.last_switch[r] is not None and iteration > self.last_switch[r]:
                 self.noise_left[r] -= 1
         settings = [self.member_settings(r, iteration) for r in range(self.R)]
         self.settings = settings
-        return Schedules.stack(settings, [b.lr for b in self.bases], self.device)
+        return PopulationSettings.stack(settings, [b.lr for b in self.bases], self.device)
 
     def extra_loss(self, batch: dict):
         """(R,) kl_coef * mean KL(pi_theta || pi_ref) on the minibatch, routing replayed; None when no member has an anchor."""
@@ -330,9 +330,9 @@ class MemberConfig:
     """What a plasticity method reads of a member's config (TrainConfig has the same four)."""
 
     controller: PhaseControllerConfig = PhaseControllerConfig()
-    base: BaseSchedule = BaseSchedule()
+    base: RunSettings = RunSettings()
     controller_enabled: bool = True
     seed: int = 0
 
-    def base_schedule(self) -> BaseSchedule:
+    def base_schedule(self) -> RunSettings:
         return self.base

@@ -17,7 +17,7 @@ from pemamoe.core import require_field
 from pemamoe.nets import NetConfig, make_actor, network_kind
 from pemamoe.phase_controller import (MemberConfig, PhaseController, PhaseControllerConfig, expert_parameters,
                                       n_experts_of)
-from pemamoe.plasticity import BaseSchedule, population_method
+from pemamoe.plasticity import RunSettings, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 
@@ -203,7 +203,7 @@ def run_tracker(problem: TrackingProblem, cfg: TrackerConfig, seed: int = 0, kee
         raise ValueError(f"run_tracker needs n_phases >= n_switches + 1, got {problem.cfg.n_phases} < {cfg.n_switches + 1}")
     torch.manual_seed(seed)
     d, m, T = problem.cfg.obs_dim, problem.cfg.act_dim, cfg.iterations
-    base = BaseSchedule(
+    base = RunSettings(
         lr=cfg.lr, clip_coef=cfg.clip, target_kl=None, ent_start=0.0, ent_end=0.0,
         total_iterations=T, phase_length=max(1, T // (cfg.n_switches + 1)),
     )

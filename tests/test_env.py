@@ -369,10 +369,10 @@ def test_integer_rewards_give_float_terms_on_both_engines():
 
 
 def test_schedule_must_have_the_configs_phases():
-    from pemamoe.phases import PhaseSchedule
+    from pemamoe.phases import PhaseClock
 
     with pytest.raises(ValueError, match="n_phases=6"):
-        E.UAVBatchCore(E.EnvConfig(), 1, [0], schedule=PhaseSchedule(period=1, n_phases=6))
+        E.UAVBatchCore(E.EnvConfig(), 1, [0], schedule=PhaseClock(period=1, n_phases=6))
     two = E.EnvConfig.from_overrides(user_speed_mps=(0.2, 0.5), direction_jitter=(0.2, 0.5),
                                      service_radius_m=(200.0, 150.0), overlap_weight=(20.0, 40.0),
                                      mix_probs=((0.6, 0.3, 0.1), (0.3, 0.5, 0.2)), demand_mode="mix",

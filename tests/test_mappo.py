@@ -381,12 +381,12 @@ def test_force_controller_runs_noise_only_for_a_baseline():
 
 
 def test_paper_preset_and_controller_defaults_agree():
-    # BaseSchedule (notebook 06) repeats the paper's PPO values that TrainConfig (notebook 07) holds;
+    # RunSettings (notebook 06) repeats the paper's PPO values that TrainConfig (notebook 07) holds;
     # this keeps the two copies from drifting apart.
-    from pemamoe.plasticity import BaseSchedule
+    from pemamoe.plasticity import RunSettings
 
-    assert TrainConfig.for_scale("paper").base_schedule() == BaseSchedule()
-    assert TrainConfig().base_schedule() == BaseSchedule()
+    assert TrainConfig.for_scale("paper").base_schedule() == RunSettings()
+    assert TrainConfig().base_schedule() == RunSettings()
 
 
 @pytest.mark.parametrize("reading", ["defaults", "paper"])

@@ -26,10 +26,10 @@ from pemamoe.phase_controller import (
     temperature_formula,
     temperature_text,
 )
-from pemamoe.plasticity import BaseSchedule, plasticity_method, population_method
+from pemamoe.plasticity import RunSettings, plasticity_method, population_method
 
 OBS, STATE = 10, 14
-BASE = BaseSchedule(total_iterations=3000, phase_length=1000)
+BASE = RunSettings(total_iterations=3000, phase_length=1000)
 ONE = torch.ones(1, dtype=torch.bool)
 
 
@@ -120,8 +120,8 @@ def test_invalid_config_names_field(field, value):
 
 @pytest.mark.parametrize("field, value", [("lr", 0.0), ("target_kl", -1.0), ("phase_length", 0), ("ent_anneal_portion", 0.0)])
 def test_invalid_base_names_field(field, value):
-    with pytest.raises(ValueError, match=rf"BaseSchedule\.{field} must be"):
-        BaseSchedule(**{field: value})
+    with pytest.raises(ValueError, match=rf"RunSettings\.{field} must be"):
+        RunSettings(**{field: value})
 
 
 def test_without_switches_one_mechanism_off():

@@ -7,18 +7,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_demand_classes
+from pemamoe.phases import PhaseConfig, PhaseClock, phase_values, sample_demand_classes
 
 
 def test_fixed_schedule_by_hand():
-    s = PhaseSchedule(period=3)
+    s = PhaseClock(period=3)
     assert [s.phase_at(t) for t in range(10)] == [0, 0, 0, 1, 1, 1, 2, 2, 2, 0]
     assert [s.is_switch(t) for t in range(10)] == [False, False, False, True, False, False, True, False, False, True]
     assert s.switch_ticks(10) == [3, 6, 9]
 
 
 def test_paper_schedule_has_nine_phases_in_10800_iterations():
-    s = PhaseSchedule(period=1200)
+    s = PhaseClock(period=1200)
     assert len(s.switch_ticks(10_800)) == 8
     assert s.phase_at(10_799) == 2
 
@@ -26,7 +26,7 @@ def test_paper_schedule_has_nine_phases_in_10800_iterations():
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 1000))
 def test_random_order_never_repeats_a_phase(seed):
-    s = PhaseSchedule(period=2, order="random", seed=seed)
+    s = PhaseClock(period=2, order="random", seed=seed)
     seq = [s.phase_at(2 * k) for k in range(200)]
     assert all(a != b for a, b in zip(seq, seq[1:]))
     assert set(seq) == {0, 1, 2}
@@ -36,8 +36,8 @@ def test_random_order_never_repeats_a_phase(seed):
 @given(seed=st.integers(0, 1000), lo=st.integers(1, 5), extra=st.integers(0, 5))
 def test_random_durations_in_bounds_and_deterministic(seed, lo, extra):
     hi = lo + extra
-    s = PhaseSchedule(min_period=lo, max_period=hi, seed=seed)
-    again = PhaseSchedule(min_period=lo, max_period=hi, seed=seed)
+    s = PhaseClock(min_period=lo, max_period=hi, seed=seed)
+    again = PhaseClock(min_period=lo, max_period=hi, seed=seed)
     switches = [0] + s.switch_ticks(300)
     lengths = np.diff(switches)
     assert (lengths >= lo).all()  # a cyclic order always changes phase, so segments are visible
@@ -46,20 +46,20 @@ def test_random_durations_in_bounds_and_deterministic(seed, lo, extra):
 
 
 def test_held_out_regime_is_inserted_without_breaking_the_cycle():
-    s = PhaseSchedule(period=2, held_out_every=3)
+    s = PhaseClock(period=2, held_out_every=3)
     assert [s.phase_at(2 * k) for k in range(8)] == [0, 1, 2, 3, 0, 1, 2, 3]
-    s = PhaseSchedule(period=2, held_out_every=2)
+    s = PhaseClock(period=2, held_out_every=2)
     assert [s.phase_at(2 * k) for k in range(9)] == [0, 1, 3, 2, 0, 3, 1, 2, 3]
 
 
 def test_random_order_never_repeats_far_into_the_schedule():
-    s = PhaseSchedule(period=1, order="random", seed=7)
+    s = PhaseClock(period=1, order="random", seed=7)
     seq = [s.phase_at(t) for t in range(10_000)]
     assert all(a != b for a, b in zip(seq, seq[1:]))
 
 
 def test_schedule_pickles():
-    s = PhaseSchedule(period=4, order="random", min_period=2, max_period=6, seed=3)
+    s = PhaseClock(period=4, order="random", min_period=2, max_period=6, seed=3)
     t = pickle.loads(pickle.dumps(s))
     assert [t.phase_at(k) for k in range(100)] == [s.phase_at(k) for k in range(100)]
 
@@ -102,8 +102,8 @@ def test_invalid_phase_config_names_the_field(kwargs, field):
 @pytest.mark.parametrize("kwargs, field", [({"period": 0}, "period"), ({"order": "shuffled"}, "order"),
                                            ({"min_period": 3}, "min_period")])
 def test_invalid_schedule_names_the_field(kwargs, field):
-    with pytest.raises(ValueError, match=f"PhaseSchedule.{field}"):
-        PhaseSchedule(**kwargs)
+    with pytest.raises(ValueError, match=f"PhaseClock.{field}"):
+        PhaseClock(**kwargs)
 
 
 @pytest.mark.parametrize("kwargs", [
@@ -112,7 +112,7 @@ def test_invalid_schedule_names_the_field(kwargs, field):
     dict(period=5, min_period=2, max_period=7, held_out_every=2),
 ])
 def test_phases_at_agrees_with_phase_at(kwargs):
-    s = PhaseSchedule(**kwargs)
+    s = PhaseClock(**kwargs)
     ticks = np.array([[0, 7, 3], [40, 7, 199]])
     np.testing.assert_array_equal(s.phases_at(ticks), [[s.phase_at(int(t)) for t in row] for row in ticks])
     with pytest.raises(ValueError, match="ticks must be >= 0"):

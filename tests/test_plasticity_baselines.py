@@ -12,11 +12,11 @@ from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.nets import PopulationActor, PopulationCritic, make_actor, make_critic
 from pemamoe.plasticity_baselines import ReDo, ShrinkAndPerturb, dormant_units, recycling_layers
 from pemamoe.optim import RunAdamW, group_index
-from pemamoe.plasticity import BaseSchedule, plasticity_method
+from pemamoe.plasticity import RunSettings, plasticity_method
 from pemamoe.train_config import METHODS, TIMING_COLUMNS
 
 OBS, STATE = 10, 14
-BASE = BaseSchedule(total_iterations=30, phase_length=10)
+BASE = RunSettings(total_iterations=30, phase_length=10)
 MEMBERS = [SimpleNamespace(seed=s, base_schedule=lambda: BASE) for s in (0, 1)]
 
 

@@ -20,7 +20,7 @@ from pemamoe.channel import ChannelConfig
 from pemamoe.core import require
 from pemamoe.energy import EnergyConfig
 from pemamoe.mobility import MobilityConfig
-from pemamoe.phases import PhaseConfig, PhaseSchedule
+from pemamoe.phases import PhaseConfig, PhaseClock
 
 
 # ----------------------------------------------------------------------- the helper itself
@@ -142,8 +142,8 @@ def test_array_per_phase_values_become_hashable_tuples():
         (lambda: E.EnvConfig(phase_period_steps=True), "EnvConfig.phase_period_steps"),
         (lambda: MobilityConfig(n_hotspots=True, n_users=20), "MobilityConfig.n_hotspots"),
         (lambda: MobilityConfig(retarget_every=True), "MobilityConfig.retarget_every"),
-        (lambda: PhaseSchedule(period=True), "PhaseSchedule.period"),
-        (lambda: PhaseSchedule(held_out_every=True), "PhaseSchedule.held_out_every"),
+        (lambda: PhaseClock(period=True), "PhaseClock.period"),
+        (lambda: PhaseClock(held_out_every=True), "PhaseClock.held_out_every"),
         (lambda: ChannelConfig(reuse_factor=True), "ChannelConfig.reuse_factor"),
     ],
 )
