@@ -297,7 +297,19 @@ PAPER_NET = NetConfig(routing_noise="learned", expert_heads="shared")
 # %% [markdown]
 # ## The actors
 #
-# All four actors share one interface, so the trainer never asks which kind it holds:
+# **The actor the trainer calls** is a population of these networks, `PopulationActor` (appendix
+# 05b): R runs' parameters stacked on a leading axis, one network at R = 1. Its two calls return
+# named tuples that notebook 07 reads field by field:
+#
+# * `actor.act(obs, tau, generators) -> ActorStep(action, log_prob, routing)`: the rollout's sample,
+#   obs (R, n, obs_dim), without gradient;
+# * `actor.evaluate(obs, action, routing) -> ActorEvaluation(log_prob, entropy, load_balance, mean,
+#   log_std, experts)`: the PPO update's pass over stored actions, with the stored routing replayed.
+#
+# Each kind below is written once, as the single network (an `nn.Module` with a batched
+# `run_features`, which the population runs); the single network's own interface is what a
+# checkpoint holds, what the diagnostics probe and what a PettingZoo policy acts with. All four
+# kinds share it, so nothing asks which kind it holds:
 #
 # * `dist, routing = actor(obs, temperature=1.0, routing=None, deterministic_gate=False)` returns
 #   an `Independent(Normal)` over the action (its `log_prob` and `entropy` sum the action
@@ -697,6 +709,20 @@ if our_obs_dim is None:
 
     our_obs_dim = int(observation_dim(EnvConfig()))
 print(f"paper obs_dim = {PAPER_OBS_DIM}, our obs_dim = {our_obs_dim}")
+
+# %% [markdown]
+# ### The actor the trainer calls, at R = 1
+#
+# One SMoE network as a population of one: a rollout sample, then the update's pass over it with
+# the stored routing, which scores the sampled actions as the rollout did.
+
+# %%
+_population = PopulationActor([make_actor("smoe", our_obs_dim)])
+_obs = torch.randn(1, 8, our_obs_dim)
+_step = _population.act(_obs, torch.ones(1), [torch.Generator().manual_seed(seed)])
+_new = _population.evaluate(_obs, _step.action, _step.routing)
+assert torch.allclose(_new.log_prob, _step.log_prob, atol=1e-6)
+{name: tuple(value.shape) for name, value in _new._asdict().items() if value is not None}
 
 # %% [markdown]
 # ### The four architectures

@@ -90,7 +90,7 @@ class NetConfig:
 PAPER_NET = NetConfig(routing_noise="learned", expert_heads="shared")
 
 
-# %% notebooks/05_moe_actor.py, cell 11 (line 332)
+# %% notebooks/05_moe_actor.py, cell 11 (line 344)
 def linear_cost(*layers) -> tuple:
     """(parameters, multiply-accumulates per row) of nn.Linear layers, summed; None counts as
     nothing (an absent noise gate). The building block of every kind's `cost_parts`."""
@@ -311,7 +311,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 13 (line 565)
+# %% notebooks/05_moe_actor.py, cell 13 (line 577)
 class _Critic(nn.Module):
     """Features (run_features at R = 1, or a gate's) -> value head; subclasses build the layers."""
 
@@ -370,7 +370,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 643)
+# %% notebooks/05_moe_actor.py, cell 15 (line 655)
 register_network("mlp", MLPActor, MLPCritic)
 register_network("moe", MoEActor, MoECritic)
 register_network("smoe", SMoEActor, SMoECritic)
