@@ -3,7 +3,7 @@
 
 __all__ = ['BLOCK_STEPS', 'block_steps', 'PLATEAU_TAIL', 'PLATEAU_FRACTION', 'update_setting', 'load_budget', 'budget_curves', 'plateau_table', 'seconds_to_reach', 'phase_learning', 'visit_curve', 'fresh_visit_curve', 'revisit_learning', 'with_fixed_phase_twins', 'load_study', 'study_specs', 'study_plateaus', 'TUNING_MARGIN', 'run_plateau', 'tuning_table', 'reading_gaps', 'plasticity_words', 'revisit_words']
 
-# %% notebooks/09b_learning_budget.py, cell 4 (line 61)
+# %% notebooks/09b_learning_budget.py, exported cell 1
 from pathlib import Path
 
 import numpy as np

@@ -3,7 +3,7 @@
 
 __all__ = ['FLOAT_INFO', 'INT_INFO', 'UAV_INFO', 'KernelParams', 'kernel_params', 'step_kernel', 'score_kernel', 'CompiledStep']
 
-# %% notebooks/04b_engine.py, cell 5 (line 92)
+# %% notebooks/04b_engine.py, exported cell 1
 import math
 from typing import NamedTuple
 
@@ -153,7 +153,7 @@ def kernel_params(cfg) -> KernelParams:
     )
 
 
-# %% notebooks/04b_engine.py, cell 7 (line 247)
+# %% notebooks/04b_engine.py, exported cell 2
 @numba.njit(cache=True)
 def _reflect(x, area):
     """Mirror x into [0, area]; returns (position, flipped). See mobility.reflect_into_area."""
@@ -239,7 +239,7 @@ def _move_users(p, b, i, phase, user_xy, user_vel, centre_xy, waypoint_xy, steps
             user_vel[b, n, d] = -v_new if flipped else v_new
 
 
-# %% notebooks/04b_engine.py, cell 9 (line 339)
+# %% notebooks/04b_engine.py, exported cell 3
 @numba.njit(cache=True)
 def _required_power(p, rate, band, gain, interference):
     """The feasibility power rule (channel.required_power_w) for one link with rate, band > 0."""
@@ -412,7 +412,7 @@ def _score_env(p, b, i, phase, demand, uav_xy, user_xy, energy_j, rand_normal, r
     int_info[2, i] = admitted_n
 
 
-# %% notebooks/04b_engine.py, cell 11 (line 517)
+# %% notebooks/04b_engine.py, exported cell 4
 @numba.njit(cache=True)
 def _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state):
     """Write environment b's observations and global state into row i (see build_observations)."""
@@ -508,7 +508,7 @@ def score_kernel(p, rows, uav_xy, battery_j, user_xy, demand, rate_frac, serving
         _observe_env(p, b, i, t, uav_xy, battery_j, user_xy, rate_frac, serving, demand, obs, state)
 
 
-# %% notebooks/04b_engine.py, cell 13 (line 624)
+# %% notebooks/04b_engine.py, exported cell 5
 _NOT_NEEDED = np.zeros((1, 1))  # placeholder for the kernel's nakagami argument when m = 1
 
 # The keys of info, in the order the numpy reference's info has them.

@@ -3,7 +3,7 @@
 
 __all__ = ['STEP_ENGINES', 'EnvConfig', 'slot_draws', 'colour_weights', 'Schedule', 'schedule_users', 'realised_rates', 'pair_distances', 'reward_terms', 'observation_layout', 'observation_dim', 'state_dim', 'build_observations', 'UAVBatchCore']
 
-# %% notebooks/04_environment.py, cell 4 (line 55)
+# %% notebooks/04_environment.py, exported cell 1
 import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -29,7 +29,7 @@ from pemamoe.phases import PhaseConfig, PhaseSchedule, phase_values, sample_dema
 from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04c)
 
 
-# %% notebooks/04_environment.py, cell 6 (line 95)
+# %% notebooks/04_environment.py, exported cell 2
 STEP_ENGINES = ("compiled", "numpy")
 
 
@@ -157,7 +157,7 @@ def _field_names(config) -> set:
     return {f.name for f in dataclasses.fields(config)}
 
 
-# %% notebooks/04_environment.py, cell 8 (line 234)
+# %% notebooks/04_environment.py, exported cell 3
 def colour_weights(n_uavs: int, cfg: EnvConfig):
     """The (U, U) interference weights of cfg's reuse factor and adjacent leakage."""
     return interference_weights(reuse_colours(n_uavs, cfg.channel.reuse_factor), cfg.channel.adjacent_leakage)
@@ -230,7 +230,7 @@ def realised_rates(schedule: Schedule, gain, cfg: EnvConfig, weights=None):
     return rate.sum(axis=-1), link_sinr
 
 
-# %% notebooks/04_environment.py, cell 10 (line 325)
+# %% notebooks/04_environment.py, exported cell 4
 def pair_distances(uav_xy):
     """(B, U, U) horizontal distances and the (U, U) mask of pairs u < u'."""
     diff = uav_xy[:, :, None, :] - uav_xy[:, None, :, :]
@@ -255,7 +255,7 @@ def reward_terms(served, reward_weight, energy_j, uav_xy, overlap_weight, radius
     return terms
 
 
-# %% notebooks/04_environment.py, cell 12 (line 369)
+# %% notebooks/04_environment.py, exported cell 5
 def observation_layout(cfg: EnvConfig) -> list:
     """[(name, start, stop)] blocks of one agent's observation vector."""
     U, N = cfg.n_uavs, cfg.n_users
@@ -305,7 +305,7 @@ def build_observations(uav_xy, battery_frac, user_xy, rate_frac, serving, demand
     return obs, state
 
 
-# %% notebooks/04_environment.py, cell 14 (line 437)
+# %% notebooks/04_environment.py, exported cell 6
 class UAVBatchCore:
     """State and dynamics of B environments, advanced together (numpy, no per-user loops)."""
 

@@ -3,7 +3,7 @@
 
 __all__ = ['EpisodeTracker', 'RowLog', 'RunningNorm', 'ValueNorms', 'collect_probe', 'explained_variance', 'merge_env_states', 'split_env_state', 'EVAL_ROUTINGS', 'MEMBER_FIELDS', 'MemberStates', 'Population', 'RunResult', 'build_population', 'check_population', 'evaluate_policy', 'load_run', 'member_networks', 'plasticity_name', 'population_key', 'train_members', 'DEVICES', 'MEDIUM_PHASE_ITERS', 'METHODS', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TIMING_COLUMNS', 'TrainConfig', 'resolve_device', 'scale_controller', 'phase_schedule', 'bootstrap_values', 'compute_gae', 'Rollout', 'routing_noise_stds', 'collect_rollout', 'ppo_update', 'train', 'train_population']
 
-# %% notebooks/07_mappo.py, cell 4 (line 75)
+# %% notebooks/07_mappo.py, exported cell 1
 import dataclasses
 import math
 import sys
@@ -37,13 +37,13 @@ from pemamoe.train_config import (  # re-export (public names only)
     resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 8 (line 143)
+# %% notebooks/07_mappo.py, exported cell 2
 def phase_schedule(config: TrainConfig) -> PhaseSchedule:
     """The iteration-counted phase clock of a run."""
     return PhaseSchedule(period=config.phase_length_iters, n_phases=config.n_phases)
 
 
-# %% notebooks/07_mappo.py, cell 11 (line 185)
+# %% notebooks/07_mappo.py, exported cell 3
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -76,7 +76,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 258)
+# %% notebooks/07_mappo.py, exported cell 4
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -177,7 +177,7 @@ def collect_rollout(population, venv, obs, state, sched, tracker: EpisodeTracker
     return rollout, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 418)
+# %% notebooks/07_mappo.py, exported cell 5
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -415,7 +415,7 @@ def ppo_update(population: Population, sched, data: dict) -> dict:
     return out
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 678)
+# %% notebooks/07_mappo.py, exported cell 6
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

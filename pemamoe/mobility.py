@@ -3,7 +3,7 @@
 
 __all__ = ['MobilityConfig', 'MobilityState', 'hotspot_membership', 'reflect_into_area', 'init_mobility', 'step_mobility']
 
-# %% notebooks/03_mobility_phases.py, cell 8 (line 105)
+# %% notebooks/03_mobility_phases.py, exported cell 1
 import math
 from dataclasses import dataclass
 from typing import NamedTuple

@@ -3,7 +3,7 @@
 
 __all__ = ['ACTOR_PARAM_GROUPS', 'CRITIC_PARAM_GROUPS', 'NETWORKS', 'check_param_groups', 'network_kind', 'register_network', 'EXPERT_IMPLS', 'ExpertBank', 'ParamLayout', 'PopulationActor', 'PopulationCritic', 'RoutingSample', 'draw_routing_noise', 'gaussian_entropy', 'gaussian_kl', 'gaussian_log_prob', 'loop_experts', 'masked_mixed', 'routing_noise_std', 'run_experts', 'run_linear', 'run_load_balance', 'run_noise_scale', 'ContiguousGrad', 'GatedExperts', 'GateOutput', 'load_balance_loss', 'run_gate', 'single_member_params', 'topk_weights', 'TOP1_WEIGHTS', 'ROUTING_NOISES', 'CRITIC_GATINGS', 'EXPERT_HEADS', 'UPDATE_ROUTINGS', 'PAPER_OBS_DIM', 'PAPER_ACTOR_PARAMS', 'PAPER_ACTIVE_PARAMS', 'NetConfig', 'PAPER_NET', 'linear_cost', 'GaussianActor', 'MLPActor', 'ExpertHeads', 'MoEActor', 'SMoEActor', 'MLPCritic', 'MoECritic', 'SMoECritic', 'make_actor', 'critic_kind', 'make_critic']
 
-# %% notebooks/05_moe_actor.py, cell 4 (line 50)
+# %% notebooks/05_moe_actor.py, exported cell 1
 import math
 from dataclasses import dataclass
 
@@ -27,7 +27,7 @@ from pemamoe.gating import (ContiguousGrad, GatedExperts, GateOutput, load_balan
                             single_member_params, topk_weights)
 
 
-# %% notebooks/05_moe_actor.py, cell 7 (line 152)
+# %% notebooks/05_moe_actor.py, exported cell 2
 TOP1_WEIGHTS = ("straight_through", "switch", "paper")
 ROUTING_NOISES = ("learned", "fixed", "annealed", "off")
 CRITIC_GATINGS = ("dense", "gated", "mlp")
@@ -90,7 +90,7 @@ class NetConfig:
 PAPER_NET = NetConfig(routing_noise="learned", expert_heads="shared")
 
 
-# %% notebooks/05_moe_actor.py, cell 11 (line 332)
+# %% notebooks/05_moe_actor.py, exported cell 3
 def linear_cost(*layers) -> tuple:
     """(parameters, multiply-accumulates per row) of nn.Linear layers, summed; None counts as
     nothing (an absent noise gate). The building block of every kind's `cost_parts`."""
@@ -311,7 +311,7 @@ class SMoEActor(MoEActor):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 13 (line 565)
+# %% notebooks/05_moe_actor.py, exported cell 4
 class _Critic(nn.Module):
     """Features (run_features at R = 1, or a gate's) -> value head; subclasses build the layers."""
 
@@ -370,7 +370,7 @@ class SMoECritic(MoECritic):
     sparse = True
 
 
-# %% notebooks/05_moe_actor.py, cell 15 (line 643)
+# %% notebooks/05_moe_actor.py, exported cell 5
 register_network("mlp", MLPActor, MLPCritic)
 register_network("moe", MoEActor, MoECritic)
 register_network("smoe", SMoEActor, SMoECritic)

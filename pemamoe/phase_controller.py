@@ -3,7 +3,7 @@
 
 __all__ = ['MECHANISMS', 'TEMPERATURE_TARGETS', 'NOISE_WINDOW_UNITS', 'PhaseControllerConfig', 'lr_multiplier', 'kl_anchor_coef', 'temperature_text', 'temperature_formula', 'entropy_coef', 'n_experts_of', 'expert_parameters', 'PhaseController', 'MemberConfig']
 
-# %% notebooks/06_plasticity.py, cell 4 (line 55)
+# %% notebooks/06_plasticity.py, exported cell 1
 import math
 from dataclasses import asdict, dataclass, fields
 
@@ -17,7 +17,7 @@ from pemamoe.plasticity import (BaseSchedule, IterationSettings, NoPlasticity, S
 from pemamoe.popnets import gaussian_kl
 
 
-# %% notebooks/06_plasticity.py, cell 8 (line 186)
+# %% notebooks/06_plasticity.py, exported cell 2
 TEMPERATURE_TARGETS = ("policy", "value", "both")
 NOISE_WINDOW_UNITS = ("epochs", "iterations")
 
@@ -95,7 +95,7 @@ class PhaseControllerConfig:
         return PhaseControllerConfig(**{**asdict(self), mechanism: False})
 
 
-# %% notebooks/06_plasticity.py, cell 10 (line 287)
+# %% notebooks/06_plasticity.py, exported cell 3
 def lr_multiplier(since, cfg: PhaseControllerConfig):
     """LR factor at `since` iterations after a switch: drop_factor at 0, linear back to 1 at lr_warmup_iters."""
     since = np.asarray(since, dtype=float)
@@ -136,7 +136,7 @@ def entropy_coef(iteration, since_phase, base: BaseSchedule, cfg: PhaseControlle
     return base_entropy_coef(iteration, base)
 
 
-# %% notebooks/06_plasticity.py, cell 12 (line 344)
+# %% notebooks/06_plasticity.py, exported cell 4
 def n_experts_of(actor) -> int:
     """Number of experts: the distinct expert indices the actor's trunk names (1 for an unstacked trunk)."""
     return len({0 if e is None else e for _, e in actor.trunk_parameters()})
@@ -154,7 +154,7 @@ def expert_parameters(actor, expert: int) -> list:
             for name, e in actor.trunk_parameters() if e is None or e == expert]
 
 
-# %% notebooks/06_plasticity.py, cell 15 (line 440)
+# %% notebooks/06_plasticity.py, exported cell 5
 @register_plasticity
 class PhaseController(NoPlasticity):
     """PE-MAMoE's phase controller (Algorithm 1) for each member whose config enables it;
@@ -324,7 +324,7 @@ class PhaseController(NoPlasticity):
             self.reference[r] = state["reference"].to(self.reference.device)
 
 
-# %% notebooks/06_plasticity.py, cell 18 (line 643)
+# %% notebooks/06_plasticity.py, exported cell 6
 @dataclass(frozen=True)
 class MemberConfig:
     """What a plasticity method reads of a member's config (TrainConfig has the same four)."""

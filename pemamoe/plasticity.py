@@ -3,7 +3,7 @@
 
 __all__ = ['BaseSchedule', 'linear_anneal', 'base_entropy_coef', 'IterationSettings', 'Schedules', 'PLASTICITY_METHODS', 'register_plasticity', 'plasticity_method', 'NoPlasticity', 'population_method']
 
-# %% notebooks/06b_population_plasticity.py, cell 4 (line 38)
+# %% notebooks/06b_population_plasticity.py, exported cell 1
 import math
 from dataclasses import dataclass
 
@@ -16,7 +16,7 @@ from pemamoe.optim import RunAdamW, group_index
 from pemamoe.popnets import PopulationActor, PopulationCritic
 
 
-# %% notebooks/06b_population_plasticity.py, cell 7 (line 96)
+# %% notebooks/06b_population_plasticity.py, exported cell 2
 @dataclass(frozen=True)
 class BaseSchedule:
     """The PPO values every method shares (paper training table); the phase controller modifies them."""
@@ -73,7 +73,7 @@ class IterationSettings:
     noise_epochs_left: int
 
 
-# %% notebooks/06b_population_plasticity.py, cell 9 (line 161)
+# %% notebooks/06b_population_plasticity.py, exported cell 3
 @dataclass(frozen=True)
 class Schedules:
     """What the trainer uses in one iteration, per member (tensors of shape (R,))."""
@@ -109,7 +109,7 @@ class Schedules:
         )
 
 
-# %% notebooks/06b_population_plasticity.py, cell 11 (line 215)
+# %% notebooks/06b_population_plasticity.py, exported cell 4
 PLASTICITY_METHODS: dict = {}
 
 
@@ -257,7 +257,7 @@ class NoPlasticity:
         return self.actor.layout.flatten([fresh])[0].to(self.device, self.actor.flat.dtype)
 
 
-# %% notebooks/06b_population_plasticity.py, cell 13 (line 374)
+# %% notebooks/06b_population_plasticity.py, exported cell 5
 def population_method(name: str, configs, actors, critics=None, betas=(0.9, 0.999), eps: float = 1e-5,
                       weight_decay: float = 0.0):
     """Plasticity method `name` on the population stacked from single-run `actors` (and `critics`,

@@ -3,7 +3,7 @@
 
 __all__ = ['EXPERT_IMPLS', 'loop_experts', 'masked_mixed', 'ExpertBank', 'RoutingSample', 'routing_noise_std', 'draw_routing_noise', 'ParamLayout', 'run_linear', 'run_experts', 'run_load_balance', 'run_noise_scale', 'PopulationActor', 'PopulationCritic', 'gaussian_log_prob', 'gaussian_entropy', 'gaussian_kl']
 
-# %% notebooks/05b_population_nets.py, cell 5 (line 75)
+# %% notebooks/05b_population_nets.py, exported cell 1
 import copy
 import math
 from typing import NamedTuple
@@ -137,7 +137,7 @@ class ExpertBank(nn.Module):
         return (picked * weights.unsqueeze(-1)).sum(1)
 
 
-# %% notebooks/05b_population_nets.py, cell 7 (line 247)
+# %% notebooks/05b_population_nets.py, exported cell 2
 class RoutingSample(NamedTuple):
     """The random choices of one gated forward pass, stored in the rollout buffer.
 

@@ -3,7 +3,7 @@
 
 __all__ = ['RUN_FILES', 'LOG_FILES', 'DONE_FORMAT', 'LOCK_NAME', 'PicklableError', 'RunFolderError', 'RunLockedError', 'check_run_dir', 'read_json', 'read_parquet', 'read_config', 'load_checkpoint', 'SEALED_FORMAT', 'CHECKPOINT_SEAL', 'seal_checkpoint', 'config_difference', 'check_stored_config', 'file_digest', 'UNRECORDED_PROCESSOR', 'training_processor', 'write_done', 'verify_done', 'parquet_rows', 'prepare_run_dir', 'RunLock', 'lock_run', 'holder_pid']
 
-# %% notebooks/07b_run_folders.py, cell 4 (line 70)
+# %% notebooks/07b_run_folders.py, exported cell 1
 import fcntl
 import hashlib
 import json
@@ -68,7 +68,7 @@ def check_run_dir(run_dir) -> Path:
     return Path(run_dir)
 
 
-# %% notebooks/07b_run_folders.py, cell 6 (line 139)
+# %% notebooks/07b_run_folders.py, exported cell 2
 def read_json(path) -> dict:
     """A JSON object from `path`; RunFolderError (naming the file) when missing, empty or garbage."""
     path = Path(path)
@@ -161,7 +161,7 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
     return ck
 
 
-# %% notebooks/07b_run_folders.py, cell 8 (line 243)
+# %% notebooks/07b_run_folders.py, exported cell 3
 SEALED_FORMAT = 5  # the checkpoint format that introduced the seal (appendix 07e); every later one has it too
 CHECKPOINT_SEAL = b"pemamoe-sha256:"  # the zip comment of a sealed checkpoint: this, then the 64 hex digits
 
@@ -190,7 +190,7 @@ def seal_checkpoint(path) -> str:
     return h.hexdigest()
 
 
-# %% notebooks/07b_run_folders.py, cell 9 (line 273)
+# %% notebooks/07b_run_folders.py, exported cell 4
 _SEAL_LEN = len(CHECKPOINT_SEAL) + 64
 
 
@@ -221,7 +221,7 @@ def _existing_file(path) -> Path:
     return path
 
 
-# %% notebooks/07b_run_folders.py, cell 11 (line 312)
+# %% notebooks/07b_run_folders.py, exported cell 5
 def config_difference(stored: dict, requested: dict, limit: int = 6) -> str:
     """The keys where two identity dicts differ, as `key: stored X, requested Y` (nested keys
     dotted, at most `limit` of them); "" when equal."""
@@ -252,7 +252,7 @@ def check_stored_config(stored: dict, config, path) -> None:
                              "use another run_dir, or resume=False to overwrite it")
 
 
-# %% notebooks/07b_run_folders.py, cell 12 (line 344)
+# %% notebooks/07b_run_folders.py, exported cell 6
 def _short(value, width: int = 60) -> str:
     text = repr(value)
     return text if len(text) <= width else text[:width - 3] + "..."
@@ -265,7 +265,7 @@ def _config_from_dict(d, cls, path):
         raise RunFolderError(path, f"does not hold a valid {cls.__name__} ({type(err).__name__}: {err})") from None
 
 
-# %% notebooks/07b_run_folders.py, cell 14 (line 364)
+# %% notebooks/07b_run_folders.py, exported cell 7
 def file_digest(path) -> str:
     """sha256 of a file's bytes, as hex."""
     h = hashlib.sha256()
@@ -377,7 +377,7 @@ def prepare_run_dir(run_dir, config, resume: bool) -> None:
     atomic_write_json(cfg_path, config.to_dict())
 
 
-# %% notebooks/07b_run_folders.py, cell 16 (line 486)
+# %% notebooks/07b_run_folders.py, exported cell 8
 class RunLock:
     """The exclusive writer lock of one run folder (a context manager; see `lock_run`)."""
 

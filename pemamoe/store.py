@@ -3,7 +3,7 @@
 
 __all__ = ['STORE_FILES', 'SEALED_FILES', 'LEASE_PREFIX', 'LEGACY_LEASE', 'SYNC_SECONDS', 'LEASE_STALE_SECONDS', 'CACHE_ENV', 'StoreLeaseError', 'cache_root', 'ResultsStore', 'open_store', 'BUCKET_PROTOCOLS', 'StoreAccessError', 'check_access', 'store_access_error', 'pull_run', 'push_run', 'refresh_finished', 'lease_generations', 'StoreLease', 'checked_out', 'pull_tree', 'push_paths', 'fetch_run']
 
-# %% notebooks/09f_results_store.py, cell 4 (line 118)
+# %% notebooks/09f_results_store.py, exported cell 1
 import hashlib
 import json
 import os
@@ -53,7 +53,7 @@ def _heartbeat(holder: dict) -> float:
         return 0.0
 
 
-# %% notebooks/09f_results_store.py, cell 6 (line 177)
+# %% notebooks/09f_results_store.py, exported cell 2
 def _env_seconds(name: str, default: float) -> float:
     text = os.environ.get(name)
     if text is None or text.strip() == "":
@@ -132,7 +132,7 @@ def open_store(results="results") -> ResultsStore:
     return results if isinstance(results, ResultsStore) else ResultsStore(results)
 
 
-# %% notebooks/09f_results_store.py, cell 8 (line 270)
+# %% notebooks/09f_results_store.py, exported cell 3
 BUCKET_PROTOCOLS = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")  # a URL's first component is a bucket
 
 
@@ -203,7 +203,7 @@ def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
     return None
 
 
-# %% notebooks/09f_results_store.py, cell 9 (line 342)
+# %% notebooks/09f_results_store.py, exported cell 4
 def _bucket(store) -> "str | None":
     """The bucket of a remote store whose protocol has buckets, else None."""
     protocol = store.protocol
@@ -243,7 +243,7 @@ def _access_errors(store):
         raise access from err
 
 
-# %% notebooks/09f_results_store.py, cell 11 (line 399)
+# %% notebooks/09f_results_store.py, exported cell 5
 def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> dict:
     """Copy the run's `names` from the store into store.run_dir; return {name: (mtime_ns, size,
     sha256)} of those now in the cache folder (what push_run need not send back). Raises
@@ -366,7 +366,7 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
         (folder / "done.json").unlink()
 
 
-# %% notebooks/09f_results_store.py, cell 13 (line 532)
+# %% notebooks/09f_results_store.py, exported cell 6
 def _lease_name(generation: int) -> str:
     return f"{LEASE_PREFIX}{generation}.json"
 
@@ -507,7 +507,7 @@ class _Fence:
                                            "(delete the run's folder in the store to train it again)")
 
 
-# %% notebooks/09f_results_store.py, cell 15 (line 690)
+# %% notebooks/09f_results_store.py, exported cell 7
 class _Mirror(threading.Thread):
     """Pushes the checked-out runs every `every` seconds; gives up a run for good when its lease is
     lost (`lost`: run index -> the StoreLeaseError), and ends when it has lost them all."""

@@ -3,13 +3,13 @@
 
 __all__ = ['window_coverage', 'noise_schedule', 'noise_energy', 'dynamic_regret']
 
-# %% notebooks/08_theory_check.py, cell 4 (line 69)
+# %% notebooks/08_theory_check.py, exported cell 1
 import math
 
 import numpy as np
 
 
-# %% notebooks/08_theory_check.py, cell 7 (line 129)
+# %% notebooks/08_theory_check.py, exported cell 2
 def _int_ok(v, low=0):
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= low
 
@@ -46,7 +46,7 @@ def noise_energy(schedule) -> float:
     return math.fsum((g * g).tolist())
 
 
-# %% notebooks/08_theory_check.py, cell 10 (line 202)
+# %% notebooks/08_theory_check.py, exported cell 3
 def dynamic_regret(optimal_values, values) -> np.ndarray:
     """Cumulative dynamic regret R_t = sum_{s <= t} (V*_{phi(s)} - V(pi_s)), shape (T,)."""
     opt = np.asarray(optimal_values, dtype=float)
