@@ -299,6 +299,7 @@ def planned_modules(root: Path) -> dict[Path, str]:
                 raise ExportError(f"{rel}: module {name!r} is hand-written and cannot be exported to")
             if name in owner:
                 raise ExportError(f"module {name!r} is exported by both {owner[name]} and {rel}")
+            check_notebook_name(rel, name)
             owner[name] = rel
             plan[root / "pemamoe" / f"{name}.py"] = render_module(rel, module_cells)
     return plan

@@ -317,6 +317,30 @@ def test_the_index_maps_every_notebook_and_the_modules_it_exports():
             assert f"pemamoe/{module}.py" in rows[nb.name], f"00_index's row for {nb.name} does not name pemamoe/{module}.py"
 
 
+def test_every_exporting_notebook_is_named_after_its_module():
+    """Issue 61: `05b_population_nets.py` wrote `pemamoe/popnets.py`; now a notebook and its module
+    share a name (`NN_<module>.py`, NN the reading order), as nbdev's do."""
+    misnamed, exporting = {}, 0
+    for nb in sorted((ROOT / "notebooks").glob("*.py")):
+        rel = nb.relative_to(ROOT).as_posix()
+        for module in literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel):
+            exporting += 1
+            if not re.fullmatch(rf"[0-9]{{2}}[a-z]?_{module}", nb.stem):
+                misnamed[nb.name] = f"exports {module}"
+    assert exporting > 30
+    assert not misnamed, misnamed
+
+
+@pytest.mark.parametrize("new_name", ["01_radio.py", "01_channel_model.py", "channel.py", "01x_channels.py"])
+def test_export_refuses_a_notebook_not_named_after_its_module(repo_copy, new_name):
+    package = _snapshot(repo_copy / "pemamoe")
+    (repo_copy / "notebooks" / "01_channel.py").rename(repo_copy / "notebooks" / new_name)
+    with pytest.raises(literate.ExportError, match=re.escape(f"notebooks/{new_name} exports pemamoe/channel.py, "
+                                                             "so its name must be NN_channel.py")):
+        literate.export_all(repo_copy)
+    assert _snapshot(repo_copy / "pemamoe") == package  # refused before anything was written
+
+
 def test_every_notebook_stays_within_900_lines():
     """Issue 39: a notebook a reader can hold in mind; past 900 lines an idea moves to an appendix."""
     notebooks = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.py"))

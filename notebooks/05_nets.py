@@ -35,7 +35,7 @@
 # the trainer's population of networks both run; exact PPO ratios under random routing; the four
 # architectures drawn, and the cost table. The machinery around them is in four appendices: the
 # expert bank's storage and execution strategies and the population as one set of tensors in
-# `05b_population_nets.py`, the registries in `05e_methods.py`, counts and latency in `05f_netcost.py`,
+# `05b_popnets.py`, the registries in `05e_methods.py`, counts and latency in `05f_netcost.py`,
 # the gate's code in `05g_gating.py`.
 
 # %%
