@@ -76,39 +76,39 @@
 # |---|---|---|---|
 # | III-B channel model | `01_channel.py` | `pemamoe/channel.py` | `channel_*` figures |
 # | III-C energy model | `02_energy.py` | `pemamoe/energy.py` | `energy_power_vs_speed` |
-# | III-D mobility and phases | `03_mobility_phases.py` | `pemamoe/mobility.py` | `mobility_*`, `phases_schedules` |
+# | III-D mobility and phases | `03_mobility.py` | `pemamoe/mobility.py` | `mobility_*`, `phases_schedules` |
 # | (appendix to III-D) the phase table and the phase clock in code | `03b_phases.py` | `pemamoe/phases.py` | |
-# | III-E objective, "environment-side heuristics" | `04_environment.py` | `pemamoe/env_model.py` | reward anatomy table |
-# | (appendix to III-E) the compiled step engine | `04b_engine.py` | `pemamoe/env_kernel.py` | |
+# | III-E objective, "environment-side heuristics" | `04_env_model.py` | `pemamoe/env_model.py` | reward anatomy table |
+# | (appendix to III-E) the compiled step engine | `04b_env_kernel.py` | `pemamoe/env_kernel.py` | |
 # | (appendix to III-E) one random stream per environment, read as a batch | `04c_streams.py` | `pemamoe/streams.py` | |
 # | (appendix to III-E) the vector and PettingZoo wrappers, rendering, reference policies | `04d_env_wrappers.py` | `pemamoe/env_wrappers.py` | |
 # | (appendix to III-E) `pemamoe.env`, the module outside code imports | `04e_env.py` | `pemamoe/env.py` | |
-# | IV-A MoE architecture, Table "Computational cost" | `05_moe_actor.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
-# | (appendix to IV-A) the expert bank's execution strategies, the run axis | `05b_population_nets.py` | `pemamoe/popnets.py` | |
+# | IV-A MoE architecture, Table "Computational cost" | `05_nets.py` | `pemamoe/nets.py` | `architecture_*`, `cost_table` |
+# | (appendix to IV-A) the expert bank's execution strategies, the run axis | `05b_popnets.py` | `pemamoe/popnets.py` | |
 # | (appendix to IV-A) top-1 gating readings compared: the kept expert's weight, the routing noise, the critic | `05c_gating_readings.py` | | `gating_readings*`, `gating_evaluation` |
 # | (appendix to IV-A) the sparse actor's readings (per-expert heads, balance loss, re-routed ratio, top-2) and why top-1 plateaus lower | `05d_sparse_actor.py` | | `sparse_actor*` |
 # | (appendix to IV-A) the registries of methods and network kinds | `05e_methods.py` | `pemamoe/methods.py` | |
 # | (appendix to IV-A) parameter and compute counts, latency, the cost table's code | `05f_netcost.py` | `pemamoe/netcost.py` | |
 # | (appendix to IV-A) the gate's code, for one network and for a population | `05g_gating.py` | `pemamoe/gating.py` | |
-# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_plasticity.py` | `pemamoe/phase_controller.py` | schedule figures |
-# | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry) | `06b_population_plasticity.py` | `pemamoe/plasticity.py` | |
+# | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_phase_controller.py` | `pemamoe/phase_controller.py` | schedule figures |
+# | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry) | `06b_plasticity.py` | `pemamoe/plasticity.py` | |
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |
 # | (appendix) AdamW over the run axis: per-member learning rates, moments, resets and freezes | `06d_optim.py` | `pemamoe/optim.py` | |
 # | (appendix) the plasticity diagnostics (VI-F): feature rank, dormant units, routers, mean action | `06e_diagnostics.py` | `pemamoe/diagnostics.py` | |
 # | IV-B training (MAPPO: PPO + GAE under CTDE, total loss, Algorithm 1's loop); VI-A training table | `07_mappo.py` | `pemamoe/mappo.py` | training curves |
-# | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_run_folders.py` | `pemamoe/runs.py` | |
+# | (appendix to IV-B) run folders you can trust: locks, sealed results, named errors | `07b_runs.py` | `pemamoe/runs.py` | |
 # | (appendix to IV-B) the run's configuration: its fields and checks, its identity, the presets; VI-A's parameter table | `07c_train_config.py` | `pemamoe/train_config.py` | `table_parameters` |
 # | (appendix to IV-B) populations of runs, resuming and catching up, reading a run back, deterministic evaluation | `07d_populations.py` | `pemamoe/populations.py` | |
 # | (appendix to IV-B) the trainer's bookkeeping: episodes, the log row, the return normaliser, checkpoint encoding | `07e_bookkeeping.py` | `pemamoe/bookkeeping.py` | |
-# | V theoretical analysis | `08_theory_check.py` | `pemamoe/theory.py` | `theory_*` |
+# | V theoretical analysis | `08_theory.py` | `pemamoe/theory.py` | `theory_*` |
 # | (appendix of V) the toy tracking problems and the theory check's instruments | `08b_toy_tracking.py` | `pemamoe/toy_tracking.py` | |
 # | (appendix of V) the theory check's records: computed once, committed, read back | `08c_theory_records.py` | `pemamoe/theory_records.py` | |
 # | VI-B to VI-F results | `09_experiments.py` | `pemamoe/experiments.py` | every results figure |
-# | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_learning_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
+# | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_runner.py` | `pemamoe/sweep_runner.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
 # | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
-# | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_results_store.py` | `pemamoe/store.py` | |
+# | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_store.py` | `pemamoe/store.py` | |
 # | (appendix to VI) reading results: the IQM and its bootstrap intervals, the heuristics' levels, curves over training | `09g_analysis.py` | `pemamoe/analysis.py` | |
 # | VI-G ablations; the headline claims against the paper's numbers | `10_ablations.py` | | noise sweep, tricks ablation, `headline_*` tables |
 # | the settings the paper leaves open that move the paper-scale verdict (Algorithm 1, training table) | `10b_readings.py` | | `readings`, `log_std_reset_direction`, `update_budget` tables (paper scale) |

@@ -29,7 +29,7 @@ def main(argv=None) -> int:
                           "the records again")
     fig.add_argument("--notebook", action="append", type=_figure_notebook, metavar="NOTEBOOK",
                      help="run only these notebooks (repeatable): a notebook of notebooks/ by file name or stem "
-                          "(08_theory_check.py, 08_theory_check), or a path to one")
+                          "(08_theory.py, 08_theory), or a path to one")
     fig.add_argument("--backend", default="local", choices=BACKENDS,
                      help="sweep backend: local | ray (default: local)")
     fig.add_argument("--workers", type=int_arg(1), default=2, help="parallel training runs (default: 2)")
@@ -124,8 +124,8 @@ def _check_parent_folder(flag: str, text: str, parser) -> None:
 
 # -- figures -----------------------------------------------------------------------------------
 def _figure_notebook(text: str) -> str:
-    """--notebook: a notebook of notebooks/ named by its file name (08_theory_check.py), its stem
-    (08_theory_check) or its path in the repository (notebooks/08_theory_check.py); or a path to an
+    """--notebook: a notebook of notebooks/ named by its file name (08_theory.py), its stem
+    (08_theory) or its path in the repository (notebooks/08_theory.py); or a path to an
     existing notebook file. Anything else fails here, naming the notebooks allowed."""
     from pemamoe.core import REPO_ROOT, figure_notebooks
 

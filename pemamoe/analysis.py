@@ -3,7 +3,7 @@
 
 __all__ = ['RECORD_EPISODE_COLUMNS', 'RUN_COLUMNS', 'load_runs', 'run_labels', 'method_order', 'is_proposed', 'SUMMARY_METRICS', 'iqm', 'run_scores', 'normalise_scores', 'bootstrap_iqm', 'probability_of_improvement', 'relative_change', 'claim_verdict', 'REFERENCE_POLICIES', 'CURVE_COLUMNS', 'heuristic_episodes', 'reference_levels', 'smooth', 'switch_iterations', 'phase_visits', 'phase_blocks', 'plot_reference_levels', 'plot_over_training', 'experts_by_usage', 'provenance']
 
-# %% notebooks/09g_analysis.py, cell 5 (line 45)
+# %% notebooks/09g_analysis.py, exported cell 1
 import dataclasses
 import hashlib
 import json
@@ -38,7 +38,7 @@ def is_proposed(name: str) -> bool:
     return name in METHOD_REGISTRY and METHOD_REGISTRY[name].proposed
 
 
-# %% notebooks/09g_analysis.py, cell 7 (line 94)
+# %% notebooks/09g_analysis.py, exported cell 2
 # Metric of the per-episode log -> (label, higher is better)
 SUMMARY_METRICS = {
     "coverage": ("Coverage", True),
@@ -153,7 +153,7 @@ def claim_verdict(ci_low: float, ci_high: float, paper_value: float) -> str:
     return "not resolved (interval contains 0)"
 
 
-# %% notebooks/09g_analysis.py, cell 9 (line 225)
+# %% notebooks/09g_analysis.py, exported cell 3
 # The heuristics drawn as reference levels: name in pemamoe.env.HEURISTICS -> (legend, line style)
 REFERENCE_POLICIES = {"random": ("random policy", ":"), "kmeans": ("k-means heuristic", "-.")}
 # Per-episode log column (episodes.parquet) -> training-curve column (metrics.parquet)
@@ -207,7 +207,7 @@ def reference_levels(scale: str, results_dir="results", policies=tuple(REFERENCE
     return pd.read_csv(path)  # what a later call reads from the cache, to the last bit
 
 
-# %% notebooks/09g_analysis.py, cell 11 (line 294)
+# %% notebooks/09g_analysis.py, exported cell 4
 def smooth(values, window: int):
     return pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
 

@@ -3,7 +3,7 @@
 
 __all__ = ['CHECKPOINT_FORMAT', 'EpisodeTracker', 'explained_variance', 'IterationLogger', 'collect_probe', 'RunningNorm', 'ValueNorms', 'encode_arrays', 'decode_arrays', 'RowLog', 'write_checkpoint', 'write_rows_parquet', 'FILL_UNINITIALIZED_MEMORY', 'DeterministicTorch', 'split_env_state', 'merge_env_states']
 
-# %% notebooks/07e_bookkeeping.py, cell 6 (line 69)
+# %% notebooks/07e_bookkeeping.py, exported cell 1
 import io
 import math
 import os
@@ -103,7 +103,7 @@ class EpisodeTracker:
         self.load_member_state(0, state)
 
 
-# %% notebooks/07e_bookkeeping.py, cell 7 (line 169)
+# %% notebooks/07e_bookkeeping.py, exported cell 2
 def explained_variance(pred, target) -> float:
     """1 - Var[target - pred] / Var[target] (nan when the target is constant)."""
     pred, target = torch.as_tensor(pred, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)
@@ -209,7 +209,7 @@ class IterationLogger:
         self.bar.close(clear=kind is not None)  # an interrupted run leaves no stale bar under its message
 
 
-# %% notebooks/07e_bookkeeping.py, cell 11 (line 303)
+# %% notebooks/07e_bookkeeping.py, exported cell 3
 def collect_probe(config, steps_per_phase: int | None = None):
     """Fixed probe batch for the diagnostics: (probe_obs (P, obs_dim), probe_state (Q, state_dim)).
 
@@ -235,7 +235,7 @@ def collect_probe(config, steps_per_phase: int | None = None):
     return torch.from_numpy(obs_all[pick_o].copy()), torch.from_numpy(state_all[pick_s].copy())
 
 
-# %% notebooks/07e_bookkeeping.py, cell 15 (line 353)
+# %% notebooks/07e_bookkeeping.py, exported cell 4
 import math
 
 
@@ -303,7 +303,7 @@ class ValueNorms:
             n.update(returns[r])
 
 
-# %% notebooks/07e_bookkeeping.py, cell 19 (line 507)
+# %% notebooks/07e_bookkeeping.py, exported cell 5
 def encode_arrays(obj):
     """Nested numpy state -> tensors and plain types (torch.load(weights_only=True) safe)."""
     if isinstance(obj, np.ndarray):
@@ -471,7 +471,7 @@ class DeterministicTorch:
         return False
 
 
-# %% notebooks/07e_bookkeeping.py, cell 20 (line 675)
+# %% notebooks/07e_bookkeeping.py, exported cell 6
 def split_env_state(state: dict, rows) -> dict:
     """The environment state (UAVVectorEnv.state_dict) of environments `rows` only."""
     rows = np.asarray(rows)

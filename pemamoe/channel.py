@@ -3,7 +3,7 @@
 
 __all__ = ['ChannelConfig', 'link_geometry', 'height_correction', 'los_probability', 'path_loss_los_db', 'path_loss_nlos_db', 'large_scale_gain', 'rician_power', 'nakagami_power', 'shadowing_db', 'ChannelSample', 'sample_channel', 'reuse_colours', 'interference_weights', 'interference_w', 'noise_power_w', 'user_bandwidth_hz', 'sinr', 'achievable_rate_bps', 'required_sinr', 'required_power_w']
 
-# %% notebooks/01_channel.py, cell 4 (line 44)
+# %% notebooks/01_channel.py, exported cell 1
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -13,7 +13,7 @@ import numpy as np
 from pemamoe.core import require_field
 
 
-# %% notebooks/01_channel.py, cell 6 (line 81)
+# %% notebooks/01_channel.py, exported cell 2
 @dataclass(frozen=True)
 class ChannelConfig:
     """Every constant of the air-to-ground channel (units in the field names)."""
@@ -104,7 +104,7 @@ class ChannelConfig:
         return 10.0 * math.log10(self.max_tx_power_w) + 30.0
 
 
-# %% notebooks/01_channel.py, cell 8 (line 185)
+# %% notebooks/01_channel.py, exported cell 3
 def link_geometry(uav_xyz, user_xyz, cfg: ChannelConfig):
     """Per-link geometry.
 
@@ -126,7 +126,7 @@ def link_geometry(uav_xyz, user_xyz, cfg: ChannelConfig):
     return horizontal, rel_height, distance
 
 
-# %% notebooks/01_channel.py, cell 10 (line 226)
+# %% notebooks/01_channel.py, exported cell 4
 def height_correction(rel_height_m, cfg: ChannelConfig):
     """C0(h) = (max(h - 13, 0) / 10) ** 1.5 with the config's coefficients; same shape as h."""
     excess = np.maximum(np.asarray(rel_height_m, dtype=float) - cfg.los_height_offset_m, 0.0)
@@ -142,7 +142,7 @@ def los_probability(distance_m, rel_height_m, cfg: ChannelConfig):
     return np.clip(np.where(r <= cfg.los_breakpoint_m, 1.0, p), 0.0, 1.0)
 
 
-# %% notebooks/01_channel.py, cell 12 (line 251)
+# %% notebooks/01_channel.py, exported cell 5
 def path_loss_los_db(distance_m, cfg: ChannelConfig):
     """LoS path loss [dB] at 3-D distance r [m] (floored at cfg.min_distance_m)."""
     r = np.maximum(np.asarray(distance_m, dtype=float), cfg.min_distance_m)
@@ -159,7 +159,7 @@ def path_loss_nlos_db(distance_m, cfg: ChannelConfig):
     return path_loss_los_db(r, cfg) + cfg.nlos_offset_db + cfg.nlos_distance_coeff_db * r ** cfg.nlos_distance_exponent
 
 
-# %% notebooks/01_channel.py, cell 14 (line 284)
+# %% notebooks/01_channel.py, exported cell 6
 def large_scale_gain(distance_m, rel_height_m, cfg: ChannelConfig):
     """Expected linear gain (antenna gains included, no fading or shadowing), shape of r and h."""
     p_los = los_probability(distance_m, rel_height_m, cfg)
@@ -172,7 +172,7 @@ def _expected_gain(p_los, pl_los_db, pl_nlos_db, cfg: ChannelConfig):
     return cfg.antenna_gain * (p_los * g_los + (1.0 - p_los) * g_nlos)
 
 
-# %% notebooks/01_channel.py, cell 16 (line 314)
+# %% notebooks/01_channel.py, exported cell 7
 def rician_power(los_shape, k_db, rng: np.random.Generator):
     """Rician fading power |h|^2 with unit mean; k_db is a scalar or broadcasts to los_shape."""
     k = 10.0 ** (np.asarray(k_db, dtype=float) / 10.0)
@@ -198,7 +198,7 @@ def shadowing_db(los_mask, cfg: ChannelConfig, rng: np.random.Generator):
     return sigma * rng.standard_normal(los_mask.shape)
 
 
-# %% notebooks/01_channel.py, cell 18 (line 354)
+# %% notebooks/01_channel.py, exported cell 8
 class ChannelSample(NamedTuple):
     """One draw of every link's channel; every field is (..., N, U)."""
 
@@ -243,7 +243,7 @@ def sample_channel(uav_xyz, user_xyz, cfg: ChannelConfig, rng: np.random.Generat
     )
 
 
-# %% notebooks/01_channel.py, cell 20 (line 421)
+# %% notebooks/01_channel.py, exported cell 9
 def reuse_colours(n_uavs: int, reuse_factor: int):
     """Colour c(u) = u mod F of each UAV; shape (U,), dtype int."""
     if int(n_uavs) != n_uavs or n_uavs < 0:
@@ -276,7 +276,7 @@ def interference_w(gain, uav_power_w, weights):
     return received @ np.asarray(weights, dtype=float).T
 
 
-# %% notebooks/01_channel.py, cell 22 (line 465)
+# %% notebooks/01_channel.py, exported cell 10
 def noise_power_w(bandwidth_hz, cfg: ChannelConfig):
     """Thermal noise N0 * B [W]; -174 dBm/Hz over 1 MHz is -114 dBm."""
     return cfg.noise_w_per_hz * np.asarray(bandwidth_hz, dtype=float)
@@ -306,7 +306,7 @@ def achievable_rate_bps(bandwidth_hz, sinr, cfg: ChannelConfig):
     return np.where(bandwidth > 0, rate, 0.0)
 
 
-# %% notebooks/01_channel.py, cell 24 (line 516)
+# %% notebooks/01_channel.py, exported cell 11
 def required_sinr(target_rate_bps, bandwidth_hz, cfg: ChannelConfig):
     """gamma* = 2^(R / (alpha B)) - 1; 0 where R == 0, inf where R > 0 and B == 0."""
     rate, bandwidth = _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz)
@@ -331,7 +331,7 @@ def required_power_w(target_rate_bps, bandwidth_hz, gain, interference_w, cfg: C
     return np.where(rate == 0, 0.0, np.where(bandwidth == 0, np.inf, power))
 
 
-# %% notebooks/01_channel.py, cell 25 (line 542)
+# %% notebooks/01_channel.py, exported cell 12
 def _nonnegative_rate_and_band(target_rate_bps, bandwidth_hz):
     rate = np.asarray(target_rate_bps, dtype=float)
     bandwidth = np.asarray(bandwidth_hz, dtype=float)

@@ -3,7 +3,7 @@
 
 __all__ = ['SET_HELP', 'sweep_cli', 'error_line', 'PAPER_SCALE_NOTEBOOKS', 'PAPER_SCALE_FIGURES', 'figures_plan', 'make_figures', 'FIGURE_INPUTS']
 
-# %% notebooks/09e_commands.py, cell 4 (line 35)
+# %% notebooks/09e_commands.py, exported cell 1
 import signal
 import sys
 import time
@@ -17,7 +17,7 @@ from pemamoe.runs import RunFolderError, RunLockedError
 from pemamoe.store import StoreAccessError, StoreLeaseError, check_access, open_store, store_access_error
 
 
-# %% notebooks/09e_commands.py, cell 6 (line 67)
+# %% notebooks/09e_commands.py, exported cell 2
 SET_HELP = ("set any config field (repeatable), part of the run's identity: a TrainConfig field (target_kl=0.15, "
             "target_kl_check=epoch) or a dotted nested one (controller.log_std_value=0.3, net.top_k=2, env.n_users=30); "
             "VALUE is JSON, none, or a string (notebook 07c)")
@@ -188,7 +188,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 282)
+# %% notebooks/09e_commands.py, exported cell 3
 # what reads the paper-scale campaigns
 PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py", "10b_readings.py")
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
@@ -329,7 +329,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 424)
+# %% notebooks/09e_commands.py, exported cell 4
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

@@ -3,7 +3,7 @@
 
 __all__ = ['SCALES', 'TRAINING_SCALE_HELP', 'check_scale', 'by_scale', 'KINDS', 'config_error', 'require', 'require_field', 'BACKENDS', 'DEFAULT_POPULATION', 'EXPERIMENTS', 'READABLE_EXPERIMENTS', 'ACTOR_READINGS', 'MECHANISMS', 'SEED_LIMIT', 'int_arg', 'real_arg', 'one_line', 'find_repo_root', 'REPO_ROOT', 'repo_path', 'checkout_store', 'current_umask', 'atomic_path', 'atomic_write_text', 'atomic_write_bytes', 'atomic_write_json', 'save_figure', 'write_table', 'run_notebook', 'Progress', 'PAPER_COUNTERPARTS', 'FIXED_SCALE_OUTPUTS', 'notebook_parameters', 'figure_notebooks', 'cpu_model', 'write_figures_readme']
 
-# %% notebooks/00b_core.py, cell 5 (line 45)
+# %% notebooks/00b_core.py, exported cell 1
 import json
 import math
 import numbers
@@ -37,7 +37,7 @@ def by_scale(scale: str, *, ci, small, paper, medium=_SAME_AS_SMALL):
     return {"ci": ci, "small": small, "medium": medium, "paper": paper}[check_scale(scale)]
 
 
-# %% notebooks/00b_core.py, cell 7 (line 112)
+# %% notebooks/00b_core.py, exported cell 2
 KINDS = ("int", "real", "bool", "choice", "str", "reals")
 
 
@@ -83,7 +83,7 @@ def require_field(obj, field: str, kind: str, allowed=None, **rules):
     return value
 
 
-# %% notebooks/00b_core.py, cell 8 (line 159)
+# %% notebooks/00b_core.py, exported cell 3
 def _show(value) -> str:
     # NumPy 2 reprs numpy scalars as np.float64(...): show the number and, if not plain, its type.
     if isinstance(value, (bool, int, float, str)) or value is None:
@@ -184,7 +184,7 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
     return True, tuple(out)
 
 
-# %% notebooks/00b_core.py, cell 10 (line 277)
+# %% notebooks/00b_core.py, exported cell 4
 BACKENDS = ("local", "ray")  # where a sweep trains (appendix 09c)
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
 EXPERIMENTS = ("main", "tricks", "noise", "all", "campaign", "budget", "gating", "sparse", "tuning", "top2")  # notebook 09's sweeps
@@ -248,7 +248,7 @@ def one_line(message) -> str:
     return " ".join(str(message).split())
 
 
-# %% notebooks/00b_core.py, cell 11 (line 342)
+# %% notebooks/00b_core.py, exported cell 5
 def _bound_text(bound: int) -> str:
     """A large power of two as `2**k` (the seed limit reads 2**63, not 19 digits)."""
     if bound >= 2**20 and bound & (bound - 1) == 0:
@@ -256,7 +256,7 @@ def _bound_text(bound: int) -> str:
     return str(bound)
 
 
-# %% notebooks/00b_core.py, cell 13 (line 365)
+# %% notebooks/00b_core.py, exported cell 6
 def _is_checkout(folder: Path) -> bool:
     pyproject = folder / "pyproject.toml"
     if not (pyproject.is_file() and (folder / "notebooks").is_dir()):
@@ -300,7 +300,7 @@ def checkout_store(text, default: str):
     return repo_path(default) if str(text) == default else text
 
 
-# %% notebooks/00b_core.py, cell 17 (line 434)
+# %% notebooks/00b_core.py, exported cell 7
 def current_umask() -> int:
     """The process umask (read from /proc where possible: setting it to read it is not
     thread-safe)."""
@@ -350,7 +350,7 @@ def atomic_write_json(path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 19 (line 493)
+# %% notebooks/00b_core.py, exported cell 8
 def save_figure(fig, name: str, figures_dir, dpi: int = 150) -> None:
     """Write `fig` as `<figures_dir>/<name>.png` and `.pdf`, atomically (a relative figures_dir is
     under the repository root)."""
@@ -367,7 +367,7 @@ def write_table(df, name: str, figures_dir, floatfmt: str = ".4g") -> None:
     atomic_write_text(folder / f"{name}.csv", df.to_csv(index=False))
 
 
-# %% notebooks/00b_core.py, cell 20 (line 511)
+# %% notebooks/00b_core.py, exported cell 9
 def _markdown_table(df, floatfmt: str) -> str:
     # A tiny renderer, so tables do not depend on the optional `tabulate` package.
     def fmt(v):
@@ -381,7 +381,7 @@ def _markdown_table(df, floatfmt: str) -> str:
     return "\n".join([header, rule, *rows])
 
 
-# %% notebooks/00b_core.py, cell 22 (line 548)
+# %% notebooks/00b_core.py, exported cell 10
 def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1800, cwd=None,
                  stream: bool = False):
     """Execute `notebook` (a notebooks/*.py file) with papermill; return the executed notebook.
@@ -423,7 +423,7 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
     )
 
 
-# %% notebooks/00b_core.py, cell 23 (line 591)
+# %% notebooks/00b_core.py, exported cell 11
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -439,7 +439,7 @@ def _kernel_manager_config():
     return config
 
 
-# %% notebooks/00b_core.py, cell 25 (line 618)
+# %% notebooks/00b_core.py, exported cell 12
 class Progress:
     """Progress of `total` steps on stderr, starting at `initial`: a tqdm bar in a sized terminal,
     plain lines elsewhere (see above). enabled: True, False or None (only when stderr is a
@@ -512,7 +512,7 @@ class Progress:
         self._last, self._reported = self._clock(), self.n
 
 
-# %% notebooks/00b_core.py, cell 26 (line 692)
+# %% notebooks/00b_core.py, exported cell 13
 def _is_terminal(stream) -> bool:
     try:
         return bool(stream.isatty())
@@ -530,7 +530,7 @@ def _terminal_columns(stream) -> int:
         return 0
 
 
-# %% notebooks/00b_core.py, cell 30 (line 744)
+# %% notebooks/00b_core.py, exported cell 14
 # Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
 PAPER_COUNTERPARTS = {
     "cost_table": "Table 'Computational cost comparison (actor network)'",
@@ -647,7 +647,7 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
     return atomic_write_text(readme, "\n".join(lines) + "\n")
 
 
-# %% notebooks/00b_core.py, cell 31 (line 862)
+# %% notebooks/00b_core.py, exported cell 15
 def _read_provenance(readme: Path) -> dict:
     # Keep rows of files that this run did not touch (a partial rerun must not forget them).
     rows = {}

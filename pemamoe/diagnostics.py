@@ -3,7 +3,7 @@
 
 __all__ = ['DORMANT_PAPER_DELTA', 'DORMANT_TAU', 'SRANK_DELTA', 'singular_values', 'stable_rank', 'effective_rank', 'srank', 'dormant_fraction_paper', 'dormant_fraction_tau', 'plasticity_diagnostics']
 
-# %% notebooks/06e_diagnostics.py, cell 5 (line 74)
+# %% notebooks/06e_diagnostics.py, exported cell 1
 import math
 
 import numpy as np

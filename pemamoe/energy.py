@@ -3,7 +3,7 @@
 
 __all__ = ['EnergyConfig', 'propulsion_power_w', 'min_power_speed', 'max_range_speed', 'SlotEnergy', 'slot_energy', 'battery_update']
 
-# %% notebooks/02_energy.py, cell 4 (line 38)
+# %% notebooks/02_energy.py, exported cell 1
 from dataclasses import dataclass, fields
 from typing import NamedTuple
 
@@ -13,7 +13,7 @@ from scipy.optimize import minimize_scalar
 from pemamoe.core import require_field
 
 
-# %% notebooks/02_energy.py, cell 6 (line 76)
+# %% notebooks/02_energy.py, exported cell 2
 @dataclass(frozen=True)
 class EnergyConfig:
     """Rotary-wing propulsion parameters (Zeng, Xu, Zhang 2019) and the slot/battery settings.
@@ -49,7 +49,7 @@ class EnergyConfig:
         return 0.5 * self.fuselage_drag_ratio * self.air_density * self.rotor_solidity * self.rotor_disc_area_m2
 
 
-# %% notebooks/02_energy.py, cell 8 (line 138)
+# %% notebooks/02_energy.py, exported cell 3
 def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     """Propulsion power P(V_h, V_z) [W] of the paper's 3-D rotary-wing model.
 
@@ -70,7 +70,7 @@ def propulsion_power_w(v_h, v_z, cfg: EnergyConfig = EnergyConfig()):
     return power[()] if power.ndim == 0 else power
 
 
-# %% notebooks/02_energy.py, cell 10 (line 172)
+# %% notebooks/02_energy.py, exported cell 4
 def min_power_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> float:
     """Horizontal speed [m/s] in [0, v_max] that minimises P(V, 0) (maximum endurance)."""
     res = minimize_scalar(
@@ -89,7 +89,7 @@ def max_range_speed(cfg: EnergyConfig = EnergyConfig(), v_max: float = 60.0) -> 
     return float(res.x)
 
 
-# %% notebooks/02_energy.py, cell 12 (line 216)
+# %% notebooks/02_energy.py, exported cell 5
 class SlotEnergy(NamedTuple):
     """Per-UAV result of ``slot_energy``; every field has the broadcast input shape (..., U)."""
 
@@ -136,7 +136,7 @@ def slot_energy(horizontal_m, vertical_m=0.0, cfg: EnergyConfig = EnergyConfig()
     )
 
 
-# %% notebooks/02_energy.py, cell 14 (line 271)
+# %% notebooks/02_energy.py, exported cell 6
 def battery_update(battery_j, energy_j, cfg: EnergyConfig = EnergyConfig()):
     """Subtract a slot's energy: returns ``(new_battery_j, depleted)``, broadcast shape.
 

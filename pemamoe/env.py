@@ -3,7 +3,7 @@
 
 __all__ = ['STEP_ENGINES', 'EnvConfig', 'Allocation', 'UAVBatchCore', 'build_observations', 'colour_weights', 'observation_dim', 'observation_layout', 'pair_distances', 'realised_rates', 'reward_terms', 'schedule_users', 'slot_draws', 'state_dim', 'HEURISTICS', 'UAVParallelEnv', 'UAVVectorEnv', 'compile_step_kernels', 'hover_policy', 'kmeans_policy', 'random_policy', 'render_frame', 'rollout_heuristic', 'vector_seeds', 'make_env', 'parallel_env', 'aec_env', 'raw_env', 'make_vector_env']
 
-# %% notebooks/04e_env.py, cell 4 (line 31)
+# %% notebooks/04e_env.py, exported cell 1
 from pemamoe.core import require
 from pemamoe.env_model import (  # re-export: the model above
     STEP_ENGINES, EnvConfig, Allocation, UAVBatchCore, build_observations, colour_weights, observation_dim,

@@ -3,7 +3,7 @@
 
 __all__ = ['UAVVectorEnv', 'vector_seeds', 'UAVParallelEnv', 'compile_step_kernels', 'CLASS_COLOURS', 'render_frame', 'random_policy', 'hover_policy', 'kmeans_policy', 'HEURISTICS', 'rollout_heuristic']
 
-# %% notebooks/04d_env_wrappers.py, cell 5 (line 41)
+# %% notebooks/04d_env_wrappers.py, exported cell 1
 import numpy as np
 
 from pemamoe.env_model import EnvConfig, UAVBatchCore, observation_dim, state_dim
@@ -60,7 +60,7 @@ def vector_seeds(seed, num_envs: int) -> list:
     return [int(seed) + i for i in range(num_envs)]
 
 
-# %% notebooks/04d_env_wrappers.py, cell 7 (line 125)
+# %% notebooks/04d_env_wrappers.py, exported cell 2
 try:  # PettingZoo (which brings Gymnasium) is optional for everything but this environment
     from pettingzoo import ParallelEnv as _ParallelEnvBase
 
@@ -222,7 +222,7 @@ def compile_step_kernels() -> None:
     env.step(np.zeros((2, env.n_agents, 2)))
 
 
-# %% notebooks/04d_env_wrappers.py, cell 9 (line 294)
+# %% notebooks/04d_env_wrappers.py, exported cell 3
 CLASS_COLOURS = ("#4daf4a", "#377eb8", "#e41a1c")  # L, M, H
 
 
@@ -259,7 +259,7 @@ def render_frame(core: "UAVBatchCore", b: int = 0, size_px: int = 480) -> np.nda
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-# %% notebooks/04d_env_wrappers.py, cell 11 (line 342)
+# %% notebooks/04d_env_wrappers.py, exported cell 4
 def random_policy(core: "UAVBatchCore", rng: np.random.Generator):
     return rng.uniform(-1.0, 1.0, size=(core.B, core.cfg.n_uavs, 2))
 

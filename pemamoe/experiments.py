@@ -3,7 +3,7 @@
 
 __all__ = ['ACTOR_READINGS', 'EXPERIMENTS', 'READABLE_EXPERIMENTS', 'BACKENDS', 'DEFAULT_POPULATION', 'RunSpec', 'SweepInterrupted', 'check_counts', 'execute_population', 'group_specs', 'pending_runs', 'record_marker', 'run_sweep', 'sweep_records', 'NOISE_GAMMAS', 'TRICKS', 'default_seeds', 'main_specs', 'CAMPAIGN_BASELINES', 'campaign_methods', 'trick_specs', 'noise_specs', 'BUDGET_STEPS', 'BUDGET_UPDATES', 'BUDGET_READINGS', 'fixed_phase_twin', 'net_reading', 'default_reading', 'budget_specs', 'GATING_STEPS', 'GATING_READINGS', 'GATING_NOISE', 'gating_specs', 'SPARSE_STEPS', 'SPARSE_READINGS', 'sparse_specs', 'TUNING_LRS', 'TUNING_ENTROPY', 'tuning_specs', 'TOP2_METHODS', 'top2_specs', 'with_reading', 'experiment_specs']
 
-# %% notebooks/09_experiments.py, cell 4 (line 57)
+# %% notebooks/09_experiments.py, exported cell 1
 from pemamoe.core import (  # re-export: the experiments' names live in core, for the command line (00b)
     ACTOR_READINGS, EXPERIMENTS, READABLE_EXPERIMENTS)
 import dataclasses as _dc
@@ -16,7 +16,7 @@ from pemamoe.mappo import METHODS, TrainConfig
 from pemamoe.methods import method_spec
 
 
-# %% notebooks/09_experiments.py, cell 7 (line 94)
+# %% notebooks/09_experiments.py, exported cell 2
 NOISE_GAMMAS = (0.001, 0.005, 0.01)
 TRICKS = {
     "entropy annealing": "entropy_reset",

@@ -3,7 +3,7 @@
 
 __all__ = ['topk_weights', 'ContiguousGrad', 'run_gate', 'GateOutput', 'single_member_params', 'load_balance_loss', 'GatedExperts']
 
-# %% notebooks/05g_gating.py, cell 5 (line 60)
+# %% notebooks/05g_gating.py, exported cell 1
 from typing import NamedTuple
 
 import torch

@@ -3,7 +3,7 @@
 
 __all__ = ['EpisodeTracker', 'RowLog', 'RunningNorm', 'ValueNorms', 'collect_probe', 'explained_variance', 'merge_env_states', 'split_env_state', 'EVAL_ROUTINGS', 'MEMBER_FIELDS', 'MemberStates', 'Population', 'RunResult', 'build_population', 'check_population', 'TrainState', 'evaluate_policy', 'load_run', 'member_networks', 'phase_clock_of', 'plasticity_name', 'population_key', 'train_members', 'DEVICES', 'MEDIUM_PHASE_ITERS', 'METHODS', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TIMING_COLUMNS', 'TrainConfig', 'resolve_device', 'scale_controller', 'bootstrap_values', 'compute_gae', 'Batch', 'routing_noise_stds', 'collect_rollout', 'ppo_update', 'train', 'train_population', 'IterationLog', 'iteration_step']
 
-# %% notebooks/07_mappo.py, cell 4 (line 75)
+# %% notebooks/07_mappo.py, exported cell 1
 import dataclasses
 import math
 import sys
@@ -38,7 +38,7 @@ from pemamoe.train_config import (  # re-export (public names only)
     resolve_device, scale_controller)
 
 
-# %% notebooks/07_mappo.py, cell 11 (line 186)
+# %% notebooks/07_mappo.py, exported cell 2
 def bootstrap_values(values, last_value, dones, final_values):
     """The value that follows each step, (T, B).
 
@@ -71,7 +71,7 @@ def compute_gae(rewards, values, next_values, dones, gamma: float, gae_lambda: f
     return adv, adv + values
 
 
-# %% notebooks/07_mappo.py, cell 16 (line 265)
+# %% notebooks/07_mappo.py, exported cell 3
 _STEP_KEYS = ("reward", "qos", "energy", "collision", "overlap", "collisions", "coverage", "served_users",
               "admitted_users", "uav_using_rate", "energy_rate_kj")
 _AGENT_FLAGS = ("action_clipped", "move_infeasible", "battery_depleted")
@@ -213,7 +213,7 @@ def collect_rollout(population, venv, obs, state, settings, tracker: EpisodeTrac
     return batch, obs, state, stats, episode_rows
 
 
-# %% notebooks/07_mappo.py, cell 18 (line 466)
+# %% notebooks/07_mappo.py, exported cell 4
 _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance", "critic_load_balance",
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
@@ -378,7 +378,7 @@ def ppo_update(population: Population, settings, batch: Batch) -> dict:
     return out
 
 
-# %% notebooks/07_mappo.py, cell 21 (line 656)
+# %% notebooks/07_mappo.py, exported cell 5
 def train(config: TrainConfig, run_dir=None, resume: bool = True, *, max_iterations: int | None = None,
           threads: int | None = 1, verbose: bool = False, progress: bool | None = None,
           deadline: float | None = None) -> RunResult:

@@ -3,7 +3,7 @@
 
 __all__ = ['MethodSpec', 'METHOD_REGISTRY', 'register_method', 'load_plugins', 'method_spec', 'method_names', 'compared_methods', 'method_label', 'method_colour', 'proposed_method', 'ACTOR_PARAM_GROUPS', 'CRITIC_PARAM_GROUPS', 'NETWORKS', 'register_network', 'network_kind', 'check_param_groups']
 
-# %% notebooks/05e_methods.py, cell 5 (line 44)
+# %% notebooks/05e_methods.py, exported cell 1
 from dataclasses import dataclass
 
 
@@ -107,7 +107,7 @@ register_method(MethodSpec("smoe_snp", network="smoe", plasticity="shrink_and_pe
                            label="SMoE + shrink-and-perturb", colour="#17becf", compared=False))
 
 
-# %% notebooks/05e_methods.py, cell 7 (line 162)
+# %% notebooks/05e_methods.py, exported cell 2
 ACTOR_PARAM_GROUPS = ("router", "experts", "head", "log_std")  # the groups the phase controller schedules
 CRITIC_PARAM_GROUPS = ("critic",)
 NETWORKS: dict = {}  # network kind -> (actor class, critic class)

@@ -3,7 +3,7 @@
 
 __all__ = ['ACTIVE_MODES', 'MAC_MODES', 'count_parameters', 'active_parameters', 'macs_per_step', 'time_forward', 'time_train_step', 'cost_table', 'draw_actor_architecture']
 
-# %% notebooks/05f_netcost.py, cell 5 (line 43)
+# %% notebooks/05f_netcost.py, exported cell 1
 import statistics
 import time
 

@@ -3,7 +3,7 @@
 
 __all__ = ['GROUP_NAMES', 'RunAdamW', 'group_index']
 
-# %% notebooks/06d_optim.py, cell 5 (line 54)
+# %% notebooks/06d_optim.py, exported cell 1
 import torch
 import torch.nn.functional as F
 

@@ -3,7 +3,7 @@
 
 __all__ = ['CLASS_NAMES', 'DEMAND_MODES', 'PhaseConfig', 'phase_values', 'sample_demand_classes', 'PhaseClock']
 
-# %% notebooks/03b_phases.py, cell 5 (line 35)
+# %% notebooks/03b_phases.py, exported cell 1
 import bisect
 import dataclasses
 import math
@@ -119,7 +119,7 @@ def sample_demand_classes(cfg: PhaseConfig, phase, n_users: int, rng) -> np.ndar
     return drawn
 
 
-# %% notebooks/03b_phases.py, cell 7 (line 167)
+# %% notebooks/03b_phases.py, exported cell 2
 @dataclass(frozen=True)
 class PhaseClock:
     """Which phase is active at each tick (iteration or env step); see the notebook for options."""

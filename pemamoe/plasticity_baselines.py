@@ -3,7 +3,7 @@
 
 __all__ = ['ReDoConfig', 'ShrinkAndPerturbConfig', 'recycling_layers', 'dormant_units', 'ReDo', 'ShrinkAndPerturb']
 
-# %% notebooks/06c_plasticity_baselines.py, cell 4 (line 53)
+# %% notebooks/06c_plasticity_baselines.py, exported cell 1
 from dataclasses import dataclass
 
 import torch
@@ -13,7 +13,7 @@ from pemamoe.diagnostics import DORMANT_TAU
 from pemamoe.plasticity import NoPlasticity, register_plasticity
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 6 (line 79)
+# %% notebooks/06c_plasticity_baselines.py, exported cell 2
 @dataclass(frozen=True)
 class ReDoConfig:
     """ReDo at each switch: recycle the units whose tau-dormant score on recent observations is <= tau."""
@@ -38,7 +38,7 @@ class ShrinkAndPerturbConfig:
         require_field(self, "perturb", "real", ge=0)
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 8 (line 126)
+# %% notebooks/06c_plasticity_baselines.py, exported cell 3
 def recycling_layers(actor) -> list:
     """Per hidden layer: {"incoming": (E, H, fan_in + 1) flat positions of each unit's incoming
     weights and bias, "outgoing": (E, H, fan_out) of its outgoing weights, "shared": True where the
@@ -74,7 +74,7 @@ def dormant_units(act: torch.Tensor, tau: float) -> torch.Tensor:
     return (layer_mean == 0) | (m / layer_mean <= tau)
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 10 (line 175)
+# %% notebooks/06c_plasticity_baselines.py, exported cell 4
 @register_plasticity
 class ReDo(NoPlasticity):
     """ReDo (Sokar et al., 2023) at each switch, per member: recycle the tau-dormant hidden units."""
@@ -127,7 +127,7 @@ class ReDo(NoPlasticity):
         return count
 
 
-# %% notebooks/06c_plasticity_baselines.py, cell 12 (line 238)
+# %% notebooks/06c_plasticity_baselines.py, exported cell 5
 @register_plasticity
 class ShrinkAndPerturb(NoPlasticity):
     """Shrink-and-perturb (Ash & Adams, 2020) at each switch, per member: theta <- shrink * theta +

@@ -3,7 +3,7 @@
 
 __all__ = ['MEMBER_FIELDS', 'population_key', 'check_population', 'plasticity_name', 'RunResult', 'member_networks', 'load_run', 'Population', 'build_population', 'train_members', 'TrainState', 'phase_clock_of', 'MemberStates', 'EVAL_ROUTINGS', 'evaluate_policy', 'action_switch_readings']
 
-# %% notebooks/07d_populations.py, cell 4 (line 94)
+# %% notebooks/07d_populations.py, exported cell 1
 import dataclasses
 import json
 import time
@@ -32,7 +32,7 @@ from pemamoe.runs import (UNRECORDED_PROCESSOR, check_run_dir, load_checkpoint, 
 from pemamoe.train_config import TrainConfig, resolve_device
 
 
-# %% notebooks/07d_populations.py, cell 6 (line 135)
+# %% notebooks/07d_populations.py, exported cell 2
 # Fields that members of one population may set differently; every other field is shared.
 # (fixed_phase: members may sit in different fixed phases, but either all cycle or none does;
 # lr, the entropy anneal and the target KL reach the update only through each member's schedule,
@@ -79,7 +79,7 @@ def plasticity_name(config: TrainConfig) -> str:
     return "phase_controller" if (config.force_controller and spec.plasticity == "none") else spec.plasticity
 
 
-# %% notebooks/07d_populations.py, cell 8 (line 192)
+# %% notebooks/07d_populations.py, exported cell 3
 @dataclass
 class RunResult:
     """What `train` returns (also rebuilt from a finished run directory by `load_run`)."""
@@ -120,7 +120,7 @@ def load_run(run_dir) -> RunResult:
                      actor, critic, run_dir, finished=done is not None, from_cache=True)
 
 
-# %% notebooks/07d_populations.py, cell 10 (line 243)
+# %% notebooks/07d_populations.py, exported cell 4
 @dataclasses.dataclass
 class Population:
     """What learns in a population of R runs, and what the update reads (see `build_population`)."""
@@ -182,7 +182,7 @@ def build_population(configs: list) -> Population:
                       ValueNorms(configs), generators, rngs, device)
 
 
-# %% notebooks/07d_populations.py, cell 12 (line 324)
+# %% notebooks/07d_populations.py, exported cell 5
 def _is_int(value) -> bool:
     """An int or a numpy integer, and not a bool (which Python counts as an int)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
@@ -256,7 +256,7 @@ def train_members(configs: list, run_dirs: list | None, resume: bool, step, *, m
     return results
 
 
-# %% notebooks/07d_populations.py, cell 14 (line 410)
+# %% notebooks/07d_populations.py, exported cell 6
 class TrainState(NamedTuple):
     """What one iteration of a population reads and advances (notebook 07's `iteration_step`)."""
 
@@ -310,7 +310,7 @@ def _train_group(step, configs: list, run_dirs: list, ckpts: list, max_iteration
     return members.results(run_dirs, finished, ts.global_step, resumed_from)
 
 
-# %% notebooks/07d_populations.py, cell 16 (line 479)
+# %% notebooks/07d_populations.py, exported cell 7
 @dataclass
 class MemberStates:
     """What a checkpoint stores of a population's members besides the `Population` itself (lists:
@@ -419,7 +419,7 @@ class MemberStates:
         return results
 
 
-# %% notebooks/07d_populations.py, cell 18 (line 597)
+# %% notebooks/07d_populations.py, exported cell 8
 EVAL_ROUTINGS = ("noiseless", "trained")
 
 

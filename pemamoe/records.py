@@ -3,7 +3,7 @@
 
 __all__ = ['RECORD_FORMAT', 'RECORDS_DIR', 'RECORD_ROWS', 'RECORD_BUDGET_MB', 'EPISODE_COLUMNS', 'RecordError', 'record_block', 'record_frame', 'record_files', 'parquet_bytes', 'write_record', 'MARKER_KEYS', 'read_marker', 'verify_record', 'read_record', 'read_record_actor', 'record_timing', 'committed_records_mb', 'PORTABLE_DIR', 'portable_state_path', 'write_portable_state', 'read_portable_state', 'restore_portable_state', 'drop_portable_state', 'portable_state_progress', 'portable_state_mb', 'RUN_COLUMNS', 'run_labels', 'RECORD_EPISODE_COLUMNS', 'load_runs']
 
-# %% notebooks/09d_records.py, cell 4 (line 48)
+# %% notebooks/09d_records.py, exported cell 1
 import hashlib
 import io
 import json
@@ -37,7 +37,7 @@ class RecordError(ValueError):
         return type(self), (self.path, self.problem)
 
 
-# %% notebooks/09d_records.py, cell 6 (line 90)
+# %% notebooks/09d_records.py, exported cell 2
 def record_block(config: TrainConfig) -> int:
     """Iterations per record row for `config`."""
     target = max(1, math.ceil(config.iterations / RECORD_ROWS))
@@ -74,7 +74,7 @@ def record_frame(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
     return out
 
 
-# %% notebooks/09d_records.py, cell 8 (line 135)
+# %% notebooks/09d_records.py, exported cell 3
 def record_files(records_dir, scale: str, run_name: str) -> dict:
     """{"data", "actor", "marker", "timing"}: the paths of one run's record."""
     base = Path(records_dir) / check_scale(scale)
@@ -237,7 +237,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 321)
+# %% notebooks/09d_records.py, exported cell 4
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
 _PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
@@ -372,7 +372,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 12 (line 469)
+# %% notebooks/09d_records.py, exported cell 5
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 

@@ -3,7 +3,7 @@
 
 __all__ = ['BatchRandom']
 
-# %% notebooks/04c_streams.py, cell 5 (line 41)
+# %% notebooks/04c_streams.py, exported cell 1
 import math
 
 import numpy as np

@@ -3,7 +3,7 @@
 
 __all__ = ['BACKENDS', 'DEFAULT_POPULATION', 'RunSpec', 'group_specs', 'check_counts', 'pending_runs', 'record_marker', 'run_sweep', 'sweep_records', 'SweepInterrupted', 'SweepRunError', 'execute_population', 'STATUS_WINDOW', 'STATUS_MIN_PAUSE_S', 'sweep_status', 'status_summary']
 
-# %% notebooks/09c_sweep_runner.py, cell 4 (line 41)
+# %% notebooks/09c_sweep_runner.py, exported cell 1
 import dataclasses
 import math
 import os
@@ -30,7 +30,7 @@ from pemamoe.runs import verify_done
 from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
 
 
-# %% notebooks/09c_sweep_runner.py, cell 6 (line 74)
+# %% notebooks/09c_sweep_runner.py, exported cell 2
 @dataclass(frozen=True)
 class RunSpec:
     """One training run of a sweep; `to_config()` resolves it to a TrainConfig."""
@@ -84,7 +84,7 @@ class RunSpec:
         return ", ".join(parts)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 8 (line 140)
+# %% notebooks/09c_sweep_runner.py, exported cell 3
 def group_specs(specs, population: int, workers: int = 1) -> list:
     """Pending runs as populations: runs whose configs share everything but the member fields
     (seed, controller settings, force_controller) go together, at most `population` per group,
@@ -259,7 +259,7 @@ def _record_ok(marker, config) -> bool:
         return False
 
 
-# %% notebooks/09c_sweep_runner.py, cell 10 (line 338)
+# %% notebooks/09c_sweep_runner.py, exported cell 4
 class SweepInterrupted(KeyboardInterrupt):
     """The sweep was stopped by SIGINT or SIGTERM (`signum`); running runs were killed, queued
     ones never started, and a rerun resumes them from their checkpoints."""
@@ -338,7 +338,7 @@ def _report_finished(group, finished, report) -> None:
             report(spec)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 12 (line 432)
+# %% notebooks/09c_sweep_runner.py, exported cell 5
 def _worker_init(parent_pid: int) -> None:
     """Process-pool worker initializer: leave SIGINT to the sweep, and die with the sweep."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -530,7 +530,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 17 (line 694)
+# %% notebooks/09c_sweep_runner.py, exported cell 6
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 

@@ -3,7 +3,7 @@
 
 __all__ = ['THEORY_RECORD_FORMAT', 'THEORY_NUMERICS', 'THEORY_DIR', 'THEORY_MARKER_KEYS', 'REPORTED_DIGITS', 'TheoryRecordError', 'tracker_job_identity', 'theory_parameters', 'parameters_hash', 'theory_record_path', 'read_theory_marker', 'verify_theory_record', 'read_theory_record', 'write_theory_record', 'find_theory_record', 'theory_record', 'round_reported']
 
-# %% notebooks/08c_theory_records.py, cell 5 (line 92)
+# %% notebooks/08c_theory_records.py, exported cell 1
 import hashlib
 import json
 import platform

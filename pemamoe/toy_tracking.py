@@ -3,7 +3,7 @@
 
 __all__ = ['TrackingProblemConfig', 'TrackingProblem', 'CONTROLLERS', 'TrackerConfig', 'switch_times', 'TrackerRun', 'tracker_controller_config', 'run_tracker', 'run_many', 'paired_distance', 'fit_power_law', 'gaussian_l1', 'mixture_log_prob', 'mc_l1_distance', 'lipschitz_ratio', 'lipschitz_nnls', 'lipschitz_envelope', 'DISTRIBUTIONS', 'moe_components', 'top1_win_probs', 'mixture_weights', 'perturb_actor', 'tie_states', 'routing_stability_samples']
 
-# %% notebooks/08b_toy_tracking.py, cell 4 (line 47)
+# %% notebooks/08b_toy_tracking.py, exported cell 1
 import copy
 import math
 import multiprocessing
@@ -21,7 +21,7 @@ from pemamoe.plasticity import RunSettings, population_method
 from pemamoe.theory import dynamic_regret, noise_energy
 
 
-# %% notebooks/08b_toy_tracking.py, cell 7 (line 84)
+# %% notebooks/08b_toy_tracking.py, exported cell 2
 @dataclass(frozen=True)
 class TrackingProblemConfig:
     """The contextual tracking task: r = -||clip(a) - (A_phi x + b_phi)||^2 with a hidden phase."""
@@ -96,7 +96,7 @@ class TrackingProblem:
         return np.linalg.norm(np.diff(self.W, axis=0).reshape(self.cfg.n_phases - 1, -1), axis=1)
 
 
-# %% notebooks/08b_toy_tracking.py, cell 10 (line 182)
+# %% notebooks/08b_toy_tracking.py, exported cell 3
 CONTROLLERS = ("off", "noise")
 
 
@@ -314,7 +314,7 @@ def paired_distance(clean: TrackerRun, noisy: TrackerRun) -> dict:
     }
 
 
-# %% notebooks/08b_toy_tracking.py, cell 14 (line 439)
+# %% notebooks/08b_toy_tracking.py, exported cell 4
 def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: float = 0.95, groups=None) -> dict:
     """Least squares log y = c + sum_j alpha_j log x_j with a bootstrap interval for every alpha_j.
 
@@ -362,7 +362,7 @@ def fit_power_law(x, y, rng: np.random.Generator, n_boot: int = 1000, level: flo
     return out
 
 
-# %% notebooks/08b_toy_tracking.py, cell 17 (line 506)
+# %% notebooks/08b_toy_tracking.py, exported cell 5
 def gaussian_l1(mu1, mu2, std) -> np.ndarray:
     """Exact ||N(mu1, diag std^2) - N(mu2, diag std^2)||_1 = 2 (2 Phi(delta / 2) - 1), delta the
     Mahalanobis distance. mu1, mu2 (..., D); std (D,) or (..., D) -> (...,)."""
@@ -411,7 +411,7 @@ def mc_l1_distance(p, q, rng: np.random.Generator, n_samples: int = 256):
     return 2.0 * f.mean(0), 2.0 * f.std(0, ddof=1) / math.sqrt(n_samples)
 
 
-# %% notebooks/08b_toy_tracking.py, cell 21 (line 587)
+# %% notebooks/08b_toy_tracking.py, exported cell 6
 def lipschitz_ratio(dy, dx, q: float = 1.0) -> float:
     """The q-quantile (q = 1: the max) of ||dy_i|| / ||dx_i|| over samples with dx_i != 0.
     dy (n,) or (n, p); dx (n,) or (n, r)."""
@@ -443,7 +443,7 @@ def lipschitz_envelope(y, U) -> np.ndarray:
     return res.x / scale
 
 
-# %% notebooks/08b_toy_tracking.py, cell 24 (line 641)
+# %% notebooks/08b_toy_tracking.py, exported cell 7
 DISTRIBUTIONS = ("a4_mixture", "sampling_marginal", "eval_top1")
 
 

@@ -3,7 +3,7 @@
 
 __all__ = ['SEED_LIMIT', 'METHODS', 'DEVICES', 'PAPER_PHASE_LENGTH', 'PAPER_UPDATE_EPOCHS', 'TRAINING_NUMERICS', 'TIMING_COLUMNS', 'MLP_NET_FIELDS', 'MLP_INERT_NET_IDENTITY', 'NET_FIELDS_ADDED', 'TRAIN_FIELDS_ADDED', 'TARGET_KL_CHECKS', 'resolve_device', 'TrainConfig', 'MEDIUM_PHASE_ITERS', 'scale_controller', 'SETTING_PARTS', 'parse_setting', 'parse_settings']
 
-# %% notebooks/07c_train_config.py, cell 6 (line 77)
+# %% notebooks/07c_train_config.py, exported cell 1
 import dataclasses
 import hashlib
 import json
@@ -21,7 +21,7 @@ from pemamoe.phase_controller import MECHANISMS, PhaseControllerConfig
 from pemamoe.plasticity import RunSettings
 
 
-# %% notebooks/07c_train_config.py, cell 8 (line 164)
+# %% notebooks/07c_train_config.py, exported cell 2
 METHODS = compared_methods()  # the methods the experiments compare by default (pemamoe.methods)
 DEVICES = ("cpu", "cuda", "auto")
 PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
@@ -364,7 +364,7 @@ def scale_controller(ctrl: PhaseControllerConfig, phase_length_iters: int, updat
     )
 
 
-# %% notebooks/07c_train_config.py, cell 10 (line 518)
+# %% notebooks/07c_train_config.py, exported cell 3
 SETTING_PARTS = {"controller": PhaseControllerConfig, "net": NetConfig, "env": EnvConfig}
 _OWN_FLAGS = ("method", "seed")
 

@@ -39,12 +39,12 @@ def _figures(tmp_path, *argv):
 
 
 # -- figures --notebook ------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["08_theory_check.py", "08_theory_check", "notebooks/08_theory_check.py",
-                                  str(REPO / "notebooks" / "08_theory_check.py")])
+@pytest.mark.parametrize("name", ["08_theory.py", "08_theory", "notebooks/08_theory.py",
+                                  str(REPO / "notebooks" / "08_theory.py")])
 def test_figures_notebook_by_bare_name_stem_or_path_resolves_under_notebooks(name, figures_calls, tmp_path):
     assert _figures(tmp_path, "--notebook", name) == 0
     (call,) = figures_calls
-    assert [Path(n) for n in call["notebooks"]] == [REPO / "notebooks" / "08_theory_check.py"]
+    assert [Path(n) for n in call["notebooks"]] == [REPO / "notebooks" / "08_theory.py"]
     assert Path(call["notebooks"][0]).is_file()
 
 
@@ -53,14 +53,14 @@ def test_figures_notebook_repeated_keeps_the_order(figures_calls, tmp_path):
     assert [Path(n).name for n in figures_calls[0]["notebooks"]] == ["09_experiments.py", "01_channel.py"]
 
 
-@pytest.mark.parametrize("name", ["99_nope.py", "08_theory", "notebooks/nope.py", "elsewhere/08_theory_check.py"])
+@pytest.mark.parametrize("name", ["99_nope.py", "08_theo", "notebooks/nope.py", "elsewhere/08_theory.py"])
 def test_figures_unknown_notebook_is_a_usage_error_listing_the_notebooks(name, figures_calls, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         _figures(tmp_path, "--notebook", name)
     assert exit_.value.code == 2 and figures_calls == []
     line = _error_line(capsys.readouterr().err)
     assert "--notebook" in line and repr(name) in line
-    assert "08_theory_check" in line and "00_index" in line and "10_ablations" in line  # what is allowed
+    assert "08_theory" in line and "00_index" in line and "10_ablations" in line  # what is allowed
     assert not (tmp_path / "figures").exists()
 
 

@@ -52,7 +52,7 @@ def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
     (tmp_path / "a.png").write_bytes(b"x")
     (tmp_path / "cost_table.md").write_text("x")
     core.write_figures_readme(tmp_path, {"a.png": "01_channel.py"}, scale="ci", commit="abc")
-    core.write_figures_readme(tmp_path, {"cost_table.md": "05_moe_actor.py"}, scale="small", commit="def")
+    core.write_figures_readme(tmp_path, {"cost_table.md": "05_nets.py"}, scale="small", commit="def")
     text = (tmp_path / "README.md").read_text()
     assert "| a.png | model illustration (no paper figure) | notebooks/01_channel.py | ci |" in text
     assert "| cost_table.md | Table 'Computational cost comparison (actor network)' |" in text
@@ -64,17 +64,17 @@ def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
 def test_figures_readme_names_the_scale_a_studys_runs_have_not_the_commands(tmp_path):
     for name in ("tuning.md", "plasticity_loss_paper_campaign.csv", "results_coverage.png"):
         (tmp_path / name).write_text("x")
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py", "results_coverage.png": "09_experiments.py",
+    core.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py", "results_coverage.png": "09_experiments.py",
                                          "plasticity_loss_paper_campaign.csv": "09_experiments.py"},
                               scale="medium", commit="abc")
     text = (tmp_path / "README.md").read_text()
-    assert "| notebooks/09b_learning_budget.py | small (at every scale) |" in text  # the study's small settings
+    assert "| notebooks/09b_budget.py | small (at every scale) |" in text  # the study's small settings
     assert "| notebooks/09_experiments.py | paper (at every scale) |" in text  # the campaign's records
     assert "| results_coverage.png | (ours) coverage over training, with each phase's random and k-means levels | " \
            "notebooks/09_experiments.py | medium |" in text
     assert "(no paper figure)" not in text  # the studies name what they are
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py"}, scale="ci", commit="def")
-    assert "| notebooks/09b_learning_budget.py | ci |" in (tmp_path / "README.md").read_text()  # ci shrinks every study
+    core.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py"}, scale="ci", commit="def")
+    assert "| notebooks/09b_budget.py | ci |" in (tmp_path / "README.md").read_text()  # ci shrinks every study
 
 
 def test_run_notebook_rejects_unknown_scale(tmp_path):

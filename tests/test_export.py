@@ -155,11 +155,63 @@ def test_render_hoists_future_imports_and_computes_all():
     assert lines[0].startswith(literate.HEADER_MARKER + "notebooks/99_demo.py")
     assert lines[2] == "from __future__ import annotations"
     assert "__all__ = ['area', 'RADIUS']" in text
-    assert "# %% notebooks/99_demo.py, cell 3 (line 7)" in text
+    assert "# %% notebooks/99_demo.py, exported cell 1\n" in text and "# %% notebooks/99_demo.py, exported cell 2\n" in text
     assert "print(area" not in text and "def _helper" in text
     namespace = {}
     exec(compile(text, "demo", "exec"), namespace)
     assert namespace["area"](1.0) == pytest.approx(3.14159, rel=1e-5)
+
+
+def _prose_edited(text: str) -> str:
+    """`text` with prose added and nothing else: a sentence in its first markdown cell, a new markdown
+    cell (and a demonstration code cell) before its first exported cell, and a markdown cell at the end."""
+    cells = literate.parse_cells(text)
+    first_md = next(c for c in cells if c.kind == "markdown")
+    first_export = next(c for c in cells if {"export", "exporti"} & c.directives.keys())
+    lines = text.splitlines(keepends=True)
+    lines.insert(first_export.line - 1, "# %% [markdown]\n# A new cell of prose,\n# over two lines.\n\n"
+                                        "# %%\nprint('a demonstration')\n\n")
+    lines.insert(first_md.line, "# A sentence added to the first markdown cell.\n#\n")
+    return "".join(lines) + "\n# %% [markdown]\n# A closing remark.\n"
+
+
+def test_back_references_survive_a_prose_only_edit():
+    cells = literate.parse_cells(NOTEBOOK, "notebooks/99_demo.py")
+    before = literate.render_module("notebooks/99_demo.py", literate.cells_by_module(cells, "")["demo"])
+    edited = _prose_edited(NOTEBOOK)
+    assert len(edited.splitlines()) > len(NOTEBOOK.splitlines()) + 5
+    cells = literate.parse_cells(edited, "notebooks/99_demo.py")
+    after = literate.render_module("notebooks/99_demo.py", literate.cells_by_module(cells, "")["demo"])
+    assert after == before
+
+
+def test_a_prose_only_edit_of_a_notebook_leaves_the_package_unchanged(repo_copy):
+    """Issue 61: a sentence added to a notebook used to shift the `cell N (line L)` back-reference of
+    every later cell, so prose edits rewrote the package. Every exporting notebook edited at once."""
+    package = _snapshot(repo_copy / "pemamoe")
+    edited = []
+    for nb in sorted((repo_copy / "notebooks").glob("*.py")):
+        text = nb.read_text(encoding="utf-8")
+        if not any({"export", "exporti"} & c.directives.keys() for c in literate.parse_cells(text)):
+            continue
+        nb.write_text(_prose_edited(text), encoding="utf-8")
+        edited.append(nb.name)
+    assert len(edited) > 20 and "07_mappo.py" in edited
+    assert literate.check_all(repo_copy) == []
+    assert literate.export_all(repo_copy) == []
+    assert _snapshot(repo_copy / "pemamoe") == package
+
+
+def test_no_generated_module_carries_a_line_number_in_its_back_references():
+    """Each cell of a generated module follows `# %% <its notebook>, exported cell K`, K = 1, 2, ...
+    in order: the notebook and the cell, never a line (issue 61)."""
+    for module in generated_modules(ROOT):
+        text = module.read_text(encoding="utf-8")
+        notebook = literate._source_notebook(module)
+        refs = [line for line in text.splitlines() if line.startswith("# %%")]
+        assert refs, module.name
+        assert refs == [f"# %% {notebook}, exported cell {k}" for k in range(1, len(refs) + 1)], module.name
+        assert not re.search(r"\(line \d+\)|, line \d+", "\n".join(refs)), module.name
 
 
 @pytest.mark.parametrize(
@@ -263,6 +315,30 @@ def test_the_index_maps_every_notebook_and_the_modules_it_exports():
         modules = literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel)
         for module in modules:
             assert f"pemamoe/{module}.py" in rows[nb.name], f"00_index's row for {nb.name} does not name pemamoe/{module}.py"
+
+
+def test_every_exporting_notebook_is_named_after_its_module():
+    """Issue 61: `05b_population_nets.py` wrote `pemamoe/popnets.py`; now a notebook and its module
+    share a name (`NN_<module>.py`, NN the reading order), as nbdev's do."""
+    misnamed, exporting = {}, 0
+    for nb in sorted((ROOT / "notebooks").glob("*.py")):
+        rel = nb.relative_to(ROOT).as_posix()
+        for module in literate.cells_by_module(literate.parse_cells(nb.read_text(encoding="utf-8"), rel), rel):
+            exporting += 1
+            if not re.fullmatch(rf"[0-9]{{2}}[a-z]?_{module}", nb.stem):
+                misnamed[nb.name] = f"exports {module}"
+    assert exporting > 30
+    assert not misnamed, misnamed
+
+
+@pytest.mark.parametrize("new_name", ["01_radio.py", "01_channel_model.py", "channel.py", "01x_channels.py"])
+def test_export_refuses_a_notebook_not_named_after_its_module(repo_copy, new_name):
+    package = _snapshot(repo_copy / "pemamoe")
+    (repo_copy / "notebooks" / "01_channel.py").rename(repo_copy / "notebooks" / new_name)
+    with pytest.raises(literate.ExportError, match=re.escape(f"notebooks/{new_name} exports pemamoe/channel.py, "
+                                                             "so its name must be NN_channel.py")):
+        literate.export_all(repo_copy)
+    assert _snapshot(repo_copy / "pemamoe") == package  # refused before anything was written
 
 
 def test_every_notebook_stays_within_900_lines():

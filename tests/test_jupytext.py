@@ -2,8 +2,9 @@
 
 JupyterLab reads and writes notebooks/*.py through Jupytext's contents manager, configured by
 jupytext.toml at the repository root. Without that configuration every save added version lines
-to the header, which shifted every `# %% notebooks/..., cell N (line L)` reference in pemamoe/ and
-broke `make check-export`. These tests drive the same contents manager on a copy of the repo.
+to the header, which shifted every `# %% notebooks/..., cell N (line L)` reference pemamoe/ then
+carried and broke `make check-export` (the references now name exported cells, not lines: issue 61).
+These tests drive the same contents manager on a copy of the repo.
 """
 
 import asyncio

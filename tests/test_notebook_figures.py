@@ -125,7 +125,7 @@ def test_the_scan_sees_the_figures_of_the_provenance_table():
                     if nb in by_name and (FIGURES / f).is_file() and f not in written_figures(by_name[nb]))
     assert not missed, f"the scan misses figures the README says these notebooks write: {missed}"
     writers = {p.name for p in READING if written_figures(p)}
-    assert {"01_channel.py", "05_moe_actor.py", "09_experiments.py", "10_ablations.py"} <= writers
+    assert {"01_channel.py", "05_nets.py", "09_experiments.py", "10_ablations.py"} <= writers
 
 
 def test_awaiting_regeneration_entries_are_written_and_linked_by_their_notebook():

@@ -100,7 +100,7 @@ def test_a_recorded_run_is_not_trained_again_and_retrain_writes_the_same_bytes(t
 
 
 def test_figures_from_records_alone_train_nothing_and_write_the_same_files(tmp_path):
-    notebook = REPO_ROOT / "notebooks" / "09b_learning_budget.py"
+    notebook = REPO_ROOT / "notebooks" / "09b_budget.py"
     params = {"scale": "ci", "records_dir": str(tmp_path / "records")}
     run_notebook(notebook, {**params, "figures_dir": str(tmp_path / "trained"), "results_dir": str(tmp_path / "r1")},
                  output_dir=tmp_path / "x1", timeout=600)

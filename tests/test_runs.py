@@ -243,7 +243,7 @@ def test_appendix_notebook_runs(capsys):
     """07b is not a figure notebook (figure_notebooks() lists NN_*.py only): run it as a script here."""
     import runpy
 
-    runpy.run_path(str(ROOT / "notebooks" / "07b_run_folders.py"), run_name="__main__")
+    runpy.run_path(str(ROOT / "notebooks" / "07b_runs.py"), run_name="__main__")
     out = capsys.readouterr().out
     assert "(this process: one folder per run)" in out and "checkpoint.pt is empty (0 bytes)" in out
 

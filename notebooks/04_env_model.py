@@ -40,7 +40,7 @@
 #   once draws, for environment b, exactly the numbers a single environment with the same seed would
 #   draw, so the batched environment the trainer uses and the PettingZoo environment are the same
 #   dynamics, bit for bit. The streams (`BatchRandom`, appendix `04c_streams.py`), the compiled
-#   engine (`04b_engine.py`), the wrappers that turn the batched core into the public environments
+#   engine (`04b_env_kernel.py`), the wrappers that turn the batched core into the public environments
 #   (`04d_env_wrappers.py`) and the module outside code imports (`04e_env.py`) are appendices;
 #   this notebook only calls them.
 
@@ -89,7 +89,7 @@ from pemamoe.streams import BatchRandom  # per-environment random streams (appen
 #
 # One field is not physics: `step_engine` picks which implementation advances the dynamics. The
 # numpy functions of this notebook are the readable reference (`"numpy"`); the default,
-# `"compiled"`, runs the same step as one numba-compiled loop (appendix notebook `04b_engine.py`),
+# `"compiled"`, runs the same step as one numba-compiled loop (appendix notebook `04b_env_kernel.py`),
 # which is what makes the environment fast enough to train in.
 
 # %%

@@ -51,7 +51,7 @@
 # whose parameters are its own and computes one otherwise (and then writes it); the committed
 # records are those of `medium`, which in this notebook has the sizes of `small`, so at either
 # scale `make figures` trains nothing here. To compute them again, run the notebook with
-# `retrain=True` (`python -m pemamoe figures --scale medium --notebook 08_theory_check --retrain`,
+# `retrain=True` (`python -m pemamoe figures --scale medium --notebook 08_theory --retrain`,
 # about eight minutes on two cores) and commit the rewritten records. Computing is not
 # reproducible across processors, while reading a record is: appendix 08c explains why, and
 # describes the records.

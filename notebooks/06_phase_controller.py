@@ -37,7 +37,7 @@
 # `PhaseController`: the code the trainer of notebook 07 runs, read here for one run. All of the
 # controller is one module, `pemamoe/phase_controller.py`, exported from this notebook: its config,
 # its schedules, the class and the noise it adds to the experts. Three appendices hold the
-# bookkeeping around it: `06b_population_plasticity.py` what every plasticity method shares, the
+# bookkeeping around it: `06b_plasticity.py` what every plasticity method shares, the
 # PPO schedule, the interface and the registry of methods (`pemamoe/plasticity.py`);
 # `06d_optim.py` AdamW over a population's stacked parameters (`pemamoe/optim.py`); and
 # `06e_diagnostics.py` the **plasticity diagnostics** the paper plots (feature rank, dormant

@@ -35,7 +35,7 @@
 # the trainer's population of networks both run; exact PPO ratios under random routing; the four
 # architectures drawn, and the cost table. The machinery around them is in four appendices: the
 # expert bank's storage and execution strategies and the population as one set of tensors in
-# `05b_population_nets.py`, the registries in `05e_methods.py`, counts and latency in `05f_netcost.py`,
+# `05b_popnets.py`, the registries in `05e_methods.py`, counts and latency in `05f_netcost.py`,
 # the gate's code in `05g_gating.py`.
 
 # %%
@@ -172,14 +172,14 @@ class NetConfig:
     n_experts: int = 3
     top_k: int = 1
     init_log_std: float = math.log(0.3)
-    load_balance_coef: float = 0.0  # the paper describes no balance loss (0.01 before; appendix 05d)
+    load_balance_coef: float = 0.0  # the paper describes no balance loss (appendix 05d measures one)
     # the gating readings (chosen by the comparison of appendix 05c; see "Top-1 gating" below)
     top1_weight: str = "straight_through"
     routing_noise: str = "off"
     noise_std: float = 1.0  # sigma of "fixed" routing noise; the starting sigma of "annealed"
     noise_anneal_portion: float = 1.0  # "annealed": sigma reaches 0 after this fraction of the run
     critic_gating: str = "dense"
-    # the sparse actor's reading: the paper's equations ("shared" and "replay" before, 05d)
+    # the sparse actor's reading: the paper's equations (appendix 05d measures the alternatives)
     expert_heads: str = "per_expert"  # each expert its own mean head, the experts' means mixed; or "shared"
     update_routing: str = "current"  # PPO's update routes each row with the current router; or "replay"
     expert_impl: str = "auto"
