@@ -442,8 +442,12 @@ def encode_rows(rows) -> bytes:
     pickler.fast = True  # no memo: the bytes depend on the values, not on which objects were shared
     pickler.dump(payload)
     data = buffer.getvalue()
-    if _plain_bytes(decode_rows(data)) != _plain_bytes(list(rows)):
-        raise ValueError("these log rows do not survive their encoding (a value of a type no checkpoint holds?)")
+    try:
+        same = _plain_bytes(decode_rows(data)) == _plain_bytes(list(rows))
+    except pickle.UnpicklingError as err:  # a class: no checkpoint holds one either
+        raise ValueError(f"these log rows do not survive their encoding ({err})") from None
+    if not same:
+        raise ValueError("these log rows do not survive their encoding")
     return data
 
 

@@ -328,8 +328,12 @@ def encode_rows(rows) -> bytes:
     pickler.fast = True  # no memo: the bytes depend on the values, not on which objects were shared
     pickler.dump(payload)
     data = buffer.getvalue()
-    if _plain_bytes(decode_rows(data)) != _plain_bytes(list(rows)):
-        raise ValueError("these log rows do not survive their encoding (a value of a type no checkpoint holds?)")
+    try:
+        same = _plain_bytes(decode_rows(data)) == _plain_bytes(list(rows))
+    except pickle.UnpicklingError as err:  # a class: no checkpoint holds one either
+        raise ValueError(f"these log rows do not survive their encoding ({err})") from None
+    if not same:
+        raise ValueError("these log rows do not survive their encoding")
     return data
 
 
@@ -430,7 +434,7 @@ def expand_env_state(env: dict, source) -> dict:
     return {**env, "rng": {**rng, "buffers": buffers}}
 
 
-# %% notebooks/09d_records.py, cell 14 (line 550)
+# %% notebooks/09d_records.py, cell 14 (line 554)
 def _chunk_name(run_name: str, first: int, last: int, sha: str) -> str:
     return f"{run_name}.rows-{first:06d}-{last:06d}-{sha[:12]}.zst"
 
@@ -634,7 +638,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 16 (line 767)
+# %% notebooks/09d_records.py, cell 16 (line 771)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 
