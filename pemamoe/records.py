@@ -237,7 +237,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 349)
+# %% notebooks/09d_records.py, cell 10 (line 350)
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/: unfinished runs (committed while a campaign runs)
 PORTABLE_FORMAT = 2
 # a state: this magic, the checkpoint's size (8 bytes, little endian), its zstd bytes; format 1 had the same layout
@@ -294,7 +294,7 @@ _CHUNK_HINT = ("; restore it from git (git checkout -- <the file>), or delete th
                "to train it on from this machine's own checkpoint, or from the start")
 
 
-# %% notebooks/09d_records.py, cell 12 (line 410)
+# %% notebooks/09d_records.py, cell 12 (line 411)
 def _shuffled(values) -> bytes:
     return np.asarray(values, dtype="<f8").view(np.uint8).reshape(-1, 8).T.tobytes()  # byte planes compress better
 
@@ -434,7 +434,7 @@ def expand_env_state(env: dict, source) -> dict:
     return {**env, "rng": {**rng, "buffers": buffers}}
 
 
-# %% notebooks/09d_records.py, cell 14 (line 554)
+# %% notebooks/09d_records.py, cell 14 (line 555)
 def _chunk_name(run_name: str, first: int, last: int, sha: str) -> str:
     return f"{run_name}.rows-{first:06d}-{last:06d}-{sha[:12]}.zst"
 
@@ -638,7 +638,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 16 (line 771)
+# %% notebooks/09d_records.py, cell 16 (line 772)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 
