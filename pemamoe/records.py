@@ -537,11 +537,12 @@ def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path |
     return path
 
 
-def _open_portable_state(source: Path, run_name: str) -> tuple:
+def _open_portable_state(source: Path, run_name: str, rebuild: bool = True) -> tuple:
     """(the checkpoint's bytes, the checkpoint, its TrainConfig) of the portable state `source`,
     rebuilt from its chunks, after the checks a resume makes: a portable state, its checkpoint's
     seal (sha256) intact, a checkpoint of the run `run_name`, its chunks present, intact and
-    contiguous, its buffers redrawn. RecordError naming the file at fault otherwise."""
+    contiguous, its buffers redrawn. RecordError naming the file at fault otherwise. rebuild=False:
+    the same checks, but no checkpoint bytes (None) for a format-2 state: what a status needs."""
     import tempfile
 
     import torch
@@ -573,6 +574,8 @@ def _open_portable_state(source: Path, run_name: str) -> tuple:
     if len(rows) != manifest["metrics_rows"]:
         raise RecordError(source, f"lists chunks of {len(rows)} rows, but sealed {manifest['metrics_rows']}{_PORTABLE_HINT}")
     ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": expand_env_state(ck["env"], source)}
+    if not rebuild:
+        return None, ck, config
     with tempfile.TemporaryDirectory() as scratch:
         rebuilt = Path(scratch) / "checkpoint.pt"
         torch.save(ck, rebuilt)
@@ -627,7 +630,7 @@ def portable_state_progress(records_dir, scale: str, run_name: str) -> tuple | N
     source = portable_state_path(records_dir, scale, run_name)
     if not source.exists():
         return None
-    ck = _open_portable_state(source, run_name)[1]
+    ck = _open_portable_state(source, run_name, rebuild=False)[1]
     iteration = int(ck["iteration"])
     return iteration, (float(ck["elapsed"]) / iteration if iteration else None)
 
@@ -638,7 +641,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 16 (line 772)
+# %% notebooks/09d_records.py, cell 16 (line 775)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 
