@@ -54,7 +54,7 @@ def test_a_run_moved_mid_way_to_a_fresh_machine_records_the_same_bytes(tmp_path)
         assert _record_bytes(record_marker(spec, clone)) == _record_bytes(record_marker(spec, tmp_path / "reference_records"))
         assert not portable_state_path(clone, "ci", run_dir.name).exists()  # the record carries the run now
         assert parquet_rows(run_dir / "episodes.parquet") < parquet_rows(spec.run_dir(tmp_path / "reference") / "episodes.parquet")
-    assert not any((clone / "ci" / PORTABLE_DIR).glob("*.pt.zst"))
+    assert not any((clone / "ci" / PORTABLE_DIR).iterdir())  # states and their chunks dropped
 
 
 def test_a_deadline_stop_leaves_a_portable_state_that_restores_once(tmp_path):
@@ -166,6 +166,36 @@ def test_a_missing_or_changed_chunk_is_refused_naming_it(tmp_path):
     assert not spec.run_dir(tmp_path / "fresh").exists()  # nothing restored from a state that fails its checks
     chunk.write_bytes(good)
     assert restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records)
+
+
+def test_a_stop_that_fails_mid_write_leaves_the_previous_portable_state_whole(tmp_path, monkeypatch):
+    """The new chunk is written first and the state last: a write that fails in between (a full
+    disk) leaves the previous state and every chunk it lists, and the next write goes on from them."""
+    import pemamoe.runs
+    from pemamoe.records import portable_chunk_files
+
+    spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
+    config, run_dir, records = spec.to_config(), spec.run_dir(tmp_path / "first"), tmp_path / "records"
+    train_population([config], [run_dir], max_iterations=3)
+    path = write_portable_state(run_dir, "ci", records)
+    before = _in_progress(records)
+    train_population([config], [run_dir], max_iterations=6)
+
+    def full_disk(_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pemamoe.runs, "seal_checkpoint", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_portable_state(run_dir, "ci", records)
+    monkeypatch.undo()
+    after = _in_progress(records)
+    assert before.items() <= after.items() and len(after) == len(before) + 1  # the old files whole, one new chunk
+    assert restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records)
+    assert load_checkpoint(spec.run_dir(tmp_path / "fresh") / "checkpoint.pt", config)["iteration"] == 3
+    write_portable_state(run_dir, "ci", records)
+    assert [f.name.split("-")[-3:-1] for f in portable_chunk_files(records, "ci", config.run_name())] == [
+        ["000000", "000002"], ["000003", "000005"]]
+    assert path.read_bytes() != before[path.name]
 
 
 def test_a_format_1_portable_state_still_restores_and_its_next_stop_writes_format_2(tmp_path):
