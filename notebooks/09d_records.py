@@ -319,20 +319,8 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
 #   the chunks the state before it listed (after checking that they hold the very rows the run
 #   has) and writes one chunk of the rows logged since.
 #
-# The state alone is small only if the environments' random streams are: each environment reads
-# its normal and uniform variates through a buffer of `rng_chunk` numbers (appendix 04c), 64 x
-# 4,096 x 2 doubles at the paper scale, 4 MB of random bits that no compressor shrinks, and most of
-# a v1 portable state. But a buffer is always the last `rng_chunk` numbers its generator drew, so
-# the state stores, per environment, only how far back in the generator's stream the buffer starts
-# (numpy's PCG64 steps backwards as cheaply as forwards); every buffer is redrawn at a write and
-# compared bit for bit, and one that does not redraw (never filled, another generator) is stored
-# as it is. The state keeps each buffer's sha256, so a numpy that draws differently is refused.
-#
-# The rows are stored column by column (floats as their 8 bytes, byte-shuffled, ints and booleans
-# as arrays, anything else as a plain list), with the keys each row has, in its order; the chunk is
-# pickled (read back by the unpickler of appendix 07e, which refuses any class) and compared, at the
-# write, with the rows it came from. Rows come back as the very numbers they were, NaN payloads and
-# signed zeros included, so the run's final logs are the same bytes.
+# The state is small because its environments' random buffers travel as where their generators
+# drew them, and the rows are stored column by column: appendix 09h has both codecs.
 #
 # On the next machine the sweep rebuilds each portable state into a checkpoint in its run folder
 # (unless that folder's own checkpoint is further along) and resumes it. The folder then also gets
@@ -406,150 +394,6 @@ _CHUNK_HINT = ("; restore it from git (git checkout -- <the file>), or delete th
 
 
 # %% [markdown]
-# The two codecs: rows to columns and back, and random buffers to where their generators drew them.
-
-# %%
-#| export
-def _shuffled(values) -> bytes:
-    return np.asarray(values, dtype="<f8").view(np.uint8).reshape(-1, 8).T.tobytes()  # byte planes compress better
-
-
-def encode_rows(rows) -> bytes:
-    """Log rows (dicts of plain data) as one chunk's bytes: columns of the keys in their first
-    order, each row's key order, floats byte-shuffled. A function of the values alone (no pickle
-    memo), so the same rows always give the same bytes. ValueError if they do not come back whole."""
-    import pickle
-
-    keys = list(dict.fromkeys(k for row in rows for k in row))
-    index = {k: i for i, k in enumerate(keys)}
-    schemas = {}
-    schema_of = [schemas.setdefault(tuple(index[k] for k in row), len(schemas)) for row in rows]
-    columns = []
-    for key in keys:
-        values = [row[key] for row in rows if key in row]
-        kinds = {type(v) for v in values}
-        if kinds == {float}:
-            columns.append(("f8", _shuffled(values)))
-        elif kinds == {bool}:
-            columns.append(("b1", np.asarray(values, dtype=bool).tobytes()))
-        elif kinds == {int} and all(-2**63 <= v < 2**63 for v in values):
-            columns.append(("i8", np.asarray(values, dtype="<i8").tobytes()))
-        else:
-            columns.append(("py", values))
-    payload = {"rows": len(rows), "keys": keys, "schemas": [list(s) for s in schemas],
-               "schema_of_row": np.asarray(schema_of, dtype="<u4").tobytes(), "columns": columns}
-    buffer = io.BytesIO()
-    pickler = pickle.Pickler(buffer, protocol=5)
-    pickler.fast = True  # no memo: the bytes depend on the values, not on which objects were shared
-    pickler.dump(payload)
-    data = buffer.getvalue()
-    try:
-        same = _plain_bytes(decode_rows(data)) == _plain_bytes(list(rows))
-    except pickle.UnpicklingError as err:  # a class: no checkpoint holds one either
-        raise ValueError(f"these log rows do not survive their encoding ({err})") from None
-    if not same:
-        raise ValueError("these log rows do not survive their encoding")
-    return data
-
-
-def _plain_bytes(obj) -> bytes:
-    import pickle
-
-    buffer = io.BytesIO()
-    pickler = pickle.Pickler(buffer, protocol=5)
-    pickler.fast = True
-    pickler.dump(obj)
-    return buffer.getvalue()
-
-
-def decode_rows(data: bytes) -> list:
-    """The rows of a chunk (`encode_rows`), as the plain objects they were."""
-    from pemamoe.bookkeeping import _PlainUnpickler  # refuses any class: the chunk holds plain data only
-
-    payload = _PlainUnpickler(io.BytesIO(data)).load()
-    columns = []
-    for kind, values in payload["columns"]:
-        if kind == "f8":
-            values = np.frombuffer(values, np.uint8).reshape(8, -1).T.copy().view("<f8").ravel().tolist()
-        elif kind in ("b1", "i8"):
-            values = np.frombuffer(values, bool if kind == "b1" else "<i8").tolist()  # python bools and ints
-        columns.append(iter(values))
-    keys, schemas = payload["keys"], payload["schemas"]
-    return [{keys[k]: next(columns[k]) for k in schemas[s]}
-            for s in np.frombuffer(payload["schema_of_row"], "<u4").tolist()]
-
-
-def _redraw(state: dict, kind: str, back: int, n: int) -> np.ndarray:
-    """The `n` numbers of `kind` a generator in `state` draws after stepping `back` draws backwards."""
-    bits = np.random.PCG64()
-    bits.state = state
-    bits.advance((1 << 128) - back)  # PCG64 walks a cycle of 2**128 states: forwards by that much less is backwards
-    gen = np.random.Generator(bits)
-    return gen.standard_normal(n) if kind == "normal" else gen.random(n)
-
-
-def _where_drawn(row: np.ndarray, state: dict, kind: str):
-    """How many raw draws back from `state` the numbers of `row` start, or None when they are not
-    the last ones its generator drew. A uniform takes one draw, a normal one or more."""
-    if not (isinstance(state, dict) and state.get("bit_generator") == "PCG64" and kind in ("normal", "uniform")):
-        return None
-    n = len(row)
-    for back in range(n, 2 * n + 1 if kind == "normal" else n + 1):
-        first = _redraw(state, kind, back, 1)
-        if first.tobytes() == row[:1].tobytes() and _redraw(state, kind, back, n).tobytes() == row.tobytes():
-            return back
-    return None
-
-
-def compact_env_state(env: dict) -> dict:
-    """A checkpoint's (encoded) environment state with each random buffer replaced by where its
-    generator drew it (rows that do not redraw kept as they are) and its sha256."""
-    import torch
-
-    rng = env.get("rng") if isinstance(env, dict) else None
-    if not (isinstance(rng, dict) and isinstance(rng.get("buffers"), dict) and isinstance(rng.get("generators"), list)):
-        return env
-    buffers = {}
-    for kind, encoded in rng["buffers"].items():
-        buf = encoded["__ndarray__"].numpy() if isinstance(encoded, dict) and set(encoded) == {"__ndarray__"} else None
-        if buf is None or buf.ndim != 2 or buf.dtype != np.float64 or len(buf) != len(rng["generators"]):
-            buffers[kind] = encoded
-            continue
-        back = [_where_drawn(buf[b], gens.get(kind), kind) for b, gens in enumerate(rng["generators"])]
-        raw = [b for b, k in enumerate(back) if k is None]
-        buffers[kind] = {"__redrawn__": {
-            "back": torch.tensor([-1 if k is None else k for k in back], dtype=torch.int64),
-            "raw": torch.from_numpy(buf[raw].copy()), "columns": int(buf.shape[1]),
-            "sha256": hashlib.sha256(buf.tobytes()).hexdigest()}}
-    return {**env, "rng": {**rng, "buffers": buffers}}
-
-
-def expand_env_state(env: dict, source) -> dict:
-    """The inverse of `compact_env_state`; RecordError naming `source` when a buffer does not
-    redraw to the sha256 it had."""
-    import torch
-
-    rng = env.get("rng") if isinstance(env, dict) else None
-    if not (isinstance(rng, dict) and isinstance(rng.get("buffers"), dict)):
-        return env
-    buffers = {}
-    for kind, stored in rng["buffers"].items():
-        if not (isinstance(stored, dict) and set(stored) == {"__redrawn__"}):
-            buffers[kind] = stored
-            continue
-        s = stored["__redrawn__"]
-        back, raw = s["back"].tolist(), iter(s["raw"].numpy())
-        buf = np.stack([next(raw) if k < 0 else _redraw(rng["generators"][b][kind], kind, k, s["columns"])
-                        for b, k in enumerate(back)]) if back else np.empty((0, s["columns"]))
-        if hashlib.sha256(buf.tobytes()).hexdigest() != s["sha256"]:
-            raise RecordError(source, f"holds {kind} random buffers that redraw to other numbers under numpy "
-                              f"{np.__version__} than they held (sha256 differs): resume it with the numpy that wrote "
-                              "it" + _PORTABLE_HINT)
-        buffers[kind] = {"__ndarray__": torch.from_numpy(buf)}
-    return {**env, "rng": {**rng, "buffers": buffers}}
-
-
-# %% [markdown]
 # Writing, checking, restoring and dropping a portable state.
 
 # %%
@@ -560,6 +404,8 @@ def _chunk_name(run_name: str, first: int, last: int, sha: str) -> str:
 
 def _chunk_rows(file: Path, entry: dict, source: Path) -> list:
     """The rows of the chunk `file` that the state `source` lists as `entry`, checked."""
+    from pemamoe.portable_codecs import decode_rows
+
     if not file.is_file():
         raise RecordError(file, f"is missing: the portable state {source.name} holds its rows {entry['first']} to "
                           f"{entry['last']} there{_CHUNK_HINT}")
@@ -575,6 +421,7 @@ def _chunk_rows(file: Path, entry: dict, source: Path) -> list:
 def _kept_chunks(path: Path, run_name: str, rows: list) -> list:
     """The chunks of the portable state at `path` that hold, intact, rows this run has too (from
     its first row on, in order): what a new state of the run can list again without rewriting."""
+    from pemamoe.portable_codecs import encode_rows
     from pemamoe.runs import RunFolderError
 
     if not path.is_file():
@@ -625,6 +472,7 @@ def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path |
     import torch
 
     from pemamoe.bookkeeping import RowLog
+    from pemamoe.portable_codecs import compact_env_state, encode_rows
     from pemamoe.runs import load_checkpoint, seal_checkpoint
 
     run_dir = Path(run_dir)
@@ -667,6 +515,7 @@ def _open_portable_state(source: Path, run_name: str, rebuild: bool = True) -> t
     import torch
 
     from pemamoe.bookkeeping import RowLog
+    from pemamoe.portable_codecs import expand_env_state
     from pemamoe.runs import RunFolderError, seal_checkpoint
 
     try:

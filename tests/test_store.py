@@ -147,7 +147,8 @@ def test_a_later_stop_adds_only_its_new_rows_and_the_run_still_records_the_same_
 
 
 def test_a_missing_or_changed_chunk_is_refused_naming_it(tmp_path):
-    from pemamoe.records import _ROWS_MAGIC, _zstd_pack, encode_rows, portable_chunk_files, portable_state_progress
+    from pemamoe.portable_codecs import encode_rows
+    from pemamoe.records import _ROWS_MAGIC, _zstd_pack, portable_chunk_files, portable_state_progress
 
     spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
     train_population([spec.to_config()], [spec.run_dir(tmp_path / "first")], max_iterations=3)
@@ -234,7 +235,7 @@ def test_random_buffers_travel_as_where_their_generators_drew_them(tmp_path):
     import numpy as np
     import torch
 
-    from pemamoe.records import compact_env_state, expand_env_state
+    from pemamoe.portable_codecs import compact_env_state, expand_env_state
 
     spec = RunSpec("mlp", 0, "ci")
     train_population([spec.to_config()], [spec.run_dir(tmp_path / "r")], max_iterations=2)
@@ -260,7 +261,7 @@ def test_rows_come_back_from_their_chunk_as_the_very_values_they_were():
 
     import numpy as np
 
-    from pemamoe.records import decode_rows, encode_rows
+    from pemamoe.portable_codecs import decode_rows, encode_rows
 
     x86_nan = struct.unpack("<d", struct.pack("<Q", 0xFFF8000000000001))[0]  # sign and payload set
     rows = [{"a": 1.5, "b": 2, "c": True, "d": None}, {"a": x86_nan, "b": 3, "c": False, "e": "text", "d": 1},
