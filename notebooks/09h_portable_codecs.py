@@ -35,7 +35,10 @@ seed = 0
 # as arrays, anything else as a plain list), with the keys each row has, in its order; the chunk is
 # pickled (read back by the unpickler of appendix 07e, which refuses any class) and compared, at the
 # write, with the rows it came from. Rows come back as the very numbers they were, NaN payloads and
-# signed zeros included, so the run's final logs are the same bytes.
+# signed zeros included, so the run's final logs are the same bytes. Not parquet: a table would
+# give a row without a key (the diagnostics are logged every `diag_every` iterations) a null, and
+# a column of mixed types one type. The pickle keeps no memo, so equal rows always give equal
+# bytes: that is how a later stop recognises a chunk it can list again.
 
 # %%
 #| export
@@ -125,7 +128,7 @@ def decode_rows(data: bytes) -> list:
 # The state alone is small only if the environments' random streams are: each environment reads
 # its normal and uniform variates through a buffer of `rng_chunk` numbers (appendix 04c), 64 x
 # 4,096 x 2 doubles at the paper scale, 4 MB of random bits that no compressor shrinks, and most of
-# a v1 portable state. But a buffer is always the last `rng_chunk` numbers its generator drew, so
+# a format-1 portable state. But a buffer is always the last `rng_chunk` numbers its generator drew, so
 # the state stores, per environment, only how far back in the generator's stream the buffer starts
 # (numpy's PCG64 steps backwards as cheaply as forwards); every buffer is redrawn at a write and
 # compared bit for bit, and one that does not redraw (never filled, another generator) is stored

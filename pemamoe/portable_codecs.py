@@ -3,7 +3,7 @@
 
 __all__ = ['PORTABLE_HINT', 'encode_rows', 'decode_rows', 'compact_env_state', 'expand_env_state']
 
-# %% notebooks/09h_portable_codecs.py, cell 5 (line 40)
+# %% notebooks/09h_portable_codecs.py, cell 5 (line 43)
 import hashlib
 import io
 import pickle
@@ -15,7 +15,7 @@ PORTABLE_HINT = ("; restore it from git (git checkout -- <the file>), or delete 
                  "machine's own checkpoint, or from the start")
 
 
-# %% notebooks/09h_portable_codecs.py, cell 6 (line 53)
+# %% notebooks/09h_portable_codecs.py, cell 6 (line 56)
 def _shuffled(values) -> bytes:
     return np.asarray(values, dtype="<f8").view(np.uint8).reshape(-1, 8).T.tobytes()  # byte planes compress better
 
@@ -83,7 +83,7 @@ def decode_rows(data: bytes) -> list:
             for s in np.frombuffer(payload["schema_of_row"], "<u4").tolist()]
 
 
-# %% notebooks/09h_portable_codecs.py, cell 8 (line 134)
+# %% notebooks/09h_portable_codecs.py, cell 8 (line 137)
 def _redraw(state: dict, kind: str, back: int, n: int) -> np.ndarray:
     """The `n` numbers of `kind` a generator in `state` draws after stepping `back` draws backwards."""
     bits = np.random.PCG64()
