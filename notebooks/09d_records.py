@@ -541,7 +541,11 @@ def _open_portable_state(source: Path, run_name: str, rebuild: bool = True) -> t
         rows += _chunk_rows(source.parent / entry["file"], entry, source)
     if len(rows) != manifest["metrics_rows"]:
         raise RecordError(source, f"lists chunks of {len(rows)} rows, but sealed {manifest['metrics_rows']}{_PORTABLE_HINT}")
-    ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": expand_env_state(ck["env"], source)}
+    try:
+        env = expand_env_state(ck["env"])
+    except ValueError as err:  # buffers that redraw to other numbers
+        raise RecordError(source, f"{err}{_PORTABLE_HINT}") from None
+    ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": env}
     if not rebuild:
         return None, ck, config
     with tempfile.TemporaryDirectory() as scratch:

@@ -48,9 +48,13 @@ import pickle
 
 import numpy as np
 
-# the end of the message of a portable state whose buffers cannot be trusted (appendix 09d has its own)
-PORTABLE_HINT = ("; restore it from git (git checkout -- <the file>), or delete it to train the run on from this "
-                 "machine's own checkpoint, or from the start")
+
+class PlainUnpickler(pickle.Unpickler):
+    """Unpickles plain data only: any class or function in the stream is refused (as appendix 07e
+    reads a checkpoint's log rows)."""
+
+    def find_class(self, module, name):
+        raise pickle.UnpicklingError(f"a rows chunk may hold only plain data, found {module}.{name}")
 
 
 # %%
@@ -63,8 +67,6 @@ def encode_rows(rows) -> bytes:
     """Log rows (dicts of plain data) as one chunk's bytes: columns of the keys in their first
     order, each row's key order, floats byte-shuffled. A function of the values alone (no pickle
     memo), so the same rows always give the same bytes. ValueError if they do not come back whole."""
-    import pickle
-
     keys = list(dict.fromkeys(k for row in rows for k in row))
     index = {k: i for i, k in enumerate(keys)}
     schemas = {}
@@ -107,9 +109,7 @@ def _plain_bytes(obj) -> bytes:
 
 def decode_rows(data: bytes) -> list:
     """The rows of a chunk (`encode_rows`), as the plain objects they were."""
-    from pemamoe.bookkeeping import _PlainUnpickler  # refuses any class: the chunk holds plain data only
-
-    payload = _PlainUnpickler(io.BytesIO(data)).load()
+    payload = PlainUnpickler(io.BytesIO(data)).load()  # refuses any class: the chunk holds plain data only
     columns = []
     for kind, values in payload["columns"]:
         if kind == "f8":
@@ -181,8 +181,8 @@ def compact_env_state(env: dict) -> dict:
     return {**env, "rng": {**rng, "buffers": buffers}}
 
 
-def expand_env_state(env: dict, source) -> dict:
-    """The inverse of `compact_env_state`; RecordError naming `source` when a buffer does not
+def expand_env_state(env: dict) -> dict:
+    """The inverse of `compact_env_state`; ValueError when a buffer does not
     redraw to the sha256 it had."""
     import torch
 
@@ -199,11 +199,8 @@ def expand_env_state(env: dict, source) -> dict:
         buf = np.stack([next(raw) if k < 0 else _redraw(rng["generators"][b][kind], kind, k, s["columns"])
                         for b, k in enumerate(back)]) if back else np.empty((0, s["columns"]))
         if hashlib.sha256(buf.tobytes()).hexdigest() != s["sha256"]:
-            from pemamoe.records import RecordError  # records imports this module
-
-            raise RecordError(source, f"holds {kind} random buffers that redraw to other numbers under numpy "
-                              f"{np.__version__} than they held (sha256 differs): resume it with the numpy that wrote "
-                              "it" + PORTABLE_HINT)
+            raise ValueError(f"holds {kind} random buffers that redraw to other numbers under numpy {np.__version__} "
+                             "than they held (sha256 differs): resume it with the numpy that wrote it")
         buffers[kind] = {"__ndarray__": torch.from_numpy(buf)}
     return {**env, "rng": {**rng, "buffers": buffers}}
 
@@ -233,6 +230,6 @@ env = {"rng": encode_arrays(streams.state_dict())}  # as a checkpoint holds it (
 small = compact_env_state(env)
 print({kind: b["__redrawn__"]["back"].tolist()[:3] for kind, b in small["rng"]["buffers"].items()},
       "raw draws back, for the first 3 of 8 environments")
-again = expand_env_state(small, "demo")["rng"]["buffers"]
+again = expand_env_state(small)["rng"]["buffers"]
 assert all(np.array_equal(again[k]["__ndarray__"].numpy(), v) for k, v in streams.state_dict()["buffers"].items())
 print("every buffer redrawn bit for bit")

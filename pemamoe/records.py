@@ -438,7 +438,11 @@ def _open_portable_state(source: Path, run_name: str, rebuild: bool = True) -> t
         rows += _chunk_rows(source.parent / entry["file"], entry, source)
     if len(rows) != manifest["metrics_rows"]:
         raise RecordError(source, f"lists chunks of {len(rows)} rows, but sealed {manifest['metrics_rows']}{_PORTABLE_HINT}")
-    ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": expand_env_state(ck["env"], source)}
+    try:
+        env = expand_env_state(ck["env"])
+    except ValueError as err:  # buffers that redraw to other numbers
+        raise RecordError(source, f"{err}{_PORTABLE_HINT}") from None
+    ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": env}
     if not rebuild:
         return None, ck, config
     with tempfile.TemporaryDirectory() as scratch:
@@ -506,7 +510,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 14 (line 624)
+# %% notebooks/09d_records.py, cell 14 (line 628)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 
