@@ -107,6 +107,7 @@
 # | (appendix to VI) the learning-budget study: how many steps a phase needs, which fixes the `medium` scale | `09b_budget.py` | `pemamoe/budget.py` | `learning_budget*` |
 # | (appendix to VI) executing a sweep: a run's spec, the run cache, process pool, Ray, stopping | `09c_sweep_runner.py` | `pemamoe/sweep_runner.py` | |
 # | (appendix to VI) run records: the published data of a finished run, which the figures read | `09d_records.py` | `pemamoe/records.py` | |
+# | (appendix to VI) a portable state's codecs: log rows in columns, random buffers as where they were drawn | `09h_portable_codecs.py` | `pemamoe/portable_codecs.py` | |
 # | (appendix to VI) the commands: `python -m pemamoe sweep` and `make figures` | `09e_commands.py` | `pemamoe/commands.py` | |
 # | (appendix to VI) the results store: run folders in a local folder or at a URL (`s3://...`), leased and synced | `09f_store.py` | `pemamoe/store.py` | |
 # | (appendix to VI) reading results: the IQM and its bootstrap intervals, the heuristics' levels, curves over training | `09g_analysis.py` | `pemamoe/analysis.py` | |

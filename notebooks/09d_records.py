@@ -302,26 +302,48 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
 # A record exists only once a run has finished, and a medium population trains for hours: longer
 # than some machines live. So a sweep stopped by `--hours` (appendix 09c) also leaves, for each
 # run it did not finish, a **portable state** beside the records, in
-# `records/<scale>/in_progress/<run>.pt.zst`, which is committed with them. It is the run's own
-# sealed checkpoint, compressed, with one thing left out: the per-episode rows (the largest part of it, and raw data
-# that no record reads). Everything that decides the next numbers (parameters, optimizer moments,
-# generators, the environments' state, the per-iteration log that the record is computed from)
-# stays, so a run resumed from it on another machine computes the same bits, and its record is
-# byte-identical to an uninterrupted run's.
+# `records/<scale>/in_progress/`, which is committed with them. Everything that decides the next
+# numbers (parameters, optimizer moments, generators, the environments' state, the per-iteration
+# log that the record is computed from) travels, so a run resumed from it on another machine
+# computes the same bits, and its record is byte-identical to an uninterrupted run's. The
+# per-episode rows stay behind: raw data that no record reads.
 #
-# On the next machine the sweep copies each portable state into its run folder (unless that
-# folder's own checkpoint is further along) and resumes it. The folder then also gets a
-# `moved.json` saying from which iteration on its `episodes.parquet` holds episodes: the raw
+# A campaign commits a new portable state of every unfinished run at every stop, and git keeps
+# every version. So a portable state is cut in two, to make a commit of an advanced state add only
+# what changed:
+#
+# * `<run>.pt.zst`, the **state**: the run's sealed checkpoint, zstd-compressed, without any log
+#   rows, and with a list of the chunks that hold its metric rows (their row ranges and sha256);
+# * `<run>.rows-<first>-<last>-<sha>.zst`, the **chunks**: the per-iteration log rows `first` to
+#   `last`, each chunk written once, never rewritten, and named by its content. A later stop keeps
+#   the chunks the state before it listed (after checking that they hold the very rows the run
+#   has) and writes one chunk of the rows logged since.
+#
+# The state is small because its environments' random buffers travel as where their generators
+# drew them, and the rows are stored column by column: appendix 09h has both codecs.
+#
+# On the next machine the sweep rebuilds each portable state into a checkpoint in its run folder
+# (unless that folder's own checkpoint is further along) and resumes it. The folder then also gets
+# a `moved.json` saying from which iteration on its `episodes.parquet` holds episodes: the raw
 # episode log of a moved run is partial, and says so. When a run finishes, its record is written
-# and its portable state deleted; the folder `in_progress/` is empty when a campaign is done.
+# and its portable state deleted, chunks too; `in_progress/` is empty when a campaign is done.
 # Restoring one checks it first (a portable state, its checkpoint's sha256 seal, the run it is
-# named for), and so does `sweep --status` before it reports the iteration one has reached: a
-# damaged portable state is refused in one line naming the file, never counted as progress.
+# named for, every chunk present with the sha256 the state sealed, the rows contiguous, the
+# buffers redrawn to their sha256), and so does `sweep --status` before it reports the iteration
+# one has reached: a damaged or missing file is refused in one line naming it, never counted as
+# progress. A portable state of format 1 (one file, the whole checkpoint but the episode rows, as
+# the campaign committed them until December 2026) is read as before; the next stop of its run
+# writes format 2. `benchmarks/bench_portable.py` measures what a stop adds to git.
 
 # %%
 #| export
-PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
-_PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
+PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/: unfinished runs (committed while a campaign runs)
+PORTABLE_FORMAT = 2
+# a state: this magic, the checkpoint's size (8 bytes, little endian), its zstd bytes; format 1 had the same layout
+_PORTABLE_MAGIC = b"pemamoe-portable-2\n"
+_PORTABLE_MAGIC_1 = b"pemamoe-portable-1\n"  # format 1: the whole checkpoint but its episode rows
+_ROWS_MAGIC = b"pemamoe-rows-1\n"  # a chunk of rows: the same layout
+PORTABLE_ZSTD_LEVEL = 19  # written once per stop, read once per machine: the slow, small end of zstd
 
 
 def portable_state_path(records_dir, scale: str, run_name: str) -> Path:
@@ -329,13 +351,128 @@ def portable_state_path(records_dir, scale: str, run_name: str) -> Path:
     return Path(records_dir) / check_scale(scale) / PORTABLE_DIR / f"{run_name}.pt.zst"
 
 
-def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path | None:
-    """Pack the unfinished run in `run_dir` into its portable state: its checkpoint without the
-    per-episode rows, sealed, zstd-compressed; returns the path, or None when the run is finished
-    or has no checkpoint yet (then there is nothing to carry)."""
+def portable_chunk_files(records_dir, scale: str, run_name: str) -> list:
+    """The rows chunks of `run_name` in its scale's in_progress folder (listed or not), sorted."""
+    return sorted(portable_state_path(records_dir, scale, run_name).parent.glob(f"{run_name}.rows-*.zst"))
+
+
+def _zstd_pack(magic: bytes, data: bytes) -> bytes:
     import pyarrow as pa
+
+    return magic + len(data).to_bytes(8, "little") + pa.Codec("zstd", PORTABLE_ZSTD_LEVEL).compress(data, asbytes=True)
+
+
+def _zstd_unpack(path, magics) -> tuple:
+    """(the magic, the bytes) of a file written by `_zstd_pack` with one of `magics`."""
+    import pyarrow as pa
+
+    raw = Path(path).read_bytes()
+    magic = next((m for m in magics if raw.startswith(m)), None)
+    if magic is None or len(raw) <= len(magic) + 8:
+        kind = "portable state (no pemamoe-portable header)" if _PORTABLE_MAGIC in magics else "rows chunk"
+        raise RecordError(path, f"is not a {kind}{_PORTABLE_HINT}")
+    size = int.from_bytes(raw[len(magic):len(magic) + 8], "little")
+    try:
+        return magic, pa.Codec("zstd").decompress(raw[len(magic) + 8:], decompressed_size=size, asbytes=True)
+    except (pa.ArrowException, OSError) as err:
+        raise RecordError(path, f"cannot be decompressed ({type(err).__name__}: {err}){_PORTABLE_HINT}") from None
+
+
+def read_portable_state(path) -> bytes:
+    """The sealed checkpoint bytes of a portable state's state file (format 2: without its rows,
+    which its chunks hold; format 1: the whole checkpoint but the episode rows). RecordError when
+    the file is not one."""
+    return _zstd_unpack(path, (_PORTABLE_MAGIC, _PORTABLE_MAGIC_1))[1]
+
+
+# the end of the message of a portable state that cannot be trusted
+_PORTABLE_HINT = ("; restore it from git (git checkout -- <the file>), or delete it to train the run on from this "
+                  "machine's own checkpoint, or from the start")
+# the end of the message of a chunk that is missing or damaged
+_CHUNK_HINT = ("; restore it from git (git checkout -- <the file>), or delete the run's portable state and chunks "
+               "to train it on from this machine's own checkpoint, or from the start")
+
+
+# %% [markdown]
+# Writing, checking, restoring and dropping a portable state.
+
+# %%
+#| export
+def _chunk_name(run_name: str, first: int, last: int, sha: str) -> str:
+    return f"{run_name}.rows-{first:06d}-{last:06d}-{sha[:12]}.zst"
+
+
+def _chunk_rows(file: Path, entry: dict, source: Path) -> list:
+    """The rows of the chunk `file` that the state `source` lists as `entry`, checked."""
+    from pemamoe.portable_codecs import decode_rows
+
+    if not file.is_file():
+        raise RecordError(file, f"is missing: the portable state {source.name} holds its rows {entry['first']} to "
+                          f"{entry['last']} there{_CHUNK_HINT}")
+    data = _zstd_unpack(file, (_ROWS_MAGIC,))[1]
+    if hashlib.sha256(data).hexdigest() != entry["sha256"]:
+        raise RecordError(file, f"differs from the rows chunk that {source.name} sealed (changed or damaged){_CHUNK_HINT}")
+    rows = decode_rows(data)
+    if len(rows) != entry["last"] - entry["first"] + 1:
+        raise RecordError(file, f"holds {len(rows)} rows, not rows {entry['first']} to {entry['last']}{_CHUNK_HINT}")
+    return rows
+
+
+def _kept_chunks(path: Path, run_name: str, rows: list) -> list:
+    """The chunks of the portable state at `path` that hold, intact, rows this run has too (from
+    its first row on, in order): what a new state of the run can list again without rewriting."""
+    from pemamoe.portable_codecs import encode_rows
+    from pemamoe.runs import RunFolderError
+
+    if not path.is_file():
+        return []
+    try:
+        fmt, _, ck = _unpacked_checkpoint(path)
+        same_run = TrainConfig.from_dict(ck["config"]).run_name() == run_name
+        listed = ck["portable"]["chunks"] if fmt == PORTABLE_FORMAT and same_run else []
+    except (RecordError, RunFolderError, KeyError, TypeError, ValueError):
+        return []  # none, of format 1, or damaged: the new state writes its rows afresh
+    kept = []
+    for entry in listed:
+        first, last = entry["first"], entry["last"]
+        if first != (kept[-1]["last"] + 1 if kept else 0) or last >= len(rows):
+            break
+        try:
+            same = (hashlib.sha256(encode_rows(rows[first:last + 1])).hexdigest() == entry["sha256"]
+                    and _chunk_rows(path.parent / entry["file"], entry, path) is not None)
+        except RecordError:
+            same = False
+        if not same:
+            break
+        kept.append(entry)
+    return kept
+
+
+def _unpacked_checkpoint(source: Path) -> tuple:
+    """(its format, its bytes, the checkpoint) of a portable state's state file, the seal checked
+    (a RunFolderError names a temporary file: callers name `source`)."""
+    import tempfile
+
+    from pemamoe.runs import load_checkpoint
+
+    magic, data = _zstd_unpack(source, (_PORTABLE_MAGIC, _PORTABLE_MAGIC_1))
+    with tempfile.TemporaryDirectory() as scratch:
+        unpacked = Path(scratch) / "checkpoint.pt"
+        unpacked.write_bytes(data)
+        ck = load_checkpoint(unpacked)  # its seal is checked: a damaged portable state is refused here
+    return (PORTABLE_FORMAT if magic == _PORTABLE_MAGIC else 1), data, ck
+
+
+def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path | None:
+    """Pack the unfinished run in `run_dir` into its portable state: the state file (its checkpoint
+    without log rows, its random buffers compacted, sealed, zstd-compressed) and a chunk of the
+    metric rows that the run's previous portable state does not hold already; returns the state's
+    path, or None when the run is finished or has no checkpoint yet (then there is nothing to
+    carry). Chunks no longer listed are deleted after the state is in place."""
     import torch
 
+    from pemamoe.bookkeeping import RowLog
+    from pemamoe.portable_codecs import compact_env_state, encode_rows
     from pemamoe.runs import load_checkpoint, seal_checkpoint
 
     run_dir = Path(run_dir)
@@ -343,59 +480,79 @@ def write_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path |
     if verify_done(run_dir, config) or not (run_dir / "checkpoint.pt").exists():
         return None
     ck = load_checkpoint(run_dir / "checkpoint.pt", config)
-    path = portable_state_path(records_dir, scale, config.run_name())
+    name = config.run_name()
+    path = portable_state_path(records_dir, scale, name)
+    rows = list(RowLog.from_checkpoint(ck["metrics_rows"]))
+    chunks = _kept_chunks(path, name, rows)
+    first = chunks[-1]["last"] + 1 if chunks else 0
+    if first < len(rows):  # the rows logged since: one new chunk, named by its content
+        data = encode_rows(rows[first:])
+        entry = {"first": first, "last": len(rows) - 1, "sha256": hashlib.sha256(data).hexdigest()}
+        entry["file"] = _chunk_name(name, first, len(rows) - 1, entry["sha256"])
+        atomic_write_bytes(path.parent / entry["file"], _zstd_pack(_ROWS_MAGIC, data))
+        chunks.append(entry)
+    state = {**ck, "metrics_rows": [], "episode_rows": [], "env": compact_env_state(ck["env"]),
+             "portable": {"format": PORTABLE_FORMAT, "metrics_rows": len(rows), "chunks": chunks}}
     with atomic_path(path) as tmp:  # format and numerics stamps kept as the trainer wrote them
-        torch.save({**ck, "episode_rows": []}, tmp)
+        torch.save(state, tmp)
         seal_checkpoint(tmp)
-        data = tmp.read_bytes()
-        tmp.write_bytes(_PORTABLE_MAGIC + len(data).to_bytes(8, "little")
-                        + pa.Codec("zstd", compression_level=9).compress(data, asbytes=True))
+        tmp.write_bytes(_zstd_pack(_PORTABLE_MAGIC, tmp.read_bytes()))
+    listed = {entry["file"] for entry in chunks}
+    for stale in portable_chunk_files(records_dir, scale, name):
+        if stale.name not in listed:
+            stale.unlink(missing_ok=True)
     return path
 
 
-def read_portable_state(path) -> bytes:
-    """The sealed checkpoint bytes of a portable state. RecordError when the file is not one."""
-    import pyarrow as pa
-
-    raw = Path(path).read_bytes()
-    head = len(_PORTABLE_MAGIC) + 8
-    if not raw.startswith(_PORTABLE_MAGIC) or len(raw) <= head:
-        raise RecordError(path, f"is not a portable state (no pemamoe-portable header){_PORTABLE_HINT}")
-    size = int.from_bytes(raw[len(_PORTABLE_MAGIC):head], "little")
-    try:
-        return pa.Codec("zstd").decompress(raw[head:], decompressed_size=size, asbytes=True)
-    except (pa.ArrowException, OSError) as err:
-        raise RecordError(path, f"cannot be decompressed ({type(err).__name__}: {err}){_PORTABLE_HINT}") from None
-
-
-# the end of the message of a portable state that cannot be trusted
-_PORTABLE_HINT = ("; restore it from git (git checkout -- <the file>), or delete it to train the run on from this "
-                  "machine's own checkpoint, or from the start")
-
-
-def _open_portable_state(source: Path, run_name: str) -> tuple:
+def _open_portable_state(source: Path, run_name: str, rebuild: bool = True) -> tuple:
     """(the checkpoint's bytes, the checkpoint, its TrainConfig) of the portable state `source`,
-    after the checks a resume makes: a portable state, its checkpoint's seal (sha256) intact, a
-    checkpoint of the run `run_name`. RecordError naming `source` otherwise."""
+    rebuilt from its chunks, after the checks a resume makes: a portable state, its checkpoint's
+    seal (sha256) intact, a checkpoint of the run `run_name`, its chunks present, intact and
+    contiguous, its buffers redrawn. RecordError naming the file at fault otherwise. rebuild=False:
+    the same checks, but no checkpoint bytes (None) for a format-2 state: what a status needs."""
     import tempfile
 
-    from pemamoe.runs import RunFolderError, load_checkpoint
+    import torch
 
-    data = read_portable_state(source)
-    with tempfile.TemporaryDirectory() as scratch:
-        unpacked = Path(scratch) / "checkpoint.pt"
-        unpacked.write_bytes(data)
-        try:
-            ck = load_checkpoint(unpacked)  # its seal is checked: a damaged portable state is refused here
-        except RunFolderError as err:
-            raise RecordError(source, err.problem + _PORTABLE_HINT) from None
+    from pemamoe.bookkeeping import RowLog
+    from pemamoe.portable_codecs import expand_env_state
+    from pemamoe.runs import RunFolderError, seal_checkpoint
+
+    try:
+        fmt, data, ck = _unpacked_checkpoint(source)
+    except RunFolderError as err:
+        raise RecordError(source, err.problem + _PORTABLE_HINT) from None
     try:
         config = TrainConfig.from_dict(ck["config"])
     except (TypeError, ValueError, KeyError) as err:
         raise RecordError(source, f"holds no valid TrainConfig ({type(err).__name__}: {err}){_PORTABLE_HINT}") from None
     if config.run_name() != run_name:
         raise RecordError(source, f"holds run {config.run_name()!r}, not {run_name!r}")
-    return data, ck, config
+    if fmt == 1:
+        return data, ck, config  # the checkpoint as it is
+    manifest = ck.pop("portable", None)
+    if not isinstance(manifest, dict) or manifest.get("format") != PORTABLE_FORMAT:
+        raise RecordError(source, f"has no chunk list of format {PORTABLE_FORMAT}{_PORTABLE_HINT}")
+    rows = []
+    for entry in manifest["chunks"]:
+        if entry["first"] != len(rows):
+            raise RecordError(source, f"lists {entry['file']} from row {entry['first']}, but its chunks before it end "
+                              f"at row {len(rows) - 1}{_PORTABLE_HINT}")
+        rows += _chunk_rows(source.parent / entry["file"], entry, source)
+    if len(rows) != manifest["metrics_rows"]:
+        raise RecordError(source, f"lists chunks of {len(rows)} rows, but sealed {manifest['metrics_rows']}{_PORTABLE_HINT}")
+    try:
+        env = expand_env_state(ck["env"])
+    except ValueError as err:  # buffers that redraw to other numbers
+        raise RecordError(source, f"{err}{_PORTABLE_HINT}") from None
+    ck = {**ck, "metrics_rows": RowLog(rows).packed(), "env": env}
+    if not rebuild:
+        return None, ck, config
+    with tempfile.TemporaryDirectory() as scratch:
+        rebuilt = Path(scratch) / "checkpoint.pt"
+        torch.save(ck, rebuilt)
+        seal_checkpoint(rebuilt)
+        return rebuilt.read_bytes(), ck, config
 
 
 def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool:
@@ -429,8 +586,10 @@ def restore_portable_state(run_dir, scale: str, records_dir=RECORDS_DIR) -> bool
 
 
 def drop_portable_state(run_name: str, scale: str, records_dir=RECORDS_DIR) -> None:
-    """Delete a finished run's portable state (its record now carries the run)."""
+    """Delete a finished run's portable state and its chunks (its record now carries the run)."""
     portable_state_path(records_dir, scale, run_name).unlink(missing_ok=True)
+    for chunk in portable_chunk_files(records_dir, scale, run_name):
+        chunk.unlink(missing_ok=True)
 
 
 def portable_state_progress(records_dir, scale: str, run_name: str) -> tuple | None:
@@ -438,19 +597,19 @@ def portable_state_progress(records_dir, scale: str, run_name: str) -> tuple | N
     so far, or None before the first), or None when there is no portable state: what `sweep
     --status` reports for a run this machine has not restored yet. The rate is the checkpoint's
     training seconds over its iterations, every session that trained it averaged alike. The state
-    is verified as a resume would verify it (seal, run): a damaged one raises RecordError naming
-    the file, rather than reporting an iteration that the sweep would then refuse to resume from."""
+    is verified as a resume would verify it (seal, run, chunks): a damaged one raises RecordError
+    naming the file, rather than reporting an iteration that the sweep would then refuse to resume from."""
     source = portable_state_path(records_dir, scale, run_name)
     if not source.exists():
         return None
-    ck = _open_portable_state(source, run_name)[1]
+    ck = _open_portable_state(source, run_name, rebuild=False)[1]
     iteration = int(ck["iteration"])
     return iteration, (float(ck["elapsed"]) / iteration if iteration else None)
 
 
 def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
-    """{scale: megabytes} of the portable states under records_dir."""
-    return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.pt.zst")) / 1e6
+    """{scale: megabytes} of the portable states under records_dir, chunks included."""
+    return {folder.parent.name: sum(f.stat().st_size for f in folder.glob("*.zst")) / 1e6
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 

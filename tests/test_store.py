@@ -54,7 +54,7 @@ def test_a_run_moved_mid_way_to_a_fresh_machine_records_the_same_bytes(tmp_path)
         assert _record_bytes(record_marker(spec, clone)) == _record_bytes(record_marker(spec, tmp_path / "reference_records"))
         assert not portable_state_path(clone, "ci", run_dir.name).exists()  # the record carries the run now
         assert parquet_rows(run_dir / "episodes.parquet") < parquet_rows(spec.run_dir(tmp_path / "reference") / "episodes.parquet")
-    assert not any((clone / "ci" / PORTABLE_DIR).glob("*.pt.zst"))
+    assert not any((clone / "ci" / PORTABLE_DIR).iterdir())  # states and their chunks dropped
 
 
 def test_a_deadline_stop_leaves_a_portable_state_that_restores_once(tmp_path):
@@ -110,6 +110,171 @@ def test_status_on_a_fresh_machine_counts_the_committed_portable_state(tmp_path)
     assert sweep_status([spec], fresh, workers=1).iteration.tolist() == [0]
     assert sweep_status([spec], fresh, workers=1, records_dir=records).iteration.tolist() == [5]
     assert not spec.run_dir(fresh).exists()  # status restores nothing
+
+
+# --- portable states of format 2: a small state and immutable chunks of rows (issue 58) -------------
+
+def _in_progress(records):
+    return {f.name: f.read_bytes() for f in sorted((records / "ci" / PORTABLE_DIR).iterdir())}
+
+
+def test_a_later_stop_adds_only_its_new_rows_and_the_run_still_records_the_same_bytes(tmp_path):
+    """Three machines, two stops: the second stop keeps the first's chunk, byte for byte, and adds
+    one chunk of the rows logged since; the run finished on a third machine records the bytes of an
+    uninterrupted run, and leaves in_progress/ empty."""
+    spec = RunSpec("smoe", 0, "ci", overrides=(("iterations", 12),))
+    config, name = spec.to_config(), spec.to_config().run_name()
+    assert execute_population([spec], tmp_path / "reference", records_dir=tmp_path / "reference_records")
+    records = tmp_path / "records"
+    train_population([config], [spec.run_dir(tmp_path / "m1")], max_iterations=4)
+    write_portable_state(spec.run_dir(tmp_path / "m1"), "ci", records)
+    first = _in_progress(records)
+    assert sorted(first) == [f"{name}.pt.zst", next(n for n in first if n.startswith(f"{name}.rows-000000-000003-"))]
+
+    assert restore_portable_state(spec.run_dir(tmp_path / "m2"), "ci", records)
+    train_population([config], [spec.run_dir(tmp_path / "m2")], max_iterations=8)
+    write_portable_state(spec.run_dir(tmp_path / "m2"), "ci", records)
+    second = _in_progress(records)
+    added = {n: b for n, b in second.items() if first.get(n) != b}
+    assert {n: b for n, b in first.items() if n.endswith(".zst") and ".rows-" in n}.items() <= second.items()
+    assert sorted(added) == [f"{name}.pt.zst", next(n for n in added if n.startswith(f"{name}.rows-000004-000007-"))]
+    assert load_checkpoint(spec.run_dir(tmp_path / "m2") / "checkpoint.pt", config)["iteration"] == 8
+
+    assert execute_population([spec], tmp_path / "m3", records_dir=records)
+    assert read_json(spec.run_dir(tmp_path / "m3") / "moved.json")["episodes_from_iteration"] == 8
+    assert _record_bytes(record_marker(spec, records)) == _record_bytes(record_marker(spec, tmp_path / "reference_records"))
+    assert list((records / "ci" / PORTABLE_DIR).iterdir()) == []  # the state and its chunks dropped
+
+
+def test_a_missing_or_changed_chunk_is_refused_naming_it(tmp_path):
+    from pemamoe.portable_codecs import encode_rows
+    from pemamoe.records import _ROWS_MAGIC, _zstd_pack, portable_chunk_files, portable_state_progress
+
+    spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
+    train_population([spec.to_config()], [spec.run_dir(tmp_path / "first")], max_iterations=3)
+    records = tmp_path / "records"
+    write_portable_state(spec.run_dir(tmp_path / "first"), "ci", records)
+    (chunk,) = portable_chunk_files(records, "ci", spec.to_config().run_name())
+    good = chunk.read_bytes()
+    chunk.write_bytes(_zstd_pack(_ROWS_MAGIC, encode_rows([{"iteration": i, "episode_return": 0.0} for i in range(3)])))
+    with pytest.raises(RecordError, match=f"{chunk.name}: differs from the rows chunk that .*pt.zst sealed"):
+        restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records)
+    chunk.unlink()
+    for reader in (lambda: restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records),
+                   lambda: portable_state_progress(records, "ci", spec.to_config().run_name())):  # sweep --status
+        with pytest.raises(RecordError, match=f"run record {chunk}: is missing: the portable state .* holds its rows 0 to 2"):
+            reader()
+    assert not spec.run_dir(tmp_path / "fresh").exists()  # nothing restored from a state that fails its checks
+    chunk.write_bytes(good)
+    assert restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records)
+
+
+def test_a_stop_that_fails_mid_write_leaves_the_previous_portable_state_whole(tmp_path, monkeypatch):
+    """The new chunk is written first and the state last: a write that fails in between (a full
+    disk) leaves the previous state and every chunk it lists, and the next write goes on from them."""
+    import pemamoe.runs
+    from pemamoe.records import portable_chunk_files
+
+    spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
+    config, run_dir, records = spec.to_config(), spec.run_dir(tmp_path / "first"), tmp_path / "records"
+    train_population([config], [run_dir], max_iterations=3)
+    path = write_portable_state(run_dir, "ci", records)
+    before = _in_progress(records)
+    train_population([config], [run_dir], max_iterations=6)
+
+    def full_disk(_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pemamoe.runs, "seal_checkpoint", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_portable_state(run_dir, "ci", records)
+    monkeypatch.undo()
+    after = _in_progress(records)
+    assert before.items() <= after.items() and len(after) == len(before) + 1  # the old files whole, one new chunk
+    assert restore_portable_state(spec.run_dir(tmp_path / "fresh"), "ci", records)
+    assert load_checkpoint(spec.run_dir(tmp_path / "fresh") / "checkpoint.pt", config)["iteration"] == 3
+    write_portable_state(run_dir, "ci", records)
+    assert [f.name.split("-")[-3:-1] for f in portable_chunk_files(records, "ci", config.run_name())] == [
+        ["000000", "000002"], ["000003", "000005"]]
+    assert path.read_bytes() != before[path.name]
+
+
+def test_a_format_1_portable_state_still_restores_and_its_next_stop_writes_format_2(tmp_path):
+    import pyarrow as pa
+    import torch
+
+    from pemamoe.records import _PORTABLE_MAGIC_1, portable_chunk_files
+    from pemamoe.runs import seal_checkpoint
+
+    spec = RunSpec("mlp", 0, "ci", overrides=(("iterations", 12),))
+    config = spec.to_config()
+    train_population([config], [spec.run_dir(tmp_path / "first")], max_iterations=5)
+    ck = load_checkpoint(spec.run_dir(tmp_path / "first") / "checkpoint.pt", config)
+    old = tmp_path / "old.pt"  # what write_portable_state wrote before format 2
+    torch.save({**ck, "episode_rows": []}, old)
+    seal_checkpoint(old)
+    data = old.read_bytes()
+    path = portable_state_path(tmp_path / "records", "ci", config.run_name())
+    path.parent.mkdir(parents=True)
+    path.write_bytes(_PORTABLE_MAGIC_1 + len(data).to_bytes(8, "little")
+                     + pa.Codec("zstd", compression_level=9).compress(data, asbytes=True))
+    fresh = spec.run_dir(tmp_path / "fresh")
+    assert restore_portable_state(fresh, "ci", tmp_path / "records")
+    assert (fresh / "checkpoint.pt").read_bytes() == data  # the checkpoint as it was packed
+    train_population([config], [fresh], max_iterations=7)
+    write_portable_state(fresh, "ci", tmp_path / "records")
+    assert path.read_bytes().startswith(b"pemamoe-portable-2\n")
+    assert [f.name.split("-")[-3:-1] for f in portable_chunk_files(tmp_path / "records", "ci", config.run_name())] == [
+        ["000000", "000006"]]
+
+
+def test_random_buffers_travel_as_where_their_generators_drew_them(tmp_path):
+    """The environments' random buffers (most of a paper-scale state) are stored as how far back
+    their generators drew them, and come back bit for bit; a row that does not redraw is kept as it
+    is; a buffer that no longer redraws to its sha256 is refused."""
+    import numpy as np
+    import torch
+
+    from pemamoe.portable_codecs import compact_env_state, expand_env_state
+
+    spec = RunSpec("mlp", 0, "ci")
+    train_population([spec.to_config()], [spec.run_dir(tmp_path / "r")], max_iterations=2)
+    env = load_checkpoint(spec.run_dir(tmp_path / "r") / "checkpoint.pt", spec.to_config())["env"]
+    buffers = env["rng"]["buffers"]
+    foreign = {k: v["__ndarray__"].clone() for k, v in buffers.items()}
+    foreign["normal"][1] = torch.from_numpy(np.random.default_rng(9).standard_normal(foreign["normal"].shape[1]))
+    for original in ({k: v["__ndarray__"] for k, v in buffers.items()}, foreign):
+        state = {**env, "rng": {**env["rng"], "buffers": {k: {"__ndarray__": v} for k, v in original.items()}}}
+        small = compact_env_state(state)
+        raw_rows = {k: len(v["__redrawn__"]["raw"]) for k, v in small["rng"]["buffers"].items()}
+        assert raw_rows == ({"normal": 1, "uniform": 0} if original is foreign else {"normal": 0, "uniform": 0})
+        back = expand_env_state(small)["rng"]["buffers"]
+        assert all(back[k]["__ndarray__"].numpy().tobytes() == v.numpy().tobytes() for k, v in original.items())
+    small["rng"]["generators"][0]["uniform"]["state"]["state"] += 1  # a generator that draws other numbers
+    with pytest.raises(ValueError, match="holds uniform random buffers that redraw to other numbers"):
+        expand_env_state(small)
+
+
+def test_rows_come_back_from_their_chunk_as_the_very_values_they_were():
+    import pickle
+    import struct
+
+    import numpy as np
+
+    from pemamoe.portable_codecs import decode_rows, encode_rows
+
+    x86_nan = struct.unpack("<d", struct.pack("<Q", 0xFFF8000000000001))[0]  # sign and payload set
+    rows = [{"a": 1.5, "b": 2, "c": True, "d": None}, {"a": x86_nan, "b": 3, "c": False, "e": "text", "d": 1},
+            {"c": True, "a": -0.0, "b": 2**70}]  # keys missing, reordered; a mixed column; an int past int64
+    back = decode_rows(encode_rows(rows))
+    assert [list(r) for r in back] == [list(r) for r in rows]
+    assert [[type(v) for v in r.values()] for r in back] == [[type(v) for v in r.values()] for r in rows]
+    assert [struct.pack("<d", r["a"]) for r in back] == [struct.pack("<d", r["a"]) for r in rows]
+    assert [pickle.dumps({k: v for k, v in r.items() if k != "a"}) for r in back] == \
+        [pickle.dumps({k: v for k, v in r.items() if k != "a"}) for r in rows]
+    assert encode_rows(rows) == encode_rows(back)  # a function of the values: a chunk is recognised again
+    with pytest.raises(ValueError, match="do not survive their encoding"):
+        encode_rows([{"a": 1.0}, {"a": np.float64(2.0)}])  # a numpy number: a class, which no chunk may hold
 
 
 # --- the results store at a URL (appendix 09f), against a real S3 server on 127.0.0.1 ---------------
