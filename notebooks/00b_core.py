@@ -541,6 +541,14 @@ def _markdown_table(df, floatfmt: str) -> str:
 # kernel then encrypts its sockets and has nothing to warn about. Where either is missing, the
 # policy stays "disabled", as before.
 #
+# **A quiet shutdown.** When a notebook has finished, jupyter_client stops its kernel by first
+# sending it SIGINT and then a shutdown request. A kernel still busy with a message when the
+# signal lands logs `[IPKernelApp] ERROR | KeyboardInterrupt caught in kernel.` to the terminal,
+# an alarming line after a notebook that succeeded, and a race: a few notebooks of a `make figures`
+# showed it, differently each time. Nothing is running any more, so there is nothing to interrupt:
+# the kernel manager here (`_quiet_kernel_manager`) skips that interrupt while shutting down, and
+# only then; an interrupt asked for otherwise (a cell over its timeout) is sent as before.
+#
 # **Streaming.** With `stream=True` the notebook's own stdout and stderr (progress lines of a
 # sweep, say) are copied to this process's terminal as they arrive (papermill's `stdout_file` /
 # `stderr_file`). The test suite leaves it off, so tests print nothing.
@@ -585,11 +593,26 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
         stdout_file=sys.stdout if stream else None,
         stderr_file=sys.stderr if stream else None,
         config=_kernel_manager_config(),
+        kernel_manager_class=_quiet_kernel_manager(),
     )
 
 
 # %%
 #| exporti
+def _quiet_kernel_manager():
+    # The notebook client's kernel manager, without the SIGINT jupyter_client sends a finished
+    # kernel before its shutdown request (see "A quiet shutdown" above).
+    from jupyter_client.manager import AsyncKernelManager
+
+    class QuietShutdownKernelManager(AsyncKernelManager):
+        async def _async_interrupt_kernel(self) -> None:
+            if self.shutting_down:
+                return
+            await super()._async_interrupt_kernel()
+
+    return QuietShutdownKernelManager
+
+
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -737,9 +760,18 @@ assert _log.getvalue().count("\n") == 1  # the start line only: nothing re-print
 # pointing their `figures_dir` at `paper_figures/`; the command itself, `make_figures`, trains the
 # sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`). Here is what it
 # writes at the end: `paper_figures/README.md` (`write_figures_readme`), which records for every
-# file the notebook that wrote it, its counterpart in the paper, the scale, the command and the
-# commit, so each figure can be traced to what produced it. Plotting notebooks read logged
-# results; they never retrain what a sweep already cached.
+# file the notebook that wrote it, its counterpart in the paper, the scale, the command and a
+# digest of that notebook's code, so each figure can be traced to what produced it. Plotting
+# notebooks read logged results; they never retrain what a sweep already cached.
+#
+# The provenance names the figures' inputs by their content, not by a commit (`figure_inputs`): the
+# notebook's code cells (prose cells left out), the package's code and the committed records, each
+# reduced to a short sha256. Code is hashed as its syntax tree without docstrings, so a comment, a
+# docstring, a prose cell or a back-reference line that moves changes nothing; the package's command
+# line and exporter (`__main__.py`, `literate.py`) compute no figure and are left out. So regenerating
+# the figures from the same inputs rewrites the README byte for byte, whatever commit the checkout
+# is at, and a digest changes exactly when something it covers does. A commit could not do this: the
+# commit that adds the figures cannot name itself, and every unrelated commit would move HEAD.
 
 # %%
 #| export
@@ -788,10 +820,11 @@ PAPER_COUNTERPARTS = {
        ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
 }
 # Outputs whose runs keep their own settings at every scale but ci: the studies of 05c, 05d and 09b
-# train the small settings; the paper campaign's plasticity table reads the paper-scale records.
-FIXED_SCALE_OUTPUTS = {**dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
-                                        "learning_budget", "learning_budget_compute", "learning_budget_readings",
-                                        "tuning"), "small"), "plasticity_loss_paper_campaign": "paper"}
+# train the small settings. (The paper campaign's seed-by-seed plasticity figure is written at the
+# paper scale only, into paper_figures/paper_scale/: no copy of it sits in paper_figures/.)
+FIXED_SCALE_OUTPUTS = dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
+                                     "learning_budget", "learning_budget_compute", "learning_budget_readings",
+                                     "tuning"), "small")
 
 
 def notebook_parameters(notebook) -> set:
@@ -831,8 +864,66 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str) -> Path:
-    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
+def code_digest(source: str) -> str:
+    """sha256 (10 hex digits) of Python source's syntax tree without docstrings: comments, blank
+    lines, layout and docstrings do not count. Source that does not parse is hashed as text."""
+    import ast
+    import hashlib
+
+    try:
+        tree = ast.parse(source)
+    except SyntaxError:
+        return hashlib.sha256(source.encode("utf-8")).hexdigest()[:10]
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree).encode("utf-8")).hexdigest()[:10]
+
+
+def notebook_code(notebook) -> str:
+    """The code cells of a Jupytext percent-format notebook, in order (markdown cells left out)."""
+    cells, keep = [], False
+    for line in Path(notebook).read_text(encoding="utf-8").splitlines():
+        if line.startswith("# %%"):
+            keep = "[markdown]" not in line
+            cells.append([])
+        elif keep and cells:
+            cells[-1].append(line)
+    return "\n\n".join("\n".join(c) for c in cells if c)
+
+
+# the package's modules that compute no figure: the command line and the exporter
+NOT_FIGURE_CODE = ("__main__.py", "literate.py")
+
+
+def figure_inputs(root=None) -> dict:
+    """Digests of what the figures are computed from: {"package": its code (every module but
+    NOT_FIGURE_CODE, by code_digest), "records": the committed run records (sha256 over each file's
+    path and bytes under records/, ci and in_progress folders left out), and each notebook's name:
+    the code_digest of its code cells}. Content only: a fresh clone gives the same digests."""
+    import hashlib
+
+    root = Path(root or REPO_ROOT)
+    package = hashlib.sha256()
+    for module in sorted((root / "pemamoe").glob("*.py")):
+        if module.name not in NOT_FIGURE_CODE:
+            package.update(f"{module.name}:{code_digest(module.read_text(encoding='utf-8'))}\n".encode())
+    records = hashlib.sha256()
+    folder = root / "records"
+    for path in sorted(folder.rglob("*")) if folder.is_dir() else []:
+        rel = path.relative_to(folder)
+        if path.is_file() and rel.parts[0] != "ci" and "in_progress" not in rel.parts[:-1]:
+            records.update(f"{rel.as_posix()}:{hashlib.sha256(path.read_bytes()).hexdigest()}\n".encode())
+    return {"package": package.hexdigest()[:10], "records": records.hexdigest()[:10],
+            **{nb.name: code_digest(notebook_code(nb)) for nb in figure_notebooks(root)}}
+
+
+def write_figures_readme(figures_dir, records: dict, *, scale: str, inputs: dict) -> Path:
+    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table;
+    `inputs` is figure_inputs() of the code and records that made them."""
     readme = repo_path(figures_dir) / "README.md"
     rows = _read_provenance(readme)
     command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
@@ -841,18 +932,22 @@ def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str)
         counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
         fixed = FIXED_SCALE_OUTPUTS.get(stem, scale) if scale != "ci" else scale
         shown = scale if fixed == scale else f"{fixed} (at every scale)"
-        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", commit]
+        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", inputs.get(nb, "unknown")]
     lines = [
         "# paper_figures",
         "",
         "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
         "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
-        "ran at, the command, and the commit the code was at.",
-        f"The last `make figures` that wrote here ran on {cpu_model()}: on the same kind of processor it",
+        "ran at, the command, and a digest of the notebook's code cells (prose cells, comments and",
+        "docstrings left out; `pemamoe.core.figure_inputs`). The last `make figures` that wrote here",
+        f"read the package's code at digest {inputs.get('package', 'unknown')} and the committed records at "
+        f"digest {inputs.get('records', 'unknown')}:",
+        "the same inputs write the same files, whatever commit the checkout is at.",
+        f"It ran on {cpu_model()}: on the same kind of processor it",
         "rewrites every file byte for byte; on another, values computed at plot time may differ in",
         "their last reported digit or a few pixels (the repository's README says which).",
         "",
-        "| file | paper counterpart | notebook | scale | command | commit |",
+        "| file | paper counterpart | notebook | scale | command | notebook code |",
         "|---|---|---|---|---|---|",
         *("| " + " | ".join(rows[k]) + " |" for k in sorted(rows)),
     ]

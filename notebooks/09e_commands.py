@@ -41,7 +41,7 @@ from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
                           SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
-                          run_notebook, write_figures_readme)
+                          run_notebook, write_figures_readme, figure_inputs)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
 from pemamoe.store import StoreAccessError, StoreLeaseError, check_access, open_store, store_access_error
@@ -317,7 +317,9 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
-    # that a failure never leaves new files under a README that names the old scale and commit.
+    # that a failure never leaves new files under a README that names the old scale and inputs.
+    records_dir = repo_path(extra.get("records_dir", "records"))
+    markers_before = _record_markers(records_dir)
     staging = _staging_copy(figures_dir)
     try:
         for i, nb in enumerate(notebooks, start=1):
@@ -333,32 +335,33 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
             for p in staging.iterdir():
                 if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
                     records[p.name] = nb.name
-        write_figures_readme(staging, records, scale=scale, commit=_code_commit())
+        write_figures_readme(staging, records, scale=scale, inputs=figure_inputs())
+        changed = _changed_files(staging, figures_dir)
+        trained = _record_markers(records_dir) - markers_before
         _swap_in(staging, figures_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # gone already after a swap
+    shown = ", ".join(changed[:6]) + (f" and {len(changed) - 6} more" if len(changed) > 6 else "")
+    say(f"[figures] {len(notebooks)} notebooks, {len(trained)} runs trained, {len(records) + 1} files written "
+        f"(README.md included), {len(changed)} changed{': ' + shown if changed else ''}")
     return figures_dir / "README.md"
 
 
-# what paper_figures/ is computed from (a campaign's portable states are not: no figure reads them)
-FIGURE_INPUTS = ("notebooks", "pemamoe", "records", ":(exclude,glob)records/*/in_progress/**")
+def _record_markers(records_dir: Path) -> set:
+    """(marker, modification time) of every run record under `records_dir`: a run trained, or
+    trained again, writes its marker, so the pairs that appear during a call count its runs."""
+    if not records_dir.is_dir():
+        return set()
+    return {(p, p.stat().st_mtime_ns) for p in records_dir.glob("*/*.json")
+            if not p.name.endswith(".timing.json") and p.parent.name != "ci"}
 
 
-def _code_commit() -> str:
-    """The short commit that last changed what the figures are computed from (FIGURE_INPUTS), not
-    HEAD: committing the figures themselves moves HEAD, and a fresh clone of that commit must write
-    the same provenance. "+dirty" when an input has uncommitted changes (the commit alone does not
-    reproduce the figure then)."""
-    import subprocess
+def _changed_files(staging: Path, folder: Path) -> list:
+    """Names of the files of `staging` that `folder` lacks or holds with other bytes."""
+    import filecmp
 
-    try:
-        commit = subprocess.run(["git", "log", "-1", "--format=%h", "--", *FIGURE_INPUTS], cwd=REPO_ROOT,
-                                capture_output=True, text=True).stdout.strip() or "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", *FIGURE_INPUTS],
-                               cwd=REPO_ROOT, capture_output=True, text=True).stdout.strip()
-        return commit + ("+dirty" if dirty else "")
-    except OSError:
-        return "unknown"
+    return sorted(p.name for p in staging.iterdir() if p.is_file()
+                  and not ((folder / p.name).is_file() and filecmp.cmp(p, folder / p.name, shallow=False)))
 
 
 def _staging_copy(folder: Path) -> Path:
