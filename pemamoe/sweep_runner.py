@@ -526,7 +526,7 @@ def _run_ray(groups, results_dir, workers, address, threads, report, deadline=No
     _finish(errors)
 
 
-# %% notebooks/09c_sweep_runner.py, cell 17 (line 690)
+# %% notebooks/09c_sweep_runner.py, cell 17 (line 691)
 STATUS_WINDOW = 500  # logged iterations (five checkpoints at the medium preset) that give a population's rate
 STATUS_MIN_PAUSE_S = 60.0  # no step shorter than this is taken for a pause
 
