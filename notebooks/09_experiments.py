@@ -481,27 +481,83 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
 # %% [markdown]
 # ## Plasticity indicators
 #
-# Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
-# trunk), and the dormant-neuron fraction under both definitions of appendix 06e, averaged over
-# layers and experts: the **paper's** (a unit whose mean absolute pre-activation is below
-# δ = 0.01) and **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025). They
-# measure different things (collapsed units versus silent ones), so the figure shows both.
+# The rank of the expert features on a fixed probe batch (for the MLP, its single trunk), averaged
+# over experts, under two of appendix 06e's measures: the **stable rank**, which the paper's
+# footnote names, and the **effective rank**, which the tables and sentences of this notebook quote
+# (the plasticity-loss comparisons below read it at every switch). Then the dormant-neuron fraction
+# under both definitions of appendix 06e, averaged over layers and experts: the **paper's** (a unit
+# whose mean absolute pre-activation is below δ = 0.01) and **Sokar et al.'s τ-dormant score**
+# (post-activation score ≤ τ = 0.025). They measure different things (collapsed units versus
+# silent ones), so the figure shows both.
+#
+# The paper's definition finds no dormant unit in any of our runs: its fraction is logged as
+# exactly 0 at every diagnostic point of every run. That is a measurement, not a bug in the logging:
+# for it to count a unit, the unit's pre-activation must stay within ±0.01 of zero on average over
+# the probe batch, i.e. its incoming weights and bias must have nearly vanished. Where that is so,
+# the figure's left panel does not draw a flat line at 0 but shows why: the smallest mean
+# |pre-activation| of any unit (any layer, any expert) of each run's final actor, on the run's own
+# probe batch, against δ (the cell prints the smallest of them). A ReLU unit silenced by a
+# negative pre-activation for every input is not caught by the paper's definition (its mean
+# |pre-activation| is large); the τ-dormant score on the right counts it.
 
 # %%
-from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
+from pathlib import Path
 
-figure("rank/stable/mean", "stable rank (mean over experts)", "results_feature_rank",
-       "Average expert feature rank over training")
+from pemamoe.bookkeeping import collect_probe
+from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
+from pemamoe.records import read_marker, read_record_actor
+from pemamoe.train_config import TrainConfig
 
 fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
-for ax, (column, title) in zip(axes, (
-        ("dormant/paper/mean", f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}"),
-        ("dormant/tau/mean", f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}"))):
+for ax, (column, label) in zip(axes, (("rank/stable/mean", "stable rank"), ("rank/effective/mean", "effective rank"))):
     plot_over_training(ax, metrics, column, method_list)
-    ax.set_title(title, fontsize=9)
-    ax.set_ylabel("dormant fraction")
-axes[0].legend(fontsize=8)
-fig.suptitle(f"Dormant neuron fraction over training, two definitions (left: paper, right: tau-dormant)\n{note}",
+    ax.set_title(f"{label} of the expert features (mean over experts)", fontsize=9)
+    ax.set_ylabel(label)
+axes[1].legend(fontsize=8)
+fig.suptitle(f"Average expert feature rank over training (left: stable rank, the paper's; right: effective rank, "
+             f"which the tables quote)\n{note}", fontsize=9)
+save_figure(fig, "results_feature_rank", figures_dir)
+plt.show()
+
+
+def smallest_preactivation(marker) -> float:
+    """The smallest mean |pre-activation| over the probe batch of any unit (any layer, any expert)
+    of a recorded run's final actor: the paper's definition counts a unit dormant below δ."""
+    config = TrainConfig.from_dict(read_marker(marker)["config"])
+    probe = read_record_actor(marker).probe(collect_probe(config)[0])
+    return min(float(layer.abs().double().mean(1).min()) for layer in probe["preact"])
+
+
+paper_dnf = metrics["dormant/paper/mean"].dropna()
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
+if len(paper_dnf) and (paper_dnf == 0).all():
+    smallest = pd.DataFrame([{"run": Path(m).stem, "method": read_marker(m)["config"]["method"],
+                              "smallest mean |pre-activation|": smallest_preactivation(m)} for m in records])
+    ax = axes[0]
+    for i, method in enumerate(method_list):
+        vals = smallest.loc[smallest.method == method, "smallest mean |pre-activation|"]
+        ax.plot(np.full(len(vals), i), vals, "o", color=method_colour(method))
+    ax.axhline(DORMANT_PAPER_DELTA, color="black", ls="--", lw=1, label=f"δ = {DORMANT_PAPER_DELTA:g}")
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(method_list)), [method_label(m) for m in method_list], rotation=20, ha="right",
+                  fontsize=8)
+    ax.set_ylabel("smallest mean |pre-activation|")
+    ax.set_title(f"paper's definition (mean |pre-activation| < {DORMANT_PAPER_DELTA:g}): 0 at all "
+                 f"{len(paper_dnf)} logged points;\nwhy: each run's final actor, its least active unit (dots: runs)",
+                 fontsize=9)
+    ax.legend(fontsize=8, loc="center right")
+    print(f"paper's dormant fraction: 0 at all {len(paper_dnf)} logged points; smallest mean |pre-activation| "
+          f"of a unit in a final actor: {smallest['smallest mean |pre-activation|'].min():.3f} "
+          f"(δ = {DORMANT_PAPER_DELTA:g})")
+else:  # some unit fell below δ somewhere: draw the fraction over training
+    plot_over_training(axes[0], metrics, "dormant/paper/mean", method_list)
+    axes[0].set_title(f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}", fontsize=9)
+    axes[0].set_ylabel("dormant fraction")
+    axes[0].legend(fontsize=8)
+plot_over_training(axes[1], metrics, "dormant/tau/mean", method_list)
+axes[1].set_title(f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}", fontsize=9)
+axes[1].set_ylabel("dormant fraction")
+fig.suptitle(f"Dormant neurons, two definitions (left: the paper's, right: tau-dormant over training)\n{note}",
              fontsize=9)
 save_figure(fig, "results_dormant_fraction", figures_dir)
 plt.show()
@@ -509,7 +565,13 @@ plt.show()
 # %% [markdown]
 # ![Average expert feature rank over training, medium scale](../paper_figures/results_feature_rank.png)
 #
-# ![Dormant neuron fraction over training, two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
+# ![Dormant neurons under two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
+#
+# At the paper's scale (`make figures SCALE=paper`, the campaign's 18 runs):
+#
+# ![Average expert feature rank over training, paper scale](../paper_figures/paper_scale/results_feature_rank.png)
+#
+# ![Dormant neurons under two definitions, paper scale](../paper_figures/paper_scale/results_dormant_fraction.png)
 
 # %% [markdown]
 # ## Task performance
@@ -527,6 +589,11 @@ figure("coverage", "coverage (fraction of users served)", "results_coverage", "C
 # ![Mean return over training, medium scale](../paper_figures/results_mean_return.png)
 #
 # ![Coverage over training, medium scale](../paper_figures/results_coverage.png)
+#
+# At the paper's scale, with the two MLP plasticity baselines; every learner stays below the
+# k-means heuristic's level in every phase:
+#
+# ![Coverage over training, paper scale](../paper_figures/paper_scale/results_coverage.png)
 
 # %%
 scores = run_scores(episodes)
@@ -549,7 +616,8 @@ n_seed = int(scores.groupby("method").seed.nunique().min())
 ax.set_title("Normalised IQM across five system metrics (energy, collisions: 1 - normalised)\n"
              f"scale={scale}, {n_seed} seeds per method; error bars: 95 % stratified-bootstrap CI across seeds",
              fontsize=9)
-ax.legend(fontsize=8, ncol=4)
+# beside the axes: inside, it covered the bars that reach 1 (with six methods, at the paper scale)
+ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 save_figure(fig, "results_normalised_iqm", figures_dir)
 plt.show()
 iqm_table = pd.DataFrame(rows)
@@ -577,6 +645,10 @@ Markdown(_iqm_words(iqm_table))
 
 # %% [markdown]
 # ![Normalised IQM across five system metrics, medium scale](../paper_figures/results_normalised_iqm.png)
+#
+# At the paper's scale:
+#
+# ![Normalised IQM across five system metrics, paper scale](../paper_figures/paper_scale/results_normalised_iqm.png)
 
 # %%
 proposed = proposed_method()
@@ -654,6 +726,11 @@ if routed:
         axes[1, col].axhline(2 / 3, color="grey", ls=":", lw=1)
         for t in switch_iterations(metrics[metrics.method == method]):
             axes[0, col].axvline(t, color="0.5", ls="--", lw=0.7)
+    # one x-label for the row of panels: the long label of each panel ran into its neighbour's
+    xlabel = axes[1, 0].get_xlabel()
+    for ax in axes[1]:
+        ax.set_xlabel("")
+    fig.supxlabel(xlabel, fontsize=10)
     axes[0, 0].set_ylabel("share of rollout steps")
     axes[1, 0].set_ylabel("switch rate (dotted: random)")
     axes[0, 0].legend(fontsize=8)
@@ -663,6 +740,10 @@ if routed:
 
 # %% [markdown]
 # ![Selected-expert shares and switch rate in the rollouts, medium scale](../paper_figures/results_routing_ran.png)
+#
+# At the paper's scale:
+#
+# ![Selected-expert shares and switch rate in the rollouts, paper scale](../paper_figures/paper_scale/results_routing_ran.png)
 
 # %% [markdown]
 # ## System performance and internal state
@@ -773,7 +854,8 @@ write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 
 def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: str) -> None:
     """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
-    mean over the seeds, with a fresh network's over the same steps where `fresh` has one."""
+    mean over the seeds, with a fresh network's over the same steps where `fresh` has one; one row
+    of panels per phase, one column per method."""
     methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
     phases_here = sorted({p for _, _, p in phase_visits(metrics)})
     fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
@@ -797,8 +879,13 @@ def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: st
             ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
             if i == len(phases_here) - 1:
                 ax.set_xlabel("environment steps into the visit (millions)")
-        axes[0][0].legend(fontsize=7)
-        axes[0][0].set_ylabel("coverage")
+    for i, phase in enumerate(phases_here):
+        axes[i][0].set_ylabel(f"coverage in phase {phase}")
+    axes[0][0].legend(fontsize=7)
+    n_seeds = metrics.groupby("method").seed.nunique().min()
+    against = "; grey: a fresh network trained in that phase alone" if len(fresh) else ""
+    fig.suptitle(f"Coverage within each visit of a phase, visit by visit (solid: first, dashed: second, dotted: third{against})"
+                 f"\nscale={scale}, mean over {n_seeds} seeds per method, per block of environment steps", fontsize=10)
     fig.tight_layout()
     save_figure(fig, name, figures_dir)
 
@@ -838,6 +925,47 @@ from pemamoe.core import repo_path
 from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.records import verify_record
 
+
+def plot_seed_differences(revisits: pd.DataFrame):
+    """Each revisit's coverage minus its phase's first visit, seed by seed: one column of panels
+    per phase, the mean over the visit (top) and the level over its last 10 % (bottom); per
+    method one point per seed and revisit (circles: second visit, squares: third)."""
+    revisits = revisits.assign(nth=revisits.groupby(["method", "seed", "phase"]).visit.rank(method="first")
+                               .astype(int) + 1)
+    methods_here = [m for m in method_order(revisits.method) if m in set(revisits.method)]
+    phases_here = sorted(revisits.phase.unique())
+    fig, axes = plt.subplots(2, len(phases_here), figsize=(4.6 * len(phases_here), 6.4), sharex=True, sharey="row",
+                             squeeze=False)
+    markers = {2: "o", 3: "s"}
+    for row, (column, what) in enumerate((("revisit_minus_first_mean", "mean over the visit"),
+                                          ("revisit_minus_first_end", "level over its last 10 %"))):
+        for col, phase in enumerate(phases_here):
+            ax = axes[row][col]
+            ax.axhline(0, color="black", lw=0.8)
+            for i, method in enumerate(methods_here):
+                for nth in sorted(revisits.nth.unique()):
+                    g = revisits[(revisits.method == method) & (revisits.phase == phase) & (revisits.nth == nth)]
+                    offset = 0.18 * (nth - 2.5) * 2
+                    ax.plot(i + offset + 0.04 * (g.seed.to_numpy() - 1), g[column], markers.get(nth, "^"),
+                            color=method_colour(method), ms=5, mfc="none" if nth == 3 else method_colour(method))
+            ax.set_xticks(range(len(methods_here)), [method_label(m) for m in methods_here], rotation=25, ha="right",
+                          fontsize=8)
+            if row == 0:
+                ax.set_title(f"phase {phase}", fontsize=10)
+            if col == 0:
+                ax.set_ylabel(f"revisit minus first visit,\n{what}", fontsize=9)
+    from matplotlib.lines import Line2D
+
+    axes[0][0].legend([Line2D([], [], ls="none", marker=markers.get(nth, "^"), color="0.3",
+                              mfc="none" if nth == 3 else "0.3") for nth in sorted(revisits.nth.unique())],
+                      [f"visit {nth}" for nth in sorted(revisits.nth.unique())], fontsize=8)
+    n_seeds = revisits.groupby("method").seed.nunique().min()
+    fig.suptitle("Plasticity loss at the paper's scale, seed by seed: coverage of each revisit of a phase minus its first "
+                 f"visit\n{n_seeds} seeds per method, one point each (below 0: the revisit learned worse)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
 campaign = [spec for spec in main_specs("paper", default_seeds("paper"), method_order(METHOD_REGISTRY))  # baselines too
             if verify_record(record_marker(spec, repo_path(records_dir)), spec.to_config())]
 if not campaign:
@@ -852,14 +980,22 @@ else:
                                            "revisit_minus_first_mean", "revisit_end", "first_end",
                                            "revisit_minus_first_end", "first_dormant_at_switch",
                                            "revisit_dormant_at_switch", "first_rank_at_switch", "revisit_rank_at_switch"]]
-    write_table(campaign_revisits.round(4), "plasticity_loss_paper_campaign", figures_dir)
-    plot_visits(campaign_metrics, campaign_metrics.iloc[:0], "paper", "plasticity_loss_paper_campaign")
+    fig = plot_seed_differences(campaign_revisits)
+    if scale == "paper":  # drawn into paper_figures/paper_scale/ only: no copy of it in the medium folder
+        write_table(campaign_revisits.round(4), "plasticity_loss_paper_campaign", figures_dir)
+        save_figure(fig, "plasticity_loss_paper_campaign", figures_dir)
+    plt.show()
 campaign_revisits.pivot_table(index=["method", "visit", "phase"], columns="seed",
                               values=["revisit_minus_first_mean", "revisit_minus_first_end"]).round(3) \
     if len(campaign_revisits) else campaign_revisits
 
 # %% [markdown]
-# ![Coverage within each phase visit at the paper's scale, the campaign's committed records](../paper_figures/plasticity_loss_paper_campaign.png)
+# ![Each revisit minus its phase's first visit at the paper's scale, seed by seed](../paper_figures/paper_scale/plasticity_loss_paper_campaign.png)
+#
+# The same visits as learning curves (the seed mean, one panel per method and phase), which
+# `make figures SCALE=paper` draws with the rest of this notebook:
+#
+# ![Coverage within each phase visit at the paper's scale, mean over seeds](../paper_figures/paper_scale/plasticity_loss_paper.png)
 
 # %%
 from pemamoe.budget import revisit_words
