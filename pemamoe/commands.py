@@ -250,8 +250,12 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # gone already after a swap
     shown = ", ".join(changed[:6]) + (f" and {len(changed) - 6} more" if len(changed) > 6 else "")
-    say(f"[figures] {len(notebooks)} notebooks, {len(trained)} runs trained, {len(records) + 1} files written "
-        f"(README.md included), {len(changed)} changed{': ' + shown if changed else ''}")
+    def count(n: int, noun: str) -> str:
+        return f"{n} {noun}{'' if n == 1 else 's'}"
+
+    say(f"[figures] {count(len(notebooks), 'notebook')}, {count(len(trained), 'run')} trained, "
+        f"{count(len(records) + 1, 'file')} written (README.md included), {len(changed)} changed"
+        f"{': ' + shown if changed else ''}")
     return figures_dir / "README.md"
 
 
@@ -313,7 +317,7 @@ def _swap_in(staging: Path, folder: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 408)
+# %% notebooks/09e_commands.py, cell 11 (line 412)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

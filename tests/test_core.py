@@ -174,7 +174,10 @@ def test_runner_streams_progress_without_kernel_warnings_and_is_silent_by_defaul
     lines = loud.out.splitlines()
     assert lines[0].startswith("[figures] 1/1 99_tiny.py (scale=ci) started, 0:00:0")
     assert "progress-from-inside ci" in lines[1]
-    assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-1])
+    assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-2])
+    # one closing line (issue 60); a fresh folder: its README is new, so it counts as changed
+    assert lines[-1] == "[figures] 1 notebook, 0 runs trained, 1 file written (README.md included), 1 changed: README.md"
+    assert "KeyboardInterrupt" not in loud.err  # no SIGINT to a finished kernel (appendix 00b)
     assert "stderr-from-inside" in loud.err
     assert readme == tmp_path / "figs" / "README.md"
 
