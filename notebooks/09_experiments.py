@@ -513,7 +513,7 @@ for ax, (column, label) in zip(axes, (("rank/stable/mean", "stable rank"), ("ran
     plot_over_training(ax, metrics, column, method_list)
     ax.set_title(f"{label} of the expert features (mean over experts)", fontsize=9)
     ax.set_ylabel(label)
-axes[1].legend(fontsize=8)
+axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: curves fill it
 fig.suptitle(f"Average expert feature rank over training (left: stable rank, the paper's; right: effective rank, "
              f"which the tables quote)\n{note}", fontsize=9)
 save_figure(fig, "results_feature_rank", figures_dir)
@@ -553,10 +553,10 @@ else:  # some unit fell below δ somewhere: draw the fraction over training
     plot_over_training(axes[0], metrics, "dormant/paper/mean", method_list)
     axes[0].set_title(f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}", fontsize=9)
     axes[0].set_ylabel("dormant fraction")
-    axes[0].legend(fontsize=8)
 plot_over_training(axes[1], metrics, "dormant/tau/mean", method_list)
 axes[1].set_title(f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}", fontsize=9)
 axes[1].set_ylabel("dormant fraction")
+axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: bands fill it
 fig.suptitle(f"Dormant neurons, two definitions (left: the paper's, right: tau-dormant over training)\n{note}",
              fontsize=9)
 save_figure(fig, "results_dormant_fraction", figures_dir)
