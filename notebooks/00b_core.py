@@ -541,13 +541,9 @@ def _markdown_table(df, floatfmt: str) -> str:
 # kernel then encrypts its sockets and has nothing to warn about. Where either is missing, the
 # policy stays "disabled", as before.
 #
-# **A quiet shutdown.** When a notebook has finished, jupyter_client stops its kernel by first
-# sending it SIGINT and then a shutdown request. A kernel still busy with a message when the
-# signal lands logs `[IPKernelApp] ERROR | KeyboardInterrupt caught in kernel.` to the terminal,
-# an alarming line after a notebook that succeeded, and a race: a few notebooks of a `make figures`
-# showed it, differently each time. Nothing is running any more, so there is nothing to interrupt:
-# the kernel manager here (`_quiet_kernel_manager`) skips that interrupt while shutting down, and
-# only then; an interrupt asked for otherwise (a cell over its timeout) is sent as before.
+# **A quiet shutdown.** jupyter_client stops a finished kernel with SIGINT, then a shutdown request;
+# a kernel still handling a message logs `KeyboardInterrupt caught in kernel.`, a false alarm (a
+# race: a few notebooks per `make figures`). `_quiet_kernel_manager` skips that one interrupt.
 #
 # **Streaming.** With `stream=True` the notebook's own stdout and stderr (progress lines of a
 # sweep, say) are copied to this process's terminal as they arrive (papermill's `stdout_file` /
@@ -600,8 +596,7 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
 # %%
 #| exporti
 def _quiet_kernel_manager():
-    # The notebook client's kernel manager, without the SIGINT jupyter_client sends a finished
-    # kernel before its shutdown request (see "A quiet shutdown" above).
+    # no SIGINT before the shutdown request of a finished kernel ("A quiet shutdown" above)
     from jupyter_client.manager import AsyncKernelManager
 
     class QuietShutdownKernelManager(AsyncKernelManager):
@@ -758,75 +753,12 @@ assert _log.getvalue().count("\n") == 1  # the start line only: nothing re-print
 #
 # `make figures` runs the notebooks in paper order (`figure_notebooks`) with the same runner,
 # pointing their `figures_dir` at `paper_figures/`; the command itself, `make_figures`, trains the
-# sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`). Here is what it
-# writes at the end: `paper_figures/README.md` (`write_figures_readme`), which records for every
-# file the notebook that wrote it, its counterpart in the paper, the scale, the command and a
-# digest of that notebook's code, so each figure can be traced to what produced it. Plotting
-# notebooks read logged results; they never retrain what a sweep already cached.
-#
-# The provenance names the figures' inputs by their content, not by a commit (`figure_inputs`): the
-# notebook's code cells (prose cells left out), the package's code and the committed records, each
-# reduced to a short sha256. Code is hashed as its syntax tree without docstrings, so a comment, a
-# docstring, a prose cell or a back-reference line that moves changes nothing; the package's command
-# line and exporter (`__main__.py`, `literate.py`) compute no figure and are left out. So regenerating
-# the figures from the same inputs rewrites the README byte for byte, whatever commit the checkout
-# is at, and a digest changes exactly when something it covers does. A commit could not do this: the
-# commit that adds the figures cannot name itself, and every unrelated commit would move HEAD.
+# sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`), with what it writes at
+# the end: `paper_figures/README.md` (`write_figures_readme`), the provenance of every file. Here
+# are the pieces it shares with the notebooks: their parameters, their order, the processor.
 
 # %%
 #| export
-# Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
-PAPER_COUNTERPARTS = {
-    "cost_table": "Table 'Computational cost comparison (actor network)'",
-    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
-    "table_parameters": "Table 'Simulation and training parameters'",
-    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
-    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
-    "results_mean_return": "Fig. 'Mean return over training'",
-    "results_coverage": "(ours) coverage over training, with each phase's random and k-means levels",
-    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
-    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
-    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
-    "results_router_value": "Fig. 'Value-side expert routing probability'",
-    "results_routing_ran": "(ours) selected-expert shares and switch rate in the rollouts",
-    "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
-    "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
-    "sparse_actor": "(ours) the sparse actor's readings in fixed phase 0: why top-1 plateaus lower",
-    "sparse_actor_study": "(ours) the study's final actors: action jumps at expert switches, actions outside the box",
-    "results_collisions": "Fig. 'Collisions per episode over training'",
-    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
-    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
-    "results_mean_action": "Fig. 'Mean action response to phase switches'",
-    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
-    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
-    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
-    "headline_claims": "(ours) the paper's headline numbers beside ours",
-    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
-    "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
-    "headline_plasticity_baselines": "(ours) PE-MAMoE against ReDo and shrink-and-perturb on MLP (paper scale)",
-    "top2_arm": "(ours) the sparse methods kept at top-2 beside their top-1 runs (notebook 05d's arm)",
-    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
-    "mappo_training_curves": "(ours) one training run per method, notebook 07",
-    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
-    "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
-    "learning_budget_compute": "(ours) MLP's two update settings per compute second",
-    "learning_budget_readings": "(ours) the study under both sparse-actor readings: the plateau gap to MLP",
-    "tuning": "(ours) learning rate x entropy, the same grid for every method; each one's chosen setting",
-    **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
-    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit"
-       + (" and a fresh network" if scale != "paper" else "") for scale in SCALES},
-    "plasticity_loss_paper_campaign": "(ours) paper-scale revisits against first visits, seed by seed",
-    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
-       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
-}
-# Outputs whose runs keep their own settings at every scale but ci: the studies of 05c, 05d and 09b
-# train the small settings. (The paper campaign's seed-by-seed plasticity figure is written at the
-# paper scale only, into paper_figures/paper_scale/: no copy of it sits in paper_figures/.)
-FIXED_SCALE_OUTPUTS = dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
-                                     "learning_budget", "learning_budget_compute", "learning_budget_readings",
-                                     "tuning"), "small")
-
-
 def notebook_parameters(notebook) -> set:
     """Names assigned in a notebook's cell tagged "parameters" (so callers pass only those)."""
     import ast
@@ -862,110 +794,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def code_digest(source: str) -> str:
-    """sha256 (10 hex digits) of Python source's syntax tree without docstrings: comments, blank
-    lines, layout and docstrings do not count. Source that does not parse is hashed as text."""
-    import ast
-    import hashlib
-
-    try:
-        tree = ast.parse(source)
-    except SyntaxError:
-        return hashlib.sha256(source.encode("utf-8")).hexdigest()[:10]
-    for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
-                and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant)
-                and isinstance(body[0].value.value, str)):
-            node.body = body[1:] or [ast.Pass()]
-    return hashlib.sha256(ast.dump(tree).encode("utf-8")).hexdigest()[:10]
-
-
-def notebook_code(notebook) -> str:
-    """The code cells of a Jupytext percent-format notebook, in order (markdown cells left out)."""
-    cells, keep = [], False
-    for line in Path(notebook).read_text(encoding="utf-8").splitlines():
-        if line.startswith("# %%"):
-            keep = "[markdown]" not in line
-            cells.append([])
-        elif keep and cells:
-            cells[-1].append(line)
-    return "\n\n".join("\n".join(c) for c in cells if c)
-
-
-# the package's modules that compute no figure: the command line and the exporter
-NOT_FIGURE_CODE = ("__main__.py", "literate.py")
-
-
-def figure_inputs(root=None) -> dict:
-    """Digests of what the figures are computed from: {"package": its code (every module but
-    NOT_FIGURE_CODE, by code_digest), "records": the committed run records (sha256 over each file's
-    path and bytes under records/, ci and in_progress folders left out), and each notebook's name:
-    the code_digest of its code cells}. Content only: a fresh clone gives the same digests."""
-    import hashlib
-
-    root = Path(root or REPO_ROOT)
-    package = hashlib.sha256()
-    for module in sorted((root / "pemamoe").glob("*.py")):
-        if module.name not in NOT_FIGURE_CODE:
-            package.update(f"{module.name}:{code_digest(module.read_text(encoding='utf-8'))}\n".encode())
-    records = hashlib.sha256()
-    folder = root / "records"
-    for path in sorted(folder.rglob("*")) if folder.is_dir() else []:
-        rel = path.relative_to(folder)
-        if path.is_file() and rel.parts[0] != "ci" and "in_progress" not in rel.parts[:-1]:
-            records.update(f"{rel.as_posix()}:{hashlib.sha256(path.read_bytes()).hexdigest()}\n".encode())
-    return {"package": package.hexdigest()[:10], "records": records.hexdigest()[:10],
-            **{nb.name: code_digest(notebook_code(nb)) for nb in figure_notebooks(root)}}
-
-
-def write_figures_readme(figures_dir, records: dict, *, scale: str, inputs: dict) -> Path:
-    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table;
-    `inputs` is figure_inputs() of the code and records that made them."""
-    readme = repo_path(figures_dir) / "README.md"
-    rows = _read_provenance(readme)
-    command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
-    for name, nb in records.items():
-        stem = name.rsplit(".", 1)[0]
-        counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
-        fixed = FIXED_SCALE_OUTPUTS.get(stem, scale) if scale != "ci" else scale
-        shown = scale if fixed == scale else f"{fixed} (at every scale)"
-        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", inputs.get(nb, "unknown")]
-    lines = [
-        "# paper_figures",
-        "",
-        "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
-        "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
-        "ran at, the command, and a digest of the notebook's code cells (prose cells, comments and",
-        "docstrings left out; `pemamoe.core.figure_inputs`). The last `make figures` that wrote here",
-        f"read the package's code at digest {inputs.get('package', 'unknown')} and the committed records at "
-        f"digest {inputs.get('records', 'unknown')}:",
-        "the same inputs write the same files, whatever commit the checkout is at.",
-        f"It ran on {cpu_model()}: on the same kind of processor it",
-        "rewrites every file byte for byte; on another, values computed at plot time may differ in",
-        "their last reported digit or a few pixels (the repository's README says which).",
-        "",
-        "| file | paper counterpart | notebook | scale | command | notebook code |",
-        "|---|---|---|---|---|---|",
-        *("| " + " | ".join(rows[k]) + " |" for k in sorted(rows)),
-    ]
-    return atomic_write_text(readme, "\n".join(lines) + "\n")
-
-
-# %%
-#| exporti
-def _read_provenance(readme: Path) -> dict:
-    # Keep rows of files that this run did not touch (a partial rerun must not forget them).
-    rows = {}
-    if readme.is_file():
-        for line in readme.read_text(encoding="utf-8").splitlines():
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if line.startswith("| ") and len(cells) == 6 and cells[0] not in ("file",):
-                if (readme.parent / cells[0]).is_file():
-                    rows[cells[0]] = cells
-    return rows
 
 
 # %% [markdown]

@@ -481,32 +481,18 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
 # %% [markdown]
 # ## Plasticity indicators
 #
-# The rank of the expert features on a fixed probe batch (for the MLP, its single trunk), averaged
-# over experts, under two of appendix 06e's measures: the **stable rank**, which the paper's
-# footnote names, and the **effective rank**, which the tables and sentences of this notebook quote
-# (the plasticity-loss comparisons below read it at every switch). Then the dormant-neuron fraction
-# under both definitions of appendix 06e, averaged over layers and experts: the **paper's** (a unit
-# whose mean absolute pre-activation is below δ = 0.01) and **Sokar et al.'s τ-dormant score**
-# (post-activation score ≤ τ = 0.025). They measure different things (collapsed units versus
-# silent ones), so the figure shows both.
+# Feature rank on a fixed probe batch (the MLP: its trunk), mean over experts (appendix 06e): the
+# **stable rank** (the paper's footnote) and the **effective rank** (what our tables quote). Dormant
+# fraction, mean over layers and experts: the **paper's** (mean |pre-activation| < δ = 0.01) and
+# **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025).
 #
-# The paper's definition finds no dormant unit in any of our runs: its fraction is logged as
-# exactly 0 at every diagnostic point of every run. That is a measurement, not a bug in the logging:
-# for it to count a unit, the unit's pre-activation must stay within ±0.01 of zero on average over
-# the probe batch, i.e. its incoming weights and bias must have nearly vanished. Where that is so,
-# the figure's left panel does not draw a flat line at 0 but shows why: the smallest mean
-# |pre-activation| of any unit (any layer, any expert) of each run's final actor, on the run's own
-# probe batch, against δ (the cell prints the smallest of them). A ReLU unit silenced by a
-# negative pre-activation for every input is not caught by the paper's definition (its mean
-# |pre-activation| is large); the τ-dormant score on the right counts it.
+# The paper's fraction is 0 at every logged point of every run, a measurement: a unit counts only
+# if its weights and bias have nearly vanished (a ReLU silenced by negative inputs is τ-dormant
+# instead). The left panel shows why: each final actor's least active unit, against δ.
 
 # %%
-from pathlib import Path
-
-from pemamoe.bookkeeping import collect_probe
+from pemamoe.analysis import plot_least_active_units
 from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
-from pemamoe.records import read_marker, read_record_actor
-from pemamoe.train_config import TrainConfig
 
 fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
 for ax, (column, label) in zip(axes, (("rank/stable/mean", "stable rank"), ("rank/effective/mean", "effective rank"))):
@@ -514,41 +500,16 @@ for ax, (column, label) in zip(axes, (("rank/stable/mean", "stable rank"), ("ran
     ax.set_title(f"{label} of the expert features (mean over experts)", fontsize=9)
     ax.set_ylabel(label)
 axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: curves fill it
-fig.suptitle(f"Average expert feature rank over training (left: stable rank, the paper's; right: effective rank, "
-             f"which the tables quote)\n{note}", fontsize=9)
+fig.suptitle(f"Average expert feature rank (left: stable rank, the paper's; right: effective, our tables')\n{note}", fontsize=9)
 save_figure(fig, "results_feature_rank", figures_dir)
 plt.show()
-
-
-def smallest_preactivation(marker) -> float:
-    """The smallest mean |pre-activation| over the probe batch of any unit (any layer, any expert)
-    of a recorded run's final actor: the paper's definition counts a unit dormant below δ."""
-    config = TrainConfig.from_dict(read_marker(marker)["config"])
-    probe = read_record_actor(marker).probe(collect_probe(config)[0])
-    return min(float(layer.abs().double().mean(1).min()) for layer in probe["preact"])
-
 
 paper_dnf = metrics["dormant/paper/mean"].dropna()
 fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
 if len(paper_dnf) and (paper_dnf == 0).all():
-    smallest = pd.DataFrame([{"run": Path(m).stem, "method": read_marker(m)["config"]["method"],
-                              "smallest mean |pre-activation|": smallest_preactivation(m)} for m in records])
-    ax = axes[0]
-    for i, method in enumerate(method_list):
-        vals = smallest.loc[smallest.method == method, "smallest mean |pre-activation|"]
-        ax.plot(np.full(len(vals), i), vals, "o", color=method_colour(method))
-    ax.axhline(DORMANT_PAPER_DELTA, color="black", ls="--", lw=1, label=f"δ = {DORMANT_PAPER_DELTA:g}")
-    ax.set_yscale("log")
-    ax.set_xticks(range(len(method_list)), [method_label(m) for m in method_list], rotation=20, ha="right",
-                  fontsize=8)
-    ax.set_ylabel("smallest mean |pre-activation|")
-    ax.set_title(f"paper's definition (mean |pre-activation| < {DORMANT_PAPER_DELTA:g}): 0 at all "
-                 f"{len(paper_dnf)} logged points;\nwhy: each run's final actor, its least active unit (dots: runs)",
-                 fontsize=9)
-    ax.legend(fontsize=8, loc="center right")
-    print(f"paper's dormant fraction: 0 at all {len(paper_dnf)} logged points; smallest mean |pre-activation| "
-          f"of a unit in a final actor: {smallest['smallest mean |pre-activation|'].min():.3f} "
-          f"(δ = {DORMANT_PAPER_DELTA:g})")
+    least = plot_least_active_units(axes[0], records, method_list)  # appendix 09g
+    axes[0].set_title(f"paper's definition (mean |pre-activation| < {DORMANT_PAPER_DELTA:g}): 0 at all {len(paper_dnf)} "
+                      f"logged points;\nwhy: each final actor's least active unit (dots: runs; lowest {least:.3f})", fontsize=9)
 else:  # some unit fell below δ somewhere: draw the fraction over training
     plot_over_training(axes[0], metrics, "dormant/paper/mean", method_list)
     axes[0].set_title(f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}", fontsize=9)
@@ -557,8 +518,7 @@ plot_over_training(axes[1], metrics, "dormant/tau/mean", method_list)
 axes[1].set_title(f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}", fontsize=9)
 axes[1].set_ylabel("dormant fraction")
 axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: bands fill it
-fig.suptitle(f"Dormant neurons, two definitions (left: the paper's, right: tau-dormant over training)\n{note}",
-             fontsize=9)
+fig.suptitle(f"Dormant neurons, two definitions (left: the paper's, right: tau-dormant over training)\n{note}", fontsize=9)
 save_figure(fig, "results_dormant_fraction", figures_dir)
 plt.show()
 
@@ -566,8 +526,6 @@ plt.show()
 # ![Average expert feature rank over training, medium scale](../paper_figures/results_feature_rank.png)
 #
 # ![Dormant neurons under two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
-#
-# At the paper's scale (`make figures SCALE=paper`, the campaign's 18 runs):
 #
 # ![Average expert feature rank over training, paper scale](../paper_figures/paper_scale/results_feature_rank.png)
 #
@@ -590,10 +548,7 @@ figure("coverage", "coverage (fraction of users served)", "results_coverage", "C
 #
 # ![Coverage over training, medium scale](../paper_figures/results_coverage.png)
 #
-# At the paper's scale, with the two MLP plasticity baselines; every learner stays below the
-# k-means heuristic's level in every phase:
-#
-# ![Coverage over training, paper scale](../paper_figures/paper_scale/results_coverage.png)
+# ![Coverage over training, paper scale: every learner below the k-means level in every phase](../paper_figures/paper_scale/results_coverage.png)
 
 # %%
 scores = run_scores(episodes)
@@ -645,8 +600,6 @@ Markdown(_iqm_words(iqm_table))
 
 # %% [markdown]
 # ![Normalised IQM across five system metrics, medium scale](../paper_figures/results_normalised_iqm.png)
-#
-# At the paper's scale:
 #
 # ![Normalised IQM across five system metrics, paper scale](../paper_figures/paper_scale/results_normalised_iqm.png)
 
@@ -740,8 +693,6 @@ if routed:
 
 # %% [markdown]
 # ![Selected-expert shares and switch rate in the rollouts, medium scale](../paper_figures/results_routing_ran.png)
-#
-# At the paper's scale:
 #
 # ![Selected-expert shares and switch rate in the rollouts, paper scale](../paper_figures/paper_scale/results_routing_ran.png)
 
@@ -840,8 +791,8 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # run, so a revisit also explores less than a first visit or a fresh run.
 
 # %%
-from pemamoe.budget import block_steps, fresh_visit_curve, load_study, plasticity_words, revisit_learning, visit_curve
-from pemamoe.analysis import phase_visits
+from pemamoe.budget import block_steps, load_study, plasticity_words, revisit_learning
+from pemamoe.analysis import plot_visits
 
 # the study trains medium's update settings (the paper's for MLP only, 2M steps: shorter than a paper visit)
 fresh = load_study(study) if scale != "paper" else load_study(study).iloc[:0]  # PE-MAMoE's is SMoE's run
@@ -852,56 +803,17 @@ against = ["revisit_minus_first_mean", "revisit_minus_first_end", "revisit_minus
 learned = learned.merge(revisits.reindex(columns=["method", "visit", *against]), on=["method", "visit"], how="left")
 write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 
-def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: str) -> None:
-    """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
-    mean over the seeds, with a fresh network's over the same steps where `fresh` has one; one row
-    of panels per phase, one column per method."""
-    methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
-    phases_here = sorted({p for _, _, p in phase_visits(metrics)})
-    fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
-                             squeeze=False, sharey="row")
-    for j, method in enumerate(methods_here):
-        runs = metrics[metrics.method == method]
-        visits = phase_visits(runs)
-        for i, phase in enumerate(phases_here):
-            ax = axes[i][j]
-            horizon = None
-            for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
-                curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
-                horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
-                        lw=1.4, label=f"visit {k + 1}")
-            curve = fresh_visit_curve(fresh, method, phase, horizon, "coverage", block_steps(scale)) \
-                if horizon is not None else fresh.iloc[:0]  # the table's reference, or none
-            if len(curve):
-                curve = curve[curve.steps <= horizon].groupby("steps").value.mean()
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
-            ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
-            if i == len(phases_here) - 1:
-                ax.set_xlabel("environment steps into the visit (millions)")
-    for i, phase in enumerate(phases_here):
-        axes[i][0].set_ylabel(f"coverage in phase {phase}")
-    axes[0][0].legend(fontsize=7)
-    n_seeds = metrics.groupby("method").seed.nunique().min()
-    against = "; grey: a fresh network trained in that phase alone" if len(fresh) else ""
-    fig.suptitle(f"Coverage within each visit of a phase, visit by visit (solid: first, dashed: second, dotted: third{against})"
-                 f"\nscale={scale}, mean over {n_seeds} seeds per method, per block of environment steps", fontsize=10)
-    fig.tight_layout()
-    save_figure(fig, name, figures_dir)
-
-
 if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
     print("no revisits at this scale")
 else:
-    plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale, f"plasticity_loss_{scale}")
+    fig = plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale)  # appendix 09g
+    save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
 revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
                  "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)
 
 # %% [markdown]
 # ![Coverage within each phase visit against the first visit and a fresh network, medium scale](../paper_figures/plasticity_loss_medium.png)
-#
-# *The file name carries the scale (`plasticity_loss_<scale>.png`); the one shown is the `medium`
-# one, which `make figures` writes.*
+# *(`plasticity_loss_<scale>.png`: the `medium` one is shown.)*
 
 # %%
 Markdown(plasticity_words(revisits))
@@ -921,49 +833,10 @@ Markdown(plasticity_words(revisits))
 # differences are shown seed by seed.
 
 # %%
+from pemamoe.analysis import plot_seed_differences
 from pemamoe.core import repo_path
 from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.records import verify_record
-
-
-def plot_seed_differences(revisits: pd.DataFrame):
-    """Each revisit's coverage minus its phase's first visit, seed by seed: one column of panels
-    per phase, the mean over the visit (top) and the level over its last 10 % (bottom); per
-    method one point per seed and revisit (circles: second visit, squares: third)."""
-    revisits = revisits.assign(nth=revisits.groupby(["method", "seed", "phase"]).visit.rank(method="first")
-                               .astype(int) + 1)
-    methods_here = [m for m in method_order(revisits.method) if m in set(revisits.method)]
-    phases_here = sorted(revisits.phase.unique())
-    fig, axes = plt.subplots(2, len(phases_here), figsize=(4.6 * len(phases_here), 6.4), sharex=True, sharey="row",
-                             squeeze=False)
-    markers = {2: "o", 3: "s"}
-    for row, (column, what) in enumerate((("revisit_minus_first_mean", "mean over the visit"),
-                                          ("revisit_minus_first_end", "level over its last 10 %"))):
-        for col, phase in enumerate(phases_here):
-            ax = axes[row][col]
-            ax.axhline(0, color="black", lw=0.8)
-            for i, method in enumerate(methods_here):
-                for nth in sorted(revisits.nth.unique()):
-                    g = revisits[(revisits.method == method) & (revisits.phase == phase) & (revisits.nth == nth)]
-                    offset = 0.18 * (nth - 2.5) * 2
-                    ax.plot(i + offset + 0.04 * (g.seed.to_numpy() - 1), g[column], markers.get(nth, "^"),
-                            color=method_colour(method), ms=5, mfc="none" if nth == 3 else method_colour(method))
-            ax.set_xticks(range(len(methods_here)), [method_label(m) for m in methods_here], rotation=25, ha="right",
-                          fontsize=8)
-            if row == 0:
-                ax.set_title(f"phase {phase}", fontsize=10)
-            if col == 0:
-                ax.set_ylabel(f"revisit minus first visit,\n{what}", fontsize=9)
-    from matplotlib.lines import Line2D
-
-    axes[0][0].legend([Line2D([], [], ls="none", marker=markers.get(nth, "^"), color="0.3",
-                              mfc="none" if nth == 3 else "0.3") for nth in sorted(revisits.nth.unique())],
-                      [f"visit {nth}" for nth in sorted(revisits.nth.unique())], fontsize=8)
-    n_seeds = revisits.groupby("method").seed.nunique().min()
-    fig.suptitle("Plasticity loss at the paper's scale, seed by seed: coverage of each revisit of a phase minus its first "
-                 f"visit\n{n_seeds} seeds per method, one point each (below 0: the revisit learned worse)", fontsize=10)
-    fig.tight_layout()
-    return fig
 
 
 campaign = [spec for spec in main_specs("paper", default_seeds("paper"), method_order(METHOD_REGISTRY))  # baselines too
@@ -991,9 +864,6 @@ campaign_revisits.pivot_table(index=["method", "visit", "phase"], columns="seed"
 
 # %% [markdown]
 # ![Each revisit minus its phase's first visit at the paper's scale, seed by seed](../paper_figures/paper_scale/plasticity_loss_paper_campaign.png)
-#
-# The same visits as learning curves (the seed mean, one panel per method and phase), which
-# `make figures SCALE=paper` draws with the rest of this notebook:
 #
 # ![Coverage within each phase visit at the paper's scale, mean over seeds](../paper_figures/paper_scale/plasticity_loss_paper.png)
 

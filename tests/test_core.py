@@ -49,11 +49,13 @@ def test_save_figure_and_table(tmp_path):
 
 
 def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
+    from pemamoe import commands
+
     (tmp_path / "a.png").write_bytes(b"x")
     (tmp_path / "cost_table.md").write_text("x")
-    core.write_figures_readme(tmp_path, {"a.png": "01_channel.py"}, scale="ci",
+    commands.write_figures_readme(tmp_path, {"a.png": "01_channel.py"}, scale="ci",
                               inputs={"01_channel.py": "abc", "package": "p1", "records": "r1"})
-    core.write_figures_readme(tmp_path, {"cost_table.md": "05_moe_actor.py"}, scale="small",
+    commands.write_figures_readme(tmp_path, {"cost_table.md": "05_moe_actor.py"}, scale="small",
                               inputs={"05_moe_actor.py": "def", "package": "p2", "records": "r2"})
     text = (tmp_path / "README.md").read_text()
     assert "| a.png | model illustration (no paper figure) | notebooks/01_channel.py | ci |" in text
@@ -65,16 +67,18 @@ def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
 
 
 def test_figures_readme_names_the_scale_a_studys_runs_have_not_the_commands(tmp_path):
+    from pemamoe import commands
+
     for name in ("tuning.md", "results_coverage.png"):
         (tmp_path / name).write_text("x")
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py", "results_coverage.png": "09_experiments.py"},
+    commands.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py", "results_coverage.png": "09_experiments.py"},
                               scale="medium", inputs={})
     text = (tmp_path / "README.md").read_text()
     assert "| notebooks/09b_learning_budget.py | small (at every scale) |" in text  # the study's small settings
     assert "| results_coverage.png | (ours) coverage over training, with each phase's random and k-means levels | " \
            "notebooks/09_experiments.py | medium |" in text
     assert "(no paper figure)" not in text  # the studies name what they are
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py"}, scale="ci", inputs={})
+    commands.write_figures_readme(tmp_path, {"tuning.md": "09b_learning_budget.py"}, scale="ci", inputs={})
     assert "| notebooks/09b_learning_budget.py | ci |" in (tmp_path / "README.md").read_text()  # ci shrinks every study
 
 

@@ -111,7 +111,7 @@ def test_provenance_names_the_inputs_by_content_not_by_commit(tmp_path):
     import shutil
     import subprocess
 
-    from pemamoe.core import figure_inputs
+    from pemamoe.commands import figure_inputs
 
     repo = Path(__file__).resolve().parents[1]
     clone = tmp_path / "clone"
@@ -146,7 +146,7 @@ def test_provenance_names_the_inputs_by_content_not_by_commit(tmp_path):
 
 
 def test_code_digest_ignores_layout_comments_and_docstrings():
-    from pemamoe.core import code_digest
+    from pemamoe.commands import code_digest
 
     a = 'def f(x):\n    """Doc."""\n    return x + 1  # one more\n'
     b = "def f(x):\n\n    return (x +\n            1)\n"
