@@ -22,10 +22,10 @@ help:
 	@echo "make test                  build .venv from environment.lock if needed, run the whole suite"
 	@echo "make figures [SCALE=ci|small|medium|paper] [RETRAIN=1] [RESULTS=s3://...] [BACKEND=ray RAY_ADDRESS=auto]  regenerate paper_figures/ from the run records (RETRAIN=1: retrain them; RESULTS: the results store; RAY_ADDRESS: a Ray cluster)"
 	@echo "make export | check-export notebooks -> pemamoe/ | fail if pemamoe/ differs from the notebooks"
-	@echo "make lab                   JupyterLab, with notebooks/*.py opening as notebooks"
+	@echo "make lab [LAB_ARGS=...]    JupyterLab, with notebooks/*.py opening as notebooks (LAB_ARGS: options for jupyter lab, e.g. --ip, --port, --IdentityProvider.token)"
 	@echo "make bench                 print the performance figures (peers included: installs the extra bench) and write them to benchmarks/RESULTS.md"
 	@echo "make lock                  regenerate environment.lock from requirements.in"
-	@echo "make clean                 remove build outputs and caches (keeps .venv and results/)"
+	@echo "make clean                 remove build/, the test caches and __pycache__ folders (keeps .venv, results/, records/, paper_figures/)"
 
 # The environment is rebuilt from scratch whenever the lock or the package metadata is newer than
 # the last install, so .venv never drifts from environment.lock.

@@ -51,6 +51,8 @@
 # plateau. Every method was tuned alike; a top-2 arm (notebook 10) shows that keeping two experts
 # does not change the medium verdict.
 #
+# ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
+#
 # At the paper's own scale (its campaign: 18 committed runs of 22M steps, the four methods and two
 # plasticity baselines on the MLP) the claims are contradicted more plainly: PE-MAMoE's return
 # IQM is 48 % below the best baseline's, MLP + shrink-and-perturb, and 34 % below SMoE's, the same
@@ -64,7 +66,7 @@
 # the sparse networks take a fraction of the gradient steps an MLP takes (letting the update run
 # on is worse).
 #
-# ![Normalised IQM across five system metrics, medium scale (notebook 09)](../paper_figures/results_normalised_iqm.png)
+# ![Normalised IQM across five system metrics, paper scale: the campaign's 18 runs (notebook 09)](../paper_figures/paper_scale/results_normalised_iqm.png)
 #
 # ## Map from the paper to the code
 #
@@ -116,7 +118,8 @@
 # | (appendix, no paper section) shared machinery | `00b_core.py` | `pemamoe/core.py` | |
 #
 # `paper_figures/README.md` lists every regenerated file with its paper counterpart, the notebook,
-# the scale, the command and the commit.
+# the scale, the command and a digest of the notebook's code (`paper_figures/paper_scale/README.md`
+# the same for the paper scale's files).
 #
 # ## How to run everything
 #

@@ -541,6 +541,10 @@ def _markdown_table(df, floatfmt: str) -> str:
 # kernel then encrypts its sockets and has nothing to warn about. Where either is missing, the
 # policy stays "disabled", as before.
 #
+# **A quiet shutdown.** jupyter_client stops a finished kernel with SIGINT, then a shutdown request;
+# a kernel still handling a message logs `KeyboardInterrupt caught in kernel.`, a false alarm (a
+# race: a few notebooks per `make figures`). `_quiet_kernel_manager` skips that one interrupt.
+#
 # **Streaming.** With `stream=True` the notebook's own stdout and stderr (progress lines of a
 # sweep, say) are copied to this process's terminal as they arrive (papermill's `stdout_file` /
 # `stderr_file`). The test suite leaves it off, so tests print nothing.
@@ -585,11 +589,25 @@ def run_notebook(notebook, parameters=None, *, output_dir=None, timeout: int = 1
         stdout_file=sys.stdout if stream else None,
         stderr_file=sys.stderr if stream else None,
         config=_kernel_manager_config(),
+        kernel_manager_class=_quiet_kernel_manager(),
     )
 
 
 # %%
 #| exporti
+def _quiet_kernel_manager():
+    # no SIGINT before the shutdown request of a finished kernel ("A quiet shutdown" above)
+    from jupyter_client.manager import AsyncKernelManager
+
+    class QuietShutdownKernelManager(AsyncKernelManager):
+        async def _async_interrupt_kernel(self) -> None:
+            if self.shutting_down:
+                return
+            await super()._async_interrupt_kernel()
+
+    return QuietShutdownKernelManager
+
+
 def _kernel_manager_config():
     # CurveZMQ keys for the kernel (see "Transport encryption" above), when both sides can use them.
     from traitlets.config import Config
@@ -735,65 +753,12 @@ assert _log.getvalue().count("\n") == 1  # the start line only: nothing re-print
 #
 # `make figures` runs the notebooks in paper order (`figure_notebooks`) with the same runner,
 # pointing their `figures_dir` at `paper_figures/`; the command itself, `make_figures`, trains the
-# sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`). Here is what it
-# writes at the end: `paper_figures/README.md` (`write_figures_readme`), which records for every
-# file the notebook that wrote it, its counterpart in the paper, the scale, the command and the
-# commit, so each figure can be traced to what produced it. Plotting notebooks read logged
-# results; they never retrain what a sweep already cached.
+# sweeps first and so sits above them, in appendix 09e (`pemamoe.commands`), with what it writes at
+# the end: `paper_figures/README.md` (`write_figures_readme`), the provenance of every file. Here
+# are the pieces it shares with the notebooks: their parameters, their order, the processor.
 
 # %%
 #| export
-# Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
-PAPER_COUNTERPARTS = {
-    "cost_table": "Table 'Computational cost comparison (actor network)'",
-    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
-    "table_parameters": "Table 'Simulation and training parameters'",
-    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
-    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
-    "results_mean_return": "Fig. 'Mean return over training'",
-    "results_coverage": "(ours) coverage over training, with each phase's random and k-means levels",
-    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
-    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
-    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
-    "results_router_value": "Fig. 'Value-side expert routing probability'",
-    "results_routing_ran": "(ours) selected-expert shares and switch rate in the rollouts",
-    "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
-    "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
-    "sparse_actor": "(ours) the sparse actor's readings in fixed phase 0: why top-1 plateaus lower",
-    "sparse_actor_study": "(ours) the study's final actors: action jumps at expert switches, actions outside the box",
-    "results_collisions": "Fig. 'Collisions per episode over training'",
-    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
-    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
-    "results_mean_action": "Fig. 'Mean action response to phase switches'",
-    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
-    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
-    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
-    "headline_claims": "(ours) the paper's headline numbers beside ours",
-    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
-    "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
-    "headline_plasticity_baselines": "(ours) PE-MAMoE against ReDo and shrink-and-perturb on MLP (paper scale)",
-    "top2_arm": "(ours) the sparse methods kept at top-2 beside their top-1 runs (notebook 05d's arm)",
-    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
-    "mappo_training_curves": "(ours) one training run per method, notebook 07",
-    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
-    "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
-    "learning_budget_compute": "(ours) MLP's two update settings per compute second",
-    "learning_budget_readings": "(ours) the study under both sparse-actor readings: the plateau gap to MLP",
-    "tuning": "(ours) learning rate x entropy, the same grid for every method; each one's chosen setting",
-    **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
-    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit"
-       + (" and a fresh network" if scale != "paper" else "") for scale in SCALES},
-    "plasticity_loss_paper_campaign": "(ours) paper-scale revisits against first visits, seed by seed",
-    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
-       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
-}
-# Outputs whose runs keep their own settings at every scale but ci: the studies of 05c, 05d and 09b
-# train the small settings; the paper campaign's plasticity table reads the paper-scale records.
-FIXED_SCALE_OUTPUTS = {**dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
-                                        "learning_budget", "learning_budget_compute", "learning_budget_readings",
-                                        "tuning"), "small"), "plasticity_loss_paper_campaign": "paper"}
-
-
 def notebook_parameters(notebook) -> set:
     """Names assigned in a notebook's cell tagged "parameters" (so callers pass only those)."""
     import ast
@@ -829,48 +794,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def write_figures_readme(figures_dir, records: dict, *, scale: str, commit: str) -> Path:
-    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table."""
-    readme = repo_path(figures_dir) / "README.md"
-    rows = _read_provenance(readme)
-    command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
-    for name, nb in records.items():
-        stem = name.rsplit(".", 1)[0]
-        counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
-        fixed = FIXED_SCALE_OUTPUTS.get(stem, scale) if scale != "ci" else scale
-        shown = scale if fixed == scale else f"{fixed} (at every scale)"
-        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", commit]
-    lines = [
-        "# paper_figures",
-        "",
-        "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
-        "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
-        "ran at, the command, and the commit the code was at.",
-        f"The last `make figures` that wrote here ran on {cpu_model()}: on the same kind of processor it",
-        "rewrites every file byte for byte; on another, values computed at plot time may differ in",
-        "their last reported digit or a few pixels (the repository's README says which).",
-        "",
-        "| file | paper counterpart | notebook | scale | command | commit |",
-        "|---|---|---|---|---|---|",
-        *("| " + " | ".join(rows[k]) + " |" for k in sorted(rows)),
-    ]
-    return atomic_write_text(readme, "\n".join(lines) + "\n")
-
-
-# %%
-#| exporti
-def _read_provenance(readme: Path) -> dict:
-    # Keep rows of files that this run did not touch (a partial rerun must not forget them).
-    rows = {}
-    if readme.is_file():
-        for line in readme.read_text(encoding="utf-8").splitlines():
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if line.startswith("| ") and len(cells) == 6 and cells[0] not in ("file",):
-                if (readme.parent / cells[0]).is_file():
-                    rows[cells[0]] = cells
-    return rows
 
 
 # %% [markdown]

@@ -481,35 +481,55 @@ def figure(column, ylabel, name, title, methods_shown=method_list, reference=Non
 # %% [markdown]
 # ## Plasticity indicators
 #
-# Average stable rank of the expert features on a fixed probe batch (for the MLP, its single
-# trunk), and the dormant-neuron fraction under both definitions of appendix 06e, averaged over
-# layers and experts: the **paper's** (a unit whose mean absolute pre-activation is below
-# δ = 0.01) and **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025). They
-# measure different things (collapsed units versus silent ones), so the figure shows both.
+# Feature rank on a fixed probe batch (the MLP: its trunk), mean over experts (appendix 06e): the
+# **stable rank** (the paper's footnote) and the **effective rank** (what our tables quote). Dormant
+# fraction, mean over layers and experts: the **paper's** (mean |pre-activation| < δ = 0.01) and
+# **Sokar et al.'s τ-dormant score** (post-activation score ≤ τ = 0.025).
+#
+# The paper's fraction is 0 at every logged point of every run, a measurement: a unit counts only
+# if its weights and bias have nearly vanished (a ReLU silenced by negative inputs is τ-dormant
+# instead). The left panel shows why: each final actor's least active unit, against δ.
 
 # %%
+from pemamoe.analysis import plot_least_active_units
 from pemamoe.diagnostics import DORMANT_PAPER_DELTA, DORMANT_TAU
 
-figure("rank/stable/mean", "stable rank (mean over experts)", "results_feature_rank",
-       "Average expert feature rank over training")
-
 fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
-for ax, (column, title) in zip(axes, (
-        ("dormant/paper/mean", f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}"),
-        ("dormant/tau/mean", f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}"))):
+for ax, (column, label) in zip(axes, (("rank/stable/mean", "stable rank"), ("rank/effective/mean", "effective rank"))):
     plot_over_training(ax, metrics, column, method_list)
-    ax.set_title(title, fontsize=9)
-    ax.set_ylabel("dormant fraction")
-axes[0].legend(fontsize=8)
-fig.suptitle(f"Dormant neuron fraction over training, two definitions (left: paper, right: tau-dormant)\n{note}",
-             fontsize=9)
+    ax.set_title(f"{label} of the expert features (mean over experts)", fontsize=9)
+    ax.set_ylabel(label)
+axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: curves fill it
+fig.suptitle(f"Average expert feature rank (left: stable rank, the paper's; right: effective, our tables')\n{note}", fontsize=9)
+save_figure(fig, "results_feature_rank", figures_dir)
+plt.show()
+
+paper_dnf = metrics["dormant/paper/mean"].dropna()
+fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
+if len(paper_dnf) and (paper_dnf == 0).all():
+    least = plot_least_active_units(axes[0], records, method_list)  # appendix 09g
+    axes[0].set_title(f"paper's definition (mean |pre-activation| < {DORMANT_PAPER_DELTA:g}): 0 at all {len(paper_dnf)} "
+                      f"logged points;\nwhy: each final actor's least active unit (dots: runs; lowest {least:.3f})", fontsize=9)
+else:  # some unit fell below δ somewhere: draw the fraction over training
+    plot_over_training(axes[0], metrics, "dormant/paper/mean", method_list)
+    axes[0].set_title(f"paper's definition: mean |pre-activation| < {DORMANT_PAPER_DELTA:g}", fontsize=9)
+    axes[0].set_ylabel("dormant fraction")
+plot_over_training(axes[1], metrics, "dormant/tau/mean", method_list)
+axes[1].set_title(f"Sokar et al. tau-dormant: post-activation score <= {DORMANT_TAU:g}", fontsize=9)
+axes[1].set_ylabel("dormant fraction")
+axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: bands fill it
+fig.suptitle(f"Dormant neurons, two definitions (left: the paper's, right: tau-dormant over training)\n{note}", fontsize=9)
 save_figure(fig, "results_dormant_fraction", figures_dir)
 plt.show()
 
 # %% [markdown]
 # ![Average expert feature rank over training, medium scale](../paper_figures/results_feature_rank.png)
 #
-# ![Dormant neuron fraction over training, two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
+# ![Dormant neurons under two definitions, medium scale](../paper_figures/results_dormant_fraction.png)
+#
+# ![Average expert feature rank over training, paper scale](../paper_figures/paper_scale/results_feature_rank.png)
+#
+# ![Dormant neurons under two definitions, paper scale](../paper_figures/paper_scale/results_dormant_fraction.png)
 
 # %% [markdown]
 # ## Task performance
@@ -527,6 +547,8 @@ figure("coverage", "coverage (fraction of users served)", "results_coverage", "C
 # ![Mean return over training, medium scale](../paper_figures/results_mean_return.png)
 #
 # ![Coverage over training, medium scale](../paper_figures/results_coverage.png)
+#
+# ![Coverage over training, paper scale: every learner below the k-means level in every phase](../paper_figures/paper_scale/results_coverage.png)
 
 # %%
 scores = run_scores(episodes)
@@ -549,7 +571,8 @@ n_seed = int(scores.groupby("method").seed.nunique().min())
 ax.set_title("Normalised IQM across five system metrics (energy, collisions: 1 - normalised)\n"
              f"scale={scale}, {n_seed} seeds per method; error bars: 95 % stratified-bootstrap CI across seeds",
              fontsize=9)
-ax.legend(fontsize=8, ncol=4)
+# beside the axes: inside, it covered the bars that reach 1 (with six methods, at the paper scale)
+ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 save_figure(fig, "results_normalised_iqm", figures_dir)
 plt.show()
 iqm_table = pd.DataFrame(rows)
@@ -577,6 +600,8 @@ Markdown(_iqm_words(iqm_table))
 
 # %% [markdown]
 # ![Normalised IQM across five system metrics, medium scale](../paper_figures/results_normalised_iqm.png)
+#
+# ![Normalised IQM across five system metrics, paper scale](../paper_figures/paper_scale/results_normalised_iqm.png)
 
 # %%
 proposed = proposed_method()
@@ -654,6 +679,11 @@ if routed:
         axes[1, col].axhline(2 / 3, color="grey", ls=":", lw=1)
         for t in switch_iterations(metrics[metrics.method == method]):
             axes[0, col].axvline(t, color="0.5", ls="--", lw=0.7)
+    # one x-label for the row of panels: the long label of each panel ran into its neighbour's
+    xlabel = axes[1, 0].get_xlabel()
+    for ax in axes[1]:
+        ax.set_xlabel("")
+    fig.supxlabel(xlabel, fontsize=10)
     axes[0, 0].set_ylabel("share of rollout steps")
     axes[1, 0].set_ylabel("switch rate (dotted: random)")
     axes[0, 0].legend(fontsize=8)
@@ -663,6 +693,8 @@ if routed:
 
 # %% [markdown]
 # ![Selected-expert shares and switch rate in the rollouts, medium scale](../paper_figures/results_routing_ran.png)
+#
+# ![Selected-expert shares and switch rate in the rollouts, paper scale](../paper_figures/paper_scale/results_routing_ran.png)
 
 # %% [markdown]
 # ## System performance and internal state
@@ -759,8 +791,8 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 # run, so a revisit also explores less than a first visit or a fresh run.
 
 # %%
-from pemamoe.budget import block_steps, fresh_visit_curve, load_study, plasticity_words, revisit_learning, visit_curve
-from pemamoe.analysis import phase_visits
+from pemamoe.budget import block_steps, load_study, plasticity_words, revisit_learning
+from pemamoe.analysis import plot_visits
 
 # the study trains medium's update settings (the paper's for MLP only, 2M steps: shorter than a paper visit)
 fresh = load_study(study) if scale != "paper" else load_study(study).iloc[:0]  # PE-MAMoE's is SMoE's run
@@ -771,50 +803,17 @@ against = ["revisit_minus_first_mean", "revisit_minus_first_end", "revisit_minus
 learned = learned.merge(revisits.reindex(columns=["method", "visit", *against]), on=["method", "visit"], how="left")
 write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 
-def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str, name: str) -> None:
-    """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
-    mean over the seeds, with a fresh network's over the same steps where `fresh` has one."""
-    methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
-    phases_here = sorted({p for _, _, p in phase_visits(metrics)})
-    fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
-                             squeeze=False, sharey="row")
-    for j, method in enumerate(methods_here):
-        runs = metrics[metrics.method == method]
-        visits = phase_visits(runs)
-        for i, phase in enumerate(phases_here):
-            ax = axes[i][j]
-            horizon = None
-            for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
-                curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
-                horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
-                        lw=1.4, label=f"visit {k + 1}")
-            curve = fresh_visit_curve(fresh, method, phase, horizon, "coverage", block_steps(scale)) \
-                if horizon is not None else fresh.iloc[:0]  # the table's reference, or none
-            if len(curve):
-                curve = curve[curve.steps <= horizon].groupby("steps").value.mean()
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
-            ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
-            if i == len(phases_here) - 1:
-                ax.set_xlabel("environment steps into the visit (millions)")
-        axes[0][0].legend(fontsize=7)
-        axes[0][0].set_ylabel("coverage")
-    fig.tight_layout()
-    save_figure(fig, name, figures_dir)
-
-
 if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
     print("no revisits at this scale")
 else:
-    plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale, f"plasticity_loss_{scale}")
+    fig = plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale)  # appendix 09g
+    save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
 revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
                  "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)
 
 # %% [markdown]
 # ![Coverage within each phase visit against the first visit and a fresh network, medium scale](../paper_figures/plasticity_loss_medium.png)
-#
-# *The file name carries the scale (`plasticity_loss_<scale>.png`); the one shown is the `medium`
-# one, which `make figures` writes.*
+# *(`plasticity_loss_<scale>.png`: the `medium` one is shown.)*
 
 # %%
 Markdown(plasticity_words(revisits))
@@ -834,9 +833,11 @@ Markdown(plasticity_words(revisits))
 # differences are shown seed by seed.
 
 # %%
+from pemamoe.analysis import plot_seed_differences
 from pemamoe.core import repo_path
 from pemamoe.methods import METHOD_REGISTRY
 from pemamoe.records import verify_record
+
 
 campaign = [spec for spec in main_specs("paper", default_seeds("paper"), method_order(METHOD_REGISTRY))  # baselines too
             if verify_record(record_marker(spec, repo_path(records_dir)), spec.to_config())]
@@ -852,14 +853,19 @@ else:
                                            "revisit_minus_first_mean", "revisit_end", "first_end",
                                            "revisit_minus_first_end", "first_dormant_at_switch",
                                            "revisit_dormant_at_switch", "first_rank_at_switch", "revisit_rank_at_switch"]]
-    write_table(campaign_revisits.round(4), "plasticity_loss_paper_campaign", figures_dir)
-    plot_visits(campaign_metrics, campaign_metrics.iloc[:0], "paper", "plasticity_loss_paper_campaign")
+    fig = plot_seed_differences(campaign_revisits)
+    if scale == "paper":  # drawn into paper_figures/paper_scale/ only: no copy of it in the medium folder
+        write_table(campaign_revisits.round(4), "plasticity_loss_paper_campaign", figures_dir)
+        save_figure(fig, "plasticity_loss_paper_campaign", figures_dir)
+    plt.show()
 campaign_revisits.pivot_table(index=["method", "visit", "phase"], columns="seed",
                               values=["revisit_minus_first_mean", "revisit_minus_first_end"]).round(3) \
     if len(campaign_revisits) else campaign_revisits
 
 # %% [markdown]
-# ![Coverage within each phase visit at the paper's scale, the campaign's committed records](../paper_figures/plasticity_loss_paper_campaign.png)
+# ![Each revisit minus its phase's first visit at the paper's scale, seed by seed](../paper_figures/paper_scale/plasticity_loss_paper_campaign.png)
+#
+# ![Coverage within each phase visit at the paper's scale, mean over seeds](../paper_figures/paper_scale/plasticity_loss_paper.png)
 
 # %%
 from pemamoe.budget import revisit_words

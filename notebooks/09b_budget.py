@@ -438,20 +438,46 @@ print(f"{len(records)} runs; the longest lasts {metrics.env_steps.max():,} envir
 #
 # One panel per phase: the seed mean of each method's coverage (band: min to max over seeds) against
 # environment steps, with the random policy and the k-means heuristic of that phase as horizontal
-# lines. A dot marks where the curve first reaches 85 % of its plateau. The last panel puts MLP's
-# two update settings side by side against compute seconds per member instead of steps.
+# lines. A dot marks where the curve first reaches 85 % of its plateau. PE-MAMoE trains here exactly
+# as SMoE does (no switch, so its controller never acts), so the two are one line, labelled with
+# both names; drawn twice, the second would hide the first. The last panel puts MLP's two update
+# settings side by side against compute seconds per member instead of steps.
 
 # %%
+from pemamoe.experiments import fixed_phase_twin
+
 step_col = f"steps_to_{round(PLATEAU_FRACTION * 100)}pct"
 phases = sorted(curves.phase.unique())
 fig, axes = plt.subplots(1, len(phases) + 1, figsize=(4.2 * (len(phases) + 1), 3.6))
 small = curves[curves.settings == "small"]
+
+
+def twin_labels(methods) -> dict:
+    """{method: legend label} of the methods drawn: a method whose fixed-phase runs are another's,
+    bit for bit (PE-MAMoE's are SMoE's), is not drawn, since its curve would lie exactly on its
+    twin's and hide it; the twin's label names both."""
+    twins = {m: fixed_phase_twin(m, methods) for m in methods}
+    labels = {m: method_label(m) for m in methods if twins[m] is None}
+    for m, twin in twins.items():
+        if twin is not None:
+            labels[twin] = f"{labels[twin]} = {method_label(m)}"
+    return labels
+
+
+def twin_note(labels: dict) -> str:
+    """What the suptitle says about the methods drawn as one (twin_labels)."""
+    both = [label for label in labels.values() if " = " in label]
+    return (f"; {', '.join(both)}: without a switch the controller never acts, so the two train bit for bit alike"
+            if both else "")
+
+
+drawn = twin_labels(method_order(small.method.unique()))
 for ax, phase in zip(axes, phases):
-    for method in method_order(small.method.unique()):
+    for method, label in drawn.items():
         g = small[(small.method == method) & (small.phase == phase)]
         stats = g.groupby("env_steps").coverage.agg(["mean", "min", "max"])
         x = stats.index / 1e6
-        ax.plot(x, stats["mean"], color=method_colour(method), label=method_label(method))
+        ax.plot(x, stats["mean"], color=method_colour(method), label=label)
         ax.fill_between(x, stats["min"], stats["max"], color=method_colour(method), alpha=0.15, lw=0)
         row = table[(table.method == method) & (table.settings == "small") & (table.phase == phase)]
         if len(row) and np.isfinite(row[step_col].iloc[0]):
@@ -473,7 +499,7 @@ for update, style in (("small", "-"), ("paper", "--")):
 ax.set(title="MLP, phase 0: per compute time", xlabel="compute minutes per member", ylim=(0, 1))
 ax.legend(fontsize=7, loc="lower right")
 fig.suptitle(f"Learning budget (study at {study_scale} preset; {table.seeds.min()} seed(s); "
-             f"band min-max over seeds; dot: 85 % of plateau)", fontsize=9)
+             f"band min-max over seeds; dot: 85 % of plateau{twin_note(drawn)})", fontsize=9)
 fig.tight_layout()
 save_figure(fig, "learning_budget", figures_dir)
 
@@ -582,20 +608,21 @@ gaps.pivot_table(index=["phase", "method"], columns="reading", values=["plateau"
 
 # %%
 fig, axes = plt.subplots(1, len(phases), figsize=(4.4 * len(phases), 3.6), squeeze=False)
+drawn = twin_labels(method_order(curves_by_reading.method.unique()))  # PE-MAMoE's runs are SMoE's, to the byte
 for ax, phase in zip(axes[0], phases):
-    for method in method_order(curves_by_reading.method.unique()):
+    for method, method_text in drawn.items():
         for reading, style in (("none", "-"), ("ours", "-"), ("paper", "--")):
             g = curves_by_reading[(curves_by_reading.method == method) & (curves_by_reading.reading == reading)
                                   & (curves_by_reading.phase == phase)]
             if len(g):
                 mean = g.groupby("env_steps").coverage.mean()
-                label = method_label(method) + ("" if reading == "none" else f" ({reading})")
+                label = method_text + ("" if reading == "none" else f" ({reading})")
                 ax.plot(mean.index / 1e6, mean, style, color=method_colour(method), label=label)
     ax.set(title=f"phase {phase} only", xlabel="environment steps (millions)", ylim=(0, 1))
 axes[0, 0].set_ylabel("coverage (seed mean)")
 axes[0, 0].legend(fontsize=6, loc="lower right", ncol=2)
-fig.suptitle(f"The study under both actor readings (solid: ours, dashed: the paper's; {study_scale} preset)",
-             fontsize=9)
+fig.suptitle(f"The study under both actor readings (solid: ours, dashed: the paper's; {study_scale} preset"
+             f"{twin_note(drawn)})", fontsize=9)
 fig.tight_layout()
 save_figure(fig, "learning_budget_readings", figures_dir)
 

@@ -41,7 +41,7 @@ from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
                           SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
-                          run_notebook, write_figures_readme)
+                          run_notebook, atomic_write_text, cpu_model)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
 from pemamoe.store import StoreAccessError, StoreLeaseError, check_access, open_store, store_access_error
@@ -259,7 +259,7 @@ for _argv in (["--scale", "huge"], ["--results-dir", "/nonexistent/x", "--status
 #
 # `make_figures` runs the notebooks in paper order (`pemamoe.core.figure_notebooks`) with the
 # headless runner of appendix 00b, pointing their `figures_dir` at `paper_figures/`, and then
-# writes the provenance table `paper_figures/README.md` (`write_figures_readme`, appendix 00b).
+# writes the provenance table `paper_figures/README.md` (`write_figures_readme`, below).
 # When it runs every notebook it first trains, as one sweep, every run the notebooks read, so that
 # compatible runs of different experiments share populations and no notebook trains for hours
 # under its cell timeout.
@@ -336,7 +336,9 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
                   records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
         say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
     # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
-    # that a failure never leaves new files under a README that names the old scale and commit.
+    # that a failure never leaves new files under a README that names the old scale and inputs.
+    records_dir = repo_path(extra.get("records_dir", "records"))
+    markers_before = _record_markers(records_dir)
     staging = _staging_copy(figures_dir)
     try:
         for i, nb in enumerate(notebooks, start=1):
@@ -352,32 +354,191 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
             for p in staging.iterdir():
                 if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
                     records[p.name] = nb.name
-        write_figures_readme(staging, records, scale=scale, commit=_code_commit())
+        write_figures_readme(staging, records, scale=scale, inputs=figure_inputs())
+        changed = _changed_files(staging, figures_dir)
+        trained = _record_markers(records_dir) - markers_before
         _swap_in(staging, figures_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # gone already after a swap
+    shown = ", ".join(changed[:6]) + (f" and {len(changed) - 6} more" if len(changed) > 6 else "")
+    def count(n: int, noun: str) -> str:
+        return f"{n} {noun}{'' if n == 1 else 's'}"
+
+    say(f"[figures] {count(len(notebooks), 'notebook')}, {count(len(trained), 'run')} trained, "
+        f"{count(len(records) + 1, 'file')} written (README.md included), {len(changed)} changed"
+        f"{': ' + shown if changed else ''}")
     return figures_dir / "README.md"
 
 
-# what paper_figures/ is computed from (a campaign's portable states are not: no figure reads them)
-FIGURE_INPUTS = ("notebooks", "pemamoe", "records", ":(exclude,glob)records/*/in_progress/**")
+# Paper counterpart of each output, by file stem; a stem not listed illustrates a model given in equations.
+PAPER_COUNTERPARTS = {
+    "cost_table": "Table 'Computational cost comparison (actor network)'",
+    "architecture_actors": "Fig. 'PE-MAMoE architecture' (actor side, drawn by code)",
+    "table_parameters": "Table 'Simulation and training parameters'",
+    "results_feature_rank": "Fig. 'Evolution of the average expert feature rank'",
+    "results_dormant_fraction": "Fig. 'Evolution of the total dormant neuron fraction'",
+    "results_mean_return": "Fig. 'Mean return over training'",
+    "results_coverage": "(ours) coverage over training, with each phase's random and k-means levels",
+    "results_normalised_iqm": "Fig. 'Normalized IQM across five system metrics'",
+    "results_probability_of_improvement": "(ours) rliable probability of improvement, no paper counterpart",
+    "results_router_policy": "Fig. 'Policy-side expert routing probability'",
+    "results_router_value": "Fig. 'Value-side expert routing probability'",
+    "results_routing_ran": "(ours) selected-expert shares and switch rate in the rollouts",
+    "gating_readings": "(ours) top-1 gating readings in fixed phases; chose the gating defaults",
+    "gating_evaluation": "(ours) the gating readings' final policies, noiseless and trained routing",
+    "sparse_actor": "(ours) the sparse actor's readings in fixed phase 0: why top-1 plateaus lower",
+    "sparse_actor_study": "(ours) the study's final actors: action jumps at expert switches, actions outside the box",
+    "results_collisions": "Fig. 'Collisions per episode over training'",
+    "results_energy_rate": "Fig. 'Mean UAV energy rate over training'",
+    "results_service": "Fig. 'Successfully served users' and 'UAV using rate'",
+    "results_mean_action": "Fig. 'Mean action response to phase switches'",
+    "ablation_noise_sensitivity": "Fig. 'Effect of noise injection threshold on coverage'",
+    "ablation_noise_sweep": "Fig. 'Effect of noise injection threshold' (values)",
+    "ablation_tricks": "Fig. 'Ablation study: IQM drop when removing each component'",
+    "headline_claims": "(ours) the paper's headline numbers beside ours",
+    "headline_reference_iqm": "(ours) per-metric IQM with the k-means reference row",
+    "headline_controller_alone": "(ours) PE-MAMoE against SMoE: the phase controller alone",
+    "headline_plasticity_baselines": "(ours) PE-MAMoE against ReDo and shrink-and-perturb on MLP (paper scale)",
+    "top2_arm": "(ours) the sparse methods kept at top-2 beside their top-1 runs (notebook 05d's arm)",
+    "env_reward_anatomy": "(ours) reward anatomy of objective O'",
+    "mappo_training_curves": "(ours) one training run per method, notebook 07",
+    "plasticity_schedules": "Algorithm 1 switch-time schedules (no paper figure)",
+    "learning_budget": "(ours) learning curves in each fixed phase; sets the medium phase length",
+    "learning_budget_compute": "(ours) MLP's two update settings per compute second",
+    "learning_budget_readings": "(ours) the study under both sparse-actor readings: the plateau gap to MLP",
+    "tuning": "(ours) learning rate x entropy, the same grid for every method; each one's chosen setting",
+    **{f"phase_learning_{scale}": "(ours) each phase visit against the study's plateau" for scale in SCALES},
+    **{f"plasticity_loss_{scale}": "(ours) each revisit of a phase against its first visit"
+       + (" and a fresh network" if scale != "paper" else "") for scale in SCALES},
+    "plasticity_loss_paper_campaign": "(ours) paper-scale revisits against first visits, seed by seed",
+    **{f"theory_{name}": "Section V, measured (no paper figure)" for name in
+       ("noise_energy", "routing_stability", "dynamic_regret", "noise_fit", "lipschitz", "regret_fit")},
+}
+# Outputs whose runs keep their own settings at every scale but ci: the studies of 05c, 05d and 09b
+# train the small settings. (The paper campaign's seed-by-seed plasticity figure is written at the
+# paper scale only, into paper_figures/paper_scale/: no copy of it sits in paper_figures/.)
+FIXED_SCALE_OUTPUTS = dict.fromkeys(("gating_readings", "gating_evaluation", "sparse_actor", "sparse_actor_study",
+                                     "learning_budget", "learning_budget_compute", "learning_budget_readings",
+                                     "tuning"), "small")
 
 
-def _code_commit() -> str:
-    """The short commit that last changed what the figures are computed from (FIGURE_INPUTS), not
-    HEAD: committing the figures themselves moves HEAD, and a fresh clone of that commit must write
-    the same provenance. "+dirty" when an input has uncommitted changes (the commit alone does not
-    reproduce the figure then)."""
-    import subprocess
+def write_figures_readme(figures_dir, records: dict, *, scale: str, inputs: dict) -> Path:
+    """Merge `records` (file name -> notebook) into paper_figures/README.md's provenance table;
+    `inputs` is figure_inputs() of the code and records that made them."""
+    readme = repo_path(figures_dir) / "README.md"
+    rows = _read_provenance(readme)
+    command = f"make figures SCALE={scale}"  # the backend does not change results, only where they ran
+    for name, nb in records.items():
+        stem = name.rsplit(".", 1)[0]
+        counterpart = PAPER_COUNTERPARTS.get(stem, "model illustration (no paper figure)")
+        fixed = FIXED_SCALE_OUTPUTS.get(stem, scale) if scale != "ci" else scale
+        shown = scale if fixed == scale else f"{fixed} (at every scale)"
+        rows[name] = [name, counterpart, f"notebooks/{nb}", shown, f"`{command}`", inputs.get(nb, "unknown")]
+    lines = [
+        "# paper_figures",
+        "",
+        "Every file here is written by a notebook through `make figures`; none is drawn by hand.",
+        "Columns: the file, its counterpart in the paper, the notebook that wrote it, the scale it",
+        "ran at, the command, and a digest of the notebook's code cells (prose cells, comments and",
+        "docstrings left out; `pemamoe.commands.figure_inputs`). The last `make figures` that wrote here",
+        f"read the package's code at digest {inputs.get('package', 'unknown')} and the committed records at "
+        f"digest {inputs.get('records', 'unknown')}:",
+        "the same inputs write the same files, whatever commit the checkout is at.",
+        f"It ran on {cpu_model()}: on the same kind of processor it",
+        "rewrites every file byte for byte; on another, values computed at plot time may differ in",
+        "their last reported digit or a few pixels (the repository's README says which).",
+        "",
+        "| file | paper counterpart | notebook | scale | command | notebook code |",
+        "|---|---|---|---|---|---|",
+        *("| " + " | ".join(rows[k]) + " |" for k in sorted(rows)),
+    ]
+    return atomic_write_text(readme, "\n".join(lines) + "\n")
+
+
+def _read_provenance(readme: Path) -> dict:
+    # Keep rows of files that this run did not touch (a partial rerun must not forget them).
+    rows = {}
+    if readme.is_file():
+        for line in readme.read_text(encoding="utf-8").splitlines():
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if line.startswith("| ") and len(cells) == 6 and cells[0] not in ("file",):
+                if (readme.parent / cells[0]).is_file():
+                    rows[cells[0]] = cells
+    return rows
+
+
+def code_digest(source: str) -> str:
+    """sha256 (10 hex digits) of Python source's syntax tree without docstrings: comments, blank
+    lines, layout and docstrings do not count. Source that does not parse is hashed as text."""
+    import ast
+    import hashlib
 
     try:
-        commit = subprocess.run(["git", "log", "-1", "--format=%h", "--", *FIGURE_INPUTS], cwd=REPO_ROOT,
-                                capture_output=True, text=True).stdout.strip() or "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", *FIGURE_INPUTS],
-                               cwd=REPO_ROOT, capture_output=True, text=True).stdout.strip()
-        return commit + ("+dirty" if dirty else "")
-    except OSError:
-        return "unknown"
+        tree = ast.parse(source)
+    except SyntaxError:
+        return hashlib.sha256(source.encode("utf-8")).hexdigest()[:10]
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree).encode("utf-8")).hexdigest()[:10]
+
+
+def notebook_code(notebook) -> str:
+    """The code cells of a Jupytext percent-format notebook, in order (markdown cells left out)."""
+    cells, keep = [], False
+    for line in Path(notebook).read_text(encoding="utf-8").splitlines():
+        if line.startswith("# %%"):
+            keep = "[markdown]" not in line
+            cells.append([])
+        elif keep and cells:
+            cells[-1].append(line)
+    return "\n\n".join("\n".join(c) for c in cells if c)
+
+
+# the package's modules that compute no figure: the command line and the exporter
+NOT_FIGURE_CODE = ("__main__.py", "literate.py")
+
+
+def figure_inputs(root=None) -> dict:
+    """Digests of what the figures are computed from: {"package": its code (every module but
+    NOT_FIGURE_CODE, by code_digest), "records": the committed run records (sha256 over each file's
+    path and bytes under records/, ci and in_progress folders left out), and each notebook's name:
+    the code_digest of its code cells}. Content only: a fresh clone gives the same digests."""
+    import hashlib
+
+    root = Path(root or REPO_ROOT)
+    package = hashlib.sha256()
+    for module in sorted((root / "pemamoe").glob("*.py")):
+        if module.name not in NOT_FIGURE_CODE:
+            package.update(f"{module.name}:{code_digest(module.read_text(encoding='utf-8'))}\n".encode())
+    records = hashlib.sha256()
+    folder = root / "records"
+    for path in sorted(folder.rglob("*")) if folder.is_dir() else []:
+        rel = path.relative_to(folder)
+        if path.is_file() and rel.parts[0] != "ci" and "in_progress" not in rel.parts[:-1]:
+            records.update(f"{rel.as_posix()}:{hashlib.sha256(path.read_bytes()).hexdigest()}\n".encode())
+    return {"package": package.hexdigest()[:10], "records": records.hexdigest()[:10],
+            **{nb.name: code_digest(notebook_code(nb)) for nb in figure_notebooks(root)}}
+
+
+def _record_markers(records_dir: Path) -> set:
+    """(marker, modification time) of every run record under `records_dir`: a run trained, or
+    trained again, writes its marker, so the pairs that appear during a call count its runs."""
+    if not records_dir.is_dir():
+        return set()
+    return {(p, p.stat().st_mtime_ns) for p in records_dir.glob("*/*.json")
+            if not p.name.endswith(".timing.json") and p.parent.name != "ci"}
+
+
+def _changed_files(staging: Path, folder: Path) -> list:
+    """Names of the files of `staging` that `folder` lacks or holds with other bytes."""
+    import filecmp
+
+    return sorted(p.name for p in staging.iterdir() if p.is_file()
+                  and not ((folder / p.name).is_file() and filecmp.cmp(p, folder / p.name, shallow=False)))
 
 
 def _staging_copy(folder: Path) -> Path:

@@ -398,3 +398,126 @@ _norm = normalise_scores(_scores, metrics=("coverage", "energy_rate_kj"))
 print(_norm)
 assert list(_norm.coverage) == [0.0, 1.0] and list(_norm.energy_rate_kj) == [1.0, 0.0]
 assert method_order(["zzz", "mlp", "pemamoe"])[:2] == ["mlp", "pemamoe"]
+
+# %% [markdown]
+# ## Figures of notebook 09's plasticity section
+#
+# Three helpers that notebook 09 calls: the learning curves within each phase visit
+# (`plot_visits`), the paper-scale revisits against first visits seed by seed
+# (`plot_seed_differences`), and the least active unit of each recorded final actor
+# (`smallest_preactivation`, drawn by `plot_least_active_units`): why the paper's dormant fraction is 0.
+
+# %%
+#| export
+def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str):
+    """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
+    mean over the seeds, with a fresh network's over the same steps where `fresh` has one; one row
+    of panels per phase, one column per method (notebook 09's plasticity-loss figure). Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    from pemamoe.budget import block_steps, fresh_visit_curve, visit_curve  # budget imports this module
+    methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
+    phases_here = sorted({p for _, _, p in phase_visits(metrics)})
+    fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
+                             squeeze=False, sharey="row")
+    for j, method in enumerate(methods_here):
+        runs = metrics[metrics.method == method]
+        visits = phase_visits(runs)
+        for i, phase in enumerate(phases_here):
+            ax = axes[i][j]
+            horizon = None
+            for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
+                curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
+                horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
+                ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
+                        lw=1.4, label=f"visit {k + 1}")
+            curve = fresh_visit_curve(fresh, method, phase, horizon, "coverage", block_steps(scale)) \
+                if horizon is not None else fresh.iloc[:0]  # the table's reference, or none
+            if len(curve):
+                curve = curve[curve.steps <= horizon].groupby("steps").value.mean()
+                ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
+            ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
+            if i == len(phases_here) - 1:
+                ax.set_xlabel("environment steps into the visit (millions)")
+    for i, phase in enumerate(phases_here):
+        axes[i][0].set_ylabel(f"coverage in phase {phase}")
+    axes[0][0].legend(fontsize=7)
+    n_seeds = metrics.groupby("method").seed.nunique().min()
+    against = "; grey: a fresh network trained in that phase alone" if len(fresh) else ""
+    fig.suptitle(f"Coverage within each visit of a phase, visit by visit (solid: first, dashed: second, dotted: third{against})"
+                 f"\nscale={scale}, mean over {n_seeds} seeds per method, per block of environment steps", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def plot_seed_differences(revisits: pd.DataFrame):
+    """Each revisit's coverage minus its phase's first visit, seed by seed: one column of panels
+    per phase, the mean over the visit (top) and the level over its last 10 % (bottom); per
+    method one point per seed and revisit (circles: second visit, squares: third). Returns the figure."""
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    revisits = revisits.assign(nth=revisits.groupby(["method", "seed", "phase"]).visit.rank(method="first")
+                               .astype(int) + 1)
+    methods_here = [m for m in method_order(revisits.method) if m in set(revisits.method)]
+    phases_here = sorted(revisits.phase.unique())
+    fig, axes = plt.subplots(2, len(phases_here), figsize=(4.6 * len(phases_here), 6.4), sharex=True, sharey="row",
+                             squeeze=False)
+    markers = {2: "o", 3: "s"}
+    for row, (column, what) in enumerate((("revisit_minus_first_mean", "mean over the visit"),
+                                          ("revisit_minus_first_end", "level over its last 10 %"))):
+        for col, phase in enumerate(phases_here):
+            ax = axes[row][col]
+            ax.axhline(0, color="black", lw=0.8)
+            for i, method in enumerate(methods_here):
+                for nth in sorted(revisits.nth.unique()):
+                    g = revisits[(revisits.method == method) & (revisits.phase == phase) & (revisits.nth == nth)]
+                    offset = 0.18 * (nth - 2.5) * 2
+                    ax.plot(i + offset + 0.04 * (g.seed.to_numpy() - 1), g[column], markers.get(nth, "^"),
+                            color=method_colour(method), ms=5, mfc="none" if nth == 3 else method_colour(method))
+            ax.set_xticks(range(len(methods_here)), [method_label(m) for m in methods_here], rotation=25, ha="right",
+                          fontsize=8)
+            if row == 0:
+                ax.set_title(f"phase {phase}", fontsize=10)
+            if col == 0:
+                ax.set_ylabel(f"revisit minus first visit,\n{what}", fontsize=9)
+    axes[0][0].legend([Line2D([], [], ls="none", marker=markers.get(nth, "^"), color="0.3",
+                              mfc="none" if nth == 3 else "0.3") for nth in sorted(revisits.nth.unique())],
+                      [f"visit {nth}" for nth in sorted(revisits.nth.unique())], fontsize=8)
+    n_seeds = revisits.groupby("method").seed.nunique().min()
+    fig.suptitle("Plasticity loss at the paper's scale, seed by seed: coverage of each revisit of a phase minus its first "
+                 f"visit\n{n_seeds} seeds per method, one point each (below 0: the revisit learned worse)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def smallest_preactivation(marker) -> float:
+    """The smallest mean |pre-activation| over the probe batch of any unit (any layer, any expert)
+    of a recorded run's final actor, on the run's own probe batch: the paper's dormant-unit
+    definition (appendix 06e) counts a unit below its δ."""
+    from pemamoe.bookkeeping import collect_probe
+    from pemamoe.records import read_marker, read_record_actor
+    from pemamoe.train_config import TrainConfig
+
+    config = TrainConfig.from_dict(read_marker(marker)["config"])
+    probe = read_record_actor(marker).probe(collect_probe(config)[0])
+    return min(float(layer.abs().double().mean(1).min()) for layer in probe["preact"])
+
+
+def plot_least_active_units(ax, records, methods) -> float:
+    """On `ax`, per method (x) one dot per run: smallest_preactivation of its final actor (log scale),
+    with the paper's δ as a dashed line; returns the smallest value over the runs."""
+    from pemamoe.diagnostics import DORMANT_PAPER_DELTA
+    from pemamoe.records import read_marker
+
+    smallest = pd.DataFrame([{"method": read_marker(m)["config"]["method"], "value": smallest_preactivation(m)}
+                             for m in records])
+    for i, method in enumerate(methods):
+        vals = smallest.loc[smallest.method == method, "value"]
+        ax.plot(np.full(len(vals), i), vals, "o", color=method_colour(method))
+    ax.axhline(DORMANT_PAPER_DELTA, color="black", ls="--", lw=1, label=f"δ = {DORMANT_PAPER_DELTA:g}")
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(methods)), [method_label(m) for m in methods], rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("smallest mean |pre-activation|")
+    ax.legend(fontsize=8, loc="center right")
+    return float(smallest.value.min())

@@ -513,6 +513,14 @@ if top2_runs:
 #   (1,684), SMoE (1,559), MoE (1,305), PE-MAMoE (1,035); every learned policy covers less than the
 #   k-means heuristic, which does not learn (0.83 against at most 0.59 over the whole run).
 #
+# The campaign's figures (notebook 09 draws them): the normalised IQM of each method on five
+# metrics, with 95 % stratified-bootstrap intervals over its three runs, and coverage over training
+# against each phase's random and k-means levels.
+#
+# ![Normalised IQM across five system metrics, paper scale](../paper_figures/paper_scale/results_normalised_iqm.png)
+#
+# ![Coverage over training with each phase's random and k-means levels, paper scale](../paper_figures/paper_scale/results_coverage.png)
+#
 # ### Why, at the first switch: a probe
 #
 # PE-MAMoE and SMoE train alike until the first switch (iteration 1,200), so the controller's cost

@@ -49,31 +49,36 @@ def test_save_figure_and_table(tmp_path):
 
 
 def test_figures_readme_keeps_rows_of_untouched_files(tmp_path):
+    from pemamoe import commands
+
     (tmp_path / "a.png").write_bytes(b"x")
     (tmp_path / "cost_table.md").write_text("x")
-    core.write_figures_readme(tmp_path, {"a.png": "01_channel.py"}, scale="ci", commit="abc")
-    core.write_figures_readme(tmp_path, {"cost_table.md": "05_nets.py"}, scale="small", commit="def")
+    commands.write_figures_readme(tmp_path, {"a.png": "01_channel.py"}, scale="ci",
+                              inputs={"01_channel.py": "abc", "package": "p1", "records": "r1"})
+    commands.write_figures_readme(tmp_path, {"cost_table.md": "05_nets.py"}, scale="small",
+                              inputs={"05_nets.py": "def", "package": "p2", "records": "r2"})
     text = (tmp_path / "README.md").read_text()
     assert "| a.png | model illustration (no paper figure) | notebooks/01_channel.py | ci |" in text
     assert "| cost_table.md | Table 'Computational cost comparison (actor network)' |" in text
-    assert "`make figures SCALE=small` | def |" in text
+    assert "`make figures SCALE=small` | def |" in text and "`make figures SCALE=ci` | abc |" in text
+    assert "package's code at digest p2 and the committed records at digest r2" in text  # the last run's
     assert f"ran on {core.cpu_model()}:" in text  # where it was made: plot-time values depend on the processor
     assert core.cpu_model().strip() and "\n" not in core.cpu_model()
 
 
 def test_figures_readme_names_the_scale_a_studys_runs_have_not_the_commands(tmp_path):
-    for name in ("tuning.md", "plasticity_loss_paper_campaign.csv", "results_coverage.png"):
+    from pemamoe import commands
+
+    for name in ("tuning.md", "results_coverage.png"):
         (tmp_path / name).write_text("x")
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py", "results_coverage.png": "09_experiments.py",
-                                         "plasticity_loss_paper_campaign.csv": "09_experiments.py"},
-                              scale="medium", commit="abc")
+    commands.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py", "results_coverage.png": "09_experiments.py"},
+                              scale="medium", inputs={})
     text = (tmp_path / "README.md").read_text()
     assert "| notebooks/09b_budget.py | small (at every scale) |" in text  # the study's small settings
-    assert "| notebooks/09_experiments.py | paper (at every scale) |" in text  # the campaign's records
     assert "| results_coverage.png | (ours) coverage over training, with each phase's random and k-means levels | " \
            "notebooks/09_experiments.py | medium |" in text
     assert "(no paper figure)" not in text  # the studies name what they are
-    core.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py"}, scale="ci", commit="def")
+    commands.write_figures_readme(tmp_path, {"tuning.md": "09b_budget.py"}, scale="ci", inputs={})
     assert "| notebooks/09b_budget.py | ci |" in (tmp_path / "README.md").read_text()  # ci shrinks every study
 
 
@@ -173,7 +178,10 @@ def test_runner_streams_progress_without_kernel_warnings_and_is_silent_by_defaul
     lines = loud.out.splitlines()
     assert lines[0].startswith("[figures] 1/1 99_tiny.py (scale=ci) started, 0:00:0")
     assert "progress-from-inside ci" in lines[1]
-    assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-1])
+    assert re.match(r"\[figures\] 1/1 99_tiny.py done in \d:\d\d:\d\d, \d:\d\d:\d\d elapsed", lines[-2])
+    # one closing line (issue 60); a fresh folder: its README is new, so it counts as changed
+    assert lines[-1] == "[figures] 1 notebook, 0 runs trained, 1 file written (README.md included), 1 changed: README.md"
+    assert "KeyboardInterrupt" not in loud.err  # no SIGINT to a finished kernel (appendix 00b)
     assert "stderr-from-inside" in loud.err
     assert readme == tmp_path / "figs" / "README.md"
 

@@ -102,44 +102,56 @@ def test_a_new_figures_folder_gets_the_mode_mkdir_gives(tmp_path):
     assert _beside(tmp_path) == ["figs"]
 
 
-def test_provenance_names_the_commit_of_the_inputs_not_of_the_figures(tmp_path):
-    """paper_figures/README.md's commit is the last one that changed notebooks/, pemamoe/ or records/:
-    committing the figures moves HEAD but not it, so a fresh clone of the figures' commit writes the
-    same provenance, byte for byte; an uncommitted change to an input marks it "+dirty"."""
+def test_provenance_names_the_inputs_by_content_not_by_commit(tmp_path):
+    """paper_figures/README.md names the figures' inputs by digests of their content
+    (`figure_inputs`): a fresh clone gives the same digests whatever commit it is at, so
+    regenerating the figures there rewrites nothing. Prose, comments, docstrings, the figures
+    themselves and a campaign's portable states change no digest; a notebook's code changes its own
+    digest only, and a record the records' digest."""
     import shutil
     import subprocess
-    import sys
+
+    from pemamoe.commands import figure_inputs
 
     repo = Path(__file__).resolve().parents[1]
     clone = tmp_path / "clone"
-    git = lambda *args: subprocess.run(["git", "-C", str(clone), *args], capture_output=True, text=True,  # noqa: E731
-                                       check=True).stdout.strip()
     subprocess.run(["git", "clone", "--quiet", "--depth", "1", f"file://{repo}", str(clone)], check=True)
-    git("config", "user.email", "t@example.org")
-    git("config", "user.name", "t")
-    shutil.copytree(repo / "pemamoe", clone / "pemamoe", dirs_exist_ok=True,  # the code under test, committed
-                    ignore=shutil.ignore_patterns("__pycache__"))
-    git("commit", "--quiet", "--allow-empty", "-am", "the working tree's package")
+    for folder in ("pemamoe", "notebooks"):  # the code under test, as in the working tree
+        shutil.copytree(repo / folder, clone / folder, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.rmtree(clone / "records")
+    shutil.copytree(repo / "records", clone / "records", ignore=shutil.ignore_patterns("ci", "in_progress"))
+    before = figure_inputs(clone)
+    assert before == figure_inputs(repo)  # content only: the checkout's path and commit do not count
+    assert set(before) == {"package", "records", *(nb.name for nb in (repo / "notebooks").glob("*.py"))}
 
-    def commit_named() -> str:
-        return subprocess.run([sys.executable, "-c", "from pemamoe.commands import _code_commit; print(_code_commit())"],
-                              cwd=clone, env={**os.environ, "PYTHONPATH": str(clone)}, capture_output=True,
-                              text=True, check=True).stdout.strip()
-
-    before = commit_named()
-    assert before == git("log", "-1", "--format=%h", "--", "notebooks", "pemamoe", "records")
     (clone / "paper_figures" / "README.md").write_text("regenerated\n")
-    git("commit", "--quiet", "-am", "figures")
-    assert commit_named() == before  # the figures' own commit does not change it
-    (clone / "records" / "paper" / "in_progress").mkdir(parents=True, exist_ok=True)
-    (clone / "records" / "paper" / "in_progress" / "run.pt.zst").write_bytes(b"state")
-    git("add", "records")
-    git("commit", "--quiet", "-m", "a campaign's portable state")
-    assert commit_named() == before  # no figure reads a portable state
-    (clone / "notebooks" / "00_index.py").write_text("# changed\n")
-    assert commit_named() == before + "+dirty"
-    git("commit", "--quiet", "-am", "code")
-    assert commit_named() == git("rev-parse", "--short", "HEAD") != before
+    state = clone / "records" / "paper" / "in_progress"
+    state.mkdir(parents=True, exist_ok=True)
+    (state / "run.pt.zst").write_bytes(b"state")  # no figure reads a portable state
+    nb = clone / "notebooks" / "01_channel.py"
+    nb.write_text(nb.read_text() + "\n# %% [markdown]\n# More prose.\n\n# %%\n# a comment only\n")
+    module = clone / "pemamoe" / "channel.py"
+    module.write_text(module.read_text().replace("# %% notebooks/01_channel.py, cell", "# %% notebooks/01_channel.py,  cell"))
+    (clone / "pemamoe" / "__main__.py").write_text("print('the command line computes no figure')\n")
+    assert figure_inputs(clone) == before
+
+    nb.write_text(nb.read_text() + "\nx = 1\n")
+    changed = figure_inputs(clone)
+    assert {k for k in before if changed[k] != before[k]} == {"01_channel.py"}
+    module.write_text(module.read_text() + "\nY = 2\n")
+    assert figure_inputs(clone)["package"] != before["package"]
+    marker = next((clone / "records" / "paper").glob("*.timing.json"))
+    marker.write_text(marker.read_text() + " ")
+    assert figure_inputs(clone)["records"] != before["records"]
+
+
+def test_code_digest_ignores_layout_comments_and_docstrings():
+    from pemamoe.commands import code_digest
+
+    a = 'def f(x):\n    """Doc."""\n    return x + 1  # one more\n'
+    b = "def f(x):\n\n    return (x +\n            1)\n"
+    assert code_digest(a) == code_digest(b) != code_digest("def f(x):\n    return x + 2\n")
+    assert code_digest("%matplotlib inline") == code_digest("%matplotlib inline") != code_digest("%pwd")
 
 
 def test_the_paper_scale_draws_its_campaign_into_its_own_folder():

@@ -24,6 +24,7 @@ NOTEBOOKS = sorted((ROOT / "notebooks").glob("[0-9][0-9]*.py"))
 READING = [p for p in NOTEBOOKS if re.fullmatch(r"\d\d_\w+\.py", p.name)]
 FIGURES = ROOT / "paper_figures"
 LINK_PREFIX = "../paper_figures/"
+PAPER_SCALE = "paper_scale/"  # the folder `make figures SCALE=paper` writes
 
 # Figures linked before any regeneration has committed them: file -> the notebook that links it,
 # which must also be the notebook that writes it (checked below). Once `make figures` has committed
@@ -99,8 +100,9 @@ def test_figure_links_resolve(path):
     bad = []
     for line, target in figure_links(path):
         name = target.removeprefix(LINK_PREFIX)
-        if not target.startswith(LINK_PREFIX) or "/" in name:
-            bad.append(f"line {line}: {target} (link as {LINK_PREFIX}<file>, relative to notebooks/)")
+        if not target.startswith(LINK_PREFIX) or "/" in name.removeprefix(PAPER_SCALE):
+            bad.append(f"line {line}: {target} (link as {LINK_PREFIX}<file> or {LINK_PREFIX}{PAPER_SCALE}<file>, "
+                       "relative to notebooks/)")
         elif not (FIGURES / name).is_file() and AWAITING_REGENERATION.get(name) != path.name:
             bad.append(f"line {line}: {target} does not exist")
     assert not bad, f"{path.name}: dangling figure links:\n" + "\n".join(bad)
@@ -109,11 +111,29 @@ def test_figure_links_resolve(path):
 @pytest.mark.parametrize("path", READING, ids=lambda p: p.name)
 def test_reading_notebook_shows_the_figures_it_writes(path):
     written = written_figures(path)
-    linked = {target.removeprefix(LINK_PREFIX) for _, target in figure_links(path)}
+    # a figure the paper scale alone writes (into paper_scale/) is shown from there
+    linked = {target.removeprefix(LINK_PREFIX).removeprefix(PAPER_SCALE) for _, target in figure_links(path)}
     if written:
         assert linked, f"{path.name} writes {sorted(written)} but links none of them"
     missing = sorted(written - linked)
     assert not missing, f"{path.name} writes but does not show: {missing}"
+
+
+@pytest.mark.parametrize("name", ["00_index.py", "09_experiments.py", "10_ablations.py"])
+def test_the_notebooks_that_discuss_the_paper_scale_show_its_figures(name):
+    """Issue 60: the notebooks whose prose reads the paper-scale campaign show its figures."""
+    shown = [t for _, t in figure_links(ROOT / "notebooks" / name) if t.startswith(LINK_PREFIX + PAPER_SCALE)]
+    assert shown, f"{name} discusses the paper scale but shows none of paper_figures/{PAPER_SCALE}"
+
+
+def test_no_two_files_of_paper_figures_have_the_same_bytes():
+    """Issue 60: one image was stored three times under three names."""
+    import hashlib
+
+    seen = {}
+    for path in sorted(p for p in FIGURES.rglob("*") if p.is_file()):
+        seen.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), []).append(str(path.relative_to(FIGURES)))
+    assert not [names for names in seen.values() if len(names) > 1]
 
 
 def test_the_scan_sees_the_figures_of_the_provenance_table():
