@@ -1,6 +1,7 @@
 """Command line: `python -m pemamoe <command>` (hand-written dispatcher; the work is in modules)."""
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -72,6 +73,7 @@ def main(argv=None) -> int:
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
+        _check_figures_dir(figures_dir, args.scale, fig)
         if str(args.results_dir).strip() == "":
             fig.error("--results-dir must be a folder path or a URL, got an empty string")
         try:
@@ -87,14 +89,47 @@ def main(argv=None) -> int:
             fig.exit(1, f"{fig.prog}: error: {err}\n")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
-        readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
-                              workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
-                              results_dir=results_dir)
+        try:
+            readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
+                                  workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
+                                  results_dir=results_dir)
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (make_figures raises it for both)
+            if _traceback_wanted():
+                raise
+            print(f"\n{fig.prog}: {str(stop) or 'interrupted'}; the figures folder is as it was before the run "
+                  "(run the same command again to draw them)", file=sys.stderr)
+            return 143 if "SIGTERM" in str(stop) else 130
+        except Exception as err:
+            from pemamoe.commands import figures_error_line
+
+            line = figures_error_line(err, [results_dir])
+            if line is None or _traceback_wanted():
+                raise
+            print(f"{fig.prog}: error: {line}", file=sys.stderr)
+            return 1
         print(f"[figures] provenance written to {readme}")
         return 0
     if args.command == "train":
         return train_command(args, args.train_parser)
     return 2
+
+
+TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's errors show their traceback
+
+
+def _traceback_wanted() -> bool:
+    return os.environ.get(TRACEBACK_ENV, "").strip() not in ("", "0")
+
+
+def _check_figures_dir(figures_dir, scale: str, parser) -> None:
+    """--figures-dir (or the default) is a folder make_figures may replace: refused here, one line,
+    before any notebook runs (make_figures checks it again: nothing the user made is replaced)."""
+    from pemamoe.commands import FiguresDirError, check_figures_dir, figures_plan
+
+    try:
+        check_figures_dir(figures_plan(scale, figures_dir, [])[0])
+    except FiguresDirError as err:
+        parser.error(f"--figures-dir: {err}")
 
 
 def _results_dir(text: str) -> str:

@@ -449,3 +449,59 @@ def test_each_command_help_states_the_scale_default_the_top_level_help_promises(
         main([command, "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert f"(default: {default}" in help_text.split("--scale {ci,small,medium,paper}", 2)[-1]
+
+
+# -- issue 59: every figures failure is one line (PEMAMOE_TRACEBACK=1 shows the traceback) ---------
+def test_figures_failing_notebook_is_one_line_naming_it_and_its_executed_copy(tmp_path):
+    nb = tmp_path / "98_fails.py"
+    nb.write_text('# %% tags=["parameters"]\nscale = "small"\nfigures_dir = "paper_figures"\n\n'
+                  '# %%\nraise RuntimeError("this notebook fails")\n')
+    argv = ["figures", "--scale", "ci", "--notebook", nb, "--figures-dir", tmp_path / "figs"]
+    proc = _cli(*argv)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("python -m pemamoe figures: error: notebook 98_fails.py failed in its cell"), line
+    assert "RuntimeError: this notebook fails" in line and "build/executed/ci/98_fails.ipynb" in line, line
+    assert not (tmp_path / "figs").exists()
+    shown = _cli(*argv, env={"PEMAMOE_TRACEBACK": "1"})
+    assert shown.returncode == 1 and "Traceback (most recent call last)" in shown.stderr
+
+
+@pytest.mark.parametrize("error, needle", [
+    (OSError(28, "No space left on device"), "No space left on device"),
+    (KeyboardInterrupt(), "interrupted; the figures folder is as it was"),
+])
+def test_figures_a_full_disk_or_ctrl_c_is_one_line(error, needle, monkeypatch, tmp_path, capsys):
+    import pemamoe.commands
+
+    def failing(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(pemamoe.commands, "make_figures", failing)
+    code = _figures(tmp_path)
+    err = capsys.readouterr().err
+    assert code == (130 if isinstance(error, KeyboardInterrupt) else 1)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and needle in err, err
+
+
+def test_figures_a_damaged_record_is_one_line(monkeypatch, tmp_path, capsys):
+    import pemamoe.commands
+    from pemamoe.records import RecordError
+
+    def failing(*args, **kwargs):
+        raise RecordError("records/ci/x.json", "its log's sha256 does not match its marker")
+
+    monkeypatch.setattr(pemamoe.commands, "make_figures", failing)
+    assert _figures(tmp_path) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "sha256 does not match" in err
+
+
+def test_figures_refuses_a_figures_dir_whose_path_is_not_utf8(figures_calls, tmp_path, capsys):
+    bad = os.fsdecode(bytes(tmp_path) + b"/figs\xff")
+    with pytest.raises(SystemExit) as exit_:
+        main(["figures", "--scale", "ci", "--figures-dir", bad])
+    assert exit_.value.code == 2 and figures_calls == []
+    line = _error_line(capsys.readouterr().err)
+    assert "--figures-dir" in line and "not valid UTF-8" in line
+    assert os.listdir(tmp_path) == []
