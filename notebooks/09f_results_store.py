@@ -855,8 +855,9 @@ def fetch_run(store, scale: str, run: str) -> Path:
 # Two workers with caches of their own share one run in an in-memory store (fsspec's `memory://`,
 # which implements the exclusive create). A pushes and stalls; B finds A's lease stale, takes the
 # run over as generation 2, trains it on and seals it. When A wakes, its push is refused before it
-# uploads anything. Then the window no check can close: bytes of A's land anyway, as if its check
-# had passed just before the takeover. The reader refuses them, naming both generations.
+# uploads anything. Then the window no check can close: bytes of A's land anyway, with A's manifest
+# of them, as if its check had passed just before the takeover. They land in A's own objects: the
+# run a reader reads is still the one B sealed.
 
 # %%
 import tempfile
@@ -878,22 +879,25 @@ with tempfile.TemporaryDirectory() as tmp:
     (folder_b / "done.json").write_text("{}")
     push_run(b, folder_b, pushed_b)
     b.release()
-    sealed = {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in ("metrics.parquet", "done.json")}
+
+    def read_run():
+        return {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", key))
+                for name, key in run_objects(store_a, "ci", "demo-run").items()}
+
+    sealed = read_run()
     print(f"A generation {a.generation}, B generation {b.generation}; sealed by B:", sealed)
     (folder_a / "metrics.parquet").write_bytes(b"A's later logs")
     try:
         push_run(a, folder_a, pushed_a)
     except StoreLeaseError as err:
         print("A's push:", err)
-    assert sealed == {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in sealed}
-    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", "metrics.parquet"))
+    assert read_run() == sealed
+    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", a.object_name("metrics.parquet")))
     a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
     store_a.fs.pipe_file(a.key, a._body())  # the late write and A's manifest of it
-    try:
-        refresh_finished(store_b, "ci", "demo-run")
-    except StoreLeaseError as err:
-        print("the reader:", err)
-    assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"  # the cache kept B's
+    refresh_finished(store_b, "ci", "demo-run")  # read as B sealed it: no error
+    assert read_run() == sealed and (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"
+    print("the run's objects after A's late write:", run_objects(store_a, "ci", "demo-run"))
     store_a.fs.rm(store_a.key("ci"), recursive=True)
 
 # %% [markdown]
