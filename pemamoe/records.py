@@ -74,7 +74,7 @@ def record_frame(metrics: pd.DataFrame, block: int) -> pd.DataFrame:
     return out
 
 
-# %% notebooks/09d_records.py, cell 8 (line 135)
+# %% notebooks/09d_records.py, cell 8 (line 138)
 def record_files(records_dir, scale: str, run_name: str) -> dict:
     """{"data", "actor", "marker", "timing"}: the paths of one run's record."""
     base = Path(records_dir) / check_scale(scale)
@@ -171,6 +171,12 @@ def read_marker(marker_path) -> dict:
                           f"{config_hash!r} (config edited?)")
     if config.run_name() != marker["run"]:  # a record renamed as a whole
         raise RecordError(path, f"has run {marker['run']!r}, but its config is run {config.run_name()!r}")
+    block = record_block(config)  # the stamps the writer derived from the config: each checked against it
+    derived = {"numerics": TRAINING_NUMERICS, "iterations": config.iterations, "block": block,
+               "rows": -(-config.iterations // block), "env_steps": config.total_env_steps}
+    for key, value in derived.items():
+        if marker[key] != value or type(marker[key]) is not int:
+            raise RecordError(path, f"has {key} {marker[key]!r}, but its config gives {value!r} (marker edited?)")
     return marker
 
 
@@ -203,7 +209,12 @@ def _existing_record(marker_path) -> dict:
 def read_record(marker_path) -> tuple:
     """(config dict, per-row frame) of a verified record."""
     marker = _existing_record(marker_path)
-    return marker["config"], read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".parquet"))
+    frame = read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".parquet"))
+    last = int(frame["env_steps"].iloc[-1]) if len(frame) and "env_steps" in frame else None
+    if len(frame) != marker["rows"] or last != marker["env_steps"]:  # a log sealed under a wrong marker
+        raise RecordError(marker_path, f"has rows {marker['rows']} and env_steps {marker['env_steps']}, but its log "
+                                       f"has {len(frame)} rows ending at env_steps {last}")
+    return marker["config"], frame
 
 
 def read_record_actor(marker_path):
@@ -237,7 +248,7 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     return out
 
 
-# %% notebooks/09d_records.py, cell 10 (line 321)
+# %% notebooks/09d_records.py, cell 10 (line 335)
 PORTABLE_DIR = "in_progress"  # records/<scale>/in_progress/<run>.pt.zst: unfinished runs (committed while a campaign runs)
 _PORTABLE_MAGIC = b"pemamoe-portable-1\n"  # then the checkpoint's size (8 bytes, little endian), then its zstd bytes
 
@@ -372,7 +383,7 @@ def portable_state_mb(records_dir=RECORDS_DIR) -> dict:
             for folder in sorted(Path(records_dir).glob(f"*/{PORTABLE_DIR}"))}
 
 
-# %% notebooks/09d_records.py, cell 12 (line 469)
+# %% notebooks/09d_records.py, cell 12 (line 483)
 # The columns that label each row of load_runs' frames (one value per run).
 RUN_COLUMNS = ("run", "method", "seed", "without", "force_controller", "noise_gamma", "variant", "label")
 
