@@ -293,12 +293,20 @@ MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseCon
     "temperature_schedule",
 )
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
+# Upper bounds of the other numbers a user types (issue 59: no number is unbounded):
+ITERATIONS_LIMIT = 10**7  # training iterations of one run: 926 times the paper's 10,800
+NOISE_GAMMA_LIMIT = 10.0  # the phase controller's noise scale: 2,000 times the paper's 0.005
+WORKERS_LIMIT = 1024  # parallel workers (or runs in one population) of a sweep or of figures
+HOURS_LIMIT = 8760.0  # a sweep's --hours: one year
 
 
-def int_arg(low: int, below: int | None = None):
-    """argparse `type=`: an integer >= low (and < below, if given), else ArgumentTypeError naming
-    the value as typed and what is allowed."""
-    allowed = f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+def int_arg(low: int, below: int | None = None, *, le: int | None = None):
+    """argparse `type=`: an integer >= low (and < below, or <= le, if given), else ArgumentTypeError
+    naming the value as typed and what is allowed."""
+    if le is not None:
+        below = le + 1
+    allowed = (f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})" if le is None
+               else f"in [{low}, {le}]")
 
     def parse(text: str) -> int:
         import argparse
@@ -314,10 +322,11 @@ def int_arg(low: int, below: int | None = None):
     return parse
 
 
-def real_arg(*, gt: float | None = None, ge: float | None = None):
-    """argparse `type=`: a finite number > gt (or >= ge), else ArgumentTypeError naming the value
-    as typed and what is allowed."""
+def real_arg(*, gt: float | None = None, ge: float | None = None, le: float | None = None):
+    """argparse `type=`: a finite number > gt (or >= ge; and <= le, if given), else
+    ArgumentTypeError naming the value as typed and what is allowed."""
     allowed = f" > {gt:g}" if gt is not None else f" >= {ge:g}" if ge is not None else ""
+    allowed += (" and" if allowed else "") + f" <= {le:g}" if le is not None else ""
 
     def parse(text: str) -> float:
         import argparse
@@ -326,7 +335,8 @@ def real_arg(*, gt: float | None = None, ge: float | None = None):
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or (gt is not None and value <= gt) or (ge is not None and value < ge):
+        if not math.isfinite(value) or (gt is not None and value <= gt) or (ge is not None and value < ge) or (
+                le is not None and value > le):
             raise argparse.ArgumentTypeError(f"must be a finite number{allowed}, got {text!r}")
         return value
 

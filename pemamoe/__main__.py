@@ -18,7 +18,7 @@ def main(argv=None) -> int:
         formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
     sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
-    from pemamoe.core import BACKENDS, SCALES, int_arg  # light: the parsers are built without torch
+    from pemamoe.core import BACKENDS, SCALES, WORKERS_LIMIT, int_arg  # light: the parsers are built without torch
 
     fig.add_argument("--scale", default="medium", choices=SCALES,
                      help="the preset scale (default: medium, whose run records are committed)")
@@ -33,13 +33,15 @@ def main(argv=None) -> int:
                           "(08_theory_check.py, 08_theory_check), or a path to one")
     fig.add_argument("--backend", default="local", choices=BACKENDS,
                      help="sweep backend: local | ray (default: local)")
-    fig.add_argument("--workers", type=int_arg(1), default=2, help="parallel training runs (default: 2)")
+    fig.add_argument("--workers", type=int_arg(1, le=WORKERS_LIMIT), default=2, help="parallel training runs (default: 2)")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
     fig.add_argument("--results-dir", default="results",
                      help="the results store the runs without a record train into: a folder or a URL such as "
                           "s3://bucket/prefix (appendix 09f; default: results/)")
     sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] in (["train"], ["sweep"], ["figures"]):
+        _check_environment(parser)
     if argv[:1] == ["train"]:  # built only for train (its --without choices load the phase controller lazily)
         _add_train_parser(sub)
     else:
@@ -114,6 +116,28 @@ def main(argv=None) -> int:
     return 2
 
 
+def _check_environment(parser) -> None:
+    """The PEMAMOE_* settings a command reads, checked before anything is imported or runs: the
+    store's intervals (bounded numbers) and $PEMAMOE_PLUGINS (every module it names is there; found,
+    not imported). One line naming the variable, its value and what is allowed."""
+    from importlib.util import find_spec
+
+    from pemamoe.methods import missing_plugin_error, plugin_modules
+    from pemamoe.store import check_store_environment
+
+    try:
+        check_store_environment()
+        for module in plugin_modules():
+            try:
+                found = find_spec(module)
+            except (ImportError, ValueError) as err:  # a dotted name whose package is not there
+                raise missing_plugin_error(module, f" ({one_line(err)})") from None
+            if found is None:
+                raise missing_plugin_error(module)
+    except ValueError as err:
+        parser.exit(2, f"{parser.prog}: error: {one_line(err)}\n")
+
+
 TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's errors show their traceback
 
 
@@ -151,6 +175,7 @@ def _check_parent_folder(flag: str, text: str, parser) -> None:
     store = open_store(text)
     if store.remote:
         return
+    _check_store_folder(flag, text, store, parser)
     parent = store.folder.absolute().parent
     if not parent.is_dir():
         parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
@@ -208,6 +233,7 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     # Light modules only (no torch): --help and an argument error must not wait for the trainer to
     # import. Every value is checked here, while the arguments are parsed (the seed's range too).
     from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, int_arg, real_arg
+    from pemamoe.core import ITERATIONS_LIMIT, NOISE_GAMMA_LIMIT
     from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
     load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
@@ -231,11 +257,11 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
                    help="switch a phase-controller mechanism off (repeatable; methods with the phase controller "
                         "only): %(choices)s")
-    p.add_argument("--noise-gamma", type=real_arg(ge=0), default=None, metavar="GAMMA",
+    p.add_argument("--noise-gamma", type=real_arg(ge=0, le=NOISE_GAMMA_LIMIT), default=None, metavar="GAMMA",
                    help="expert noise scale of the phase controller (methods with the phase controller only; default: the preset's)")
     p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
                    help="torch device (default: the config's)")
-    p.add_argument("--iterations", type=int_arg(1), default=None, metavar="N",
+    p.add_argument("--iterations", type=int_arg(1, le=ITERATIONS_LIMIT), default=None, metavar="N",
                    help="training iterations, overriding the preset's")
     p.add_argument("--no-resume", action="store_true",
                    help="start afresh even if --out holds a checkpoint or a finished run of this config")
@@ -255,10 +281,13 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
     if args.out is not None and args.out.strip() == "":
         parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
     _check_out(args.out, parser)
+    _check_controller_flags(args, parser)  # what needs no trainer is checked before it is imported
+    _check_device(args.device, parser)
     try:
         args.store = open_store(checkout_store(args.results_dir, "results"))
     except ValueError as err:
         parser.error(f"--results-dir: {err}")
+    _check_store_folder("--results-dir", args.results_dir, args.store, parser)
     if args.store.remote and args.out is not None:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")
@@ -279,8 +308,74 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
 
 
 def _check_out(out, parser) -> None:
+    if out is not None:
+        _check_utf8("--out", out, parser)
     if out is not None and Path(out).exists() and not Path(out).is_dir():
         parser.error(f"--out {out} is a file, not a folder; name a folder (it is created if missing)")
+
+
+def _check_utf8(flag: str, path, parser) -> None:
+    """A path the run folder's files name as text (config.json, done.json, records) must be UTF-8."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        parser.error(f"{flag} {ascii(str(path))}: the path is not valid UTF-8 (the run's files name it as "
+                     "text); name a folder whose path is UTF-8")
+
+
+def _check_store_folder(flag: str, text: str, store, parser) -> None:
+    """A local store named by `flag` is a folder, or not there yet (it is created): a file there is
+    refused here, naming the flag, rather than as "Not a directory" once the trainer runs."""
+    if store.remote:
+        return
+    _check_utf8(flag, text, parser)
+    if store.folder.exists() and not store.folder.is_dir():
+        parser.error(f"{flag} {text} is a file, not a folder; name a folder (it is created if missing) or a URL "
+                     "such as s3://bucket/prefix")
+
+
+def _check_controller_flags(args, parser) -> None:
+    """--without and --noise-gamma configure the phase controller: refused, before the trainer is
+    imported, for a method without it."""
+    from pemamoe.methods import METHOD_REGISTRY, method_spec
+
+    if not (args.without or args.noise_gamma is not None) or method_spec(args.method).plasticity == "phase_controller":
+        return
+    with_controller = " or ".join(f"--method {m}" for m, spec in METHOD_REGISTRY.items()
+                                  if spec.plasticity == "phase_controller")
+    parser.error(f"--without and --noise-gamma configure the phase controller, which only {with_controller} "
+                 f"uses; got --method {args.method}")
+
+
+def _check_device(device, parser) -> None:
+    """--device cuda on a machine whose torch cannot see a GPU, told without importing torch (10 s
+    here): a torch built for CPUs only (its version.py says cuda = None and hip = None), or no GPU
+    driver's device file. The trainer checks again (resolve_device) where this cannot tell."""
+    from importlib.util import find_spec
+
+    if device != "cuda":
+        return
+    spec = find_spec("torch")
+    if spec is None or not spec.submodule_search_locations:
+        return
+    try:
+        text = (Path(next(iter(spec.submodule_search_locations))) / "version.py").read_text()
+    except OSError:
+        return
+    import re
+
+    builds = {key: re.search(rf"^{key}\b[^=\n]*=\s*(.+)$", text, re.M) for key in ("cuda", "hip", "__version__")}
+    if builds["cuda"] is None or builds["hip"] is None:
+        return
+    version = builds["__version__"].group(1).strip().strip("'\"") if builds["__version__"] else "?"
+    if builds["cuda"].group(1).strip() == "None" and builds["hip"].group(1).strip() == "None":
+        parser.error(f"--device cuda: this machine's torch {version} is built for CPUs only, so torch sees no CUDA "
+                     "device; use --device cpu or --device auto")
+    import glob
+
+    if sys.platform.startswith("linux") and not (glob.glob("/dev/nvidia[0-9]*") or Path("/dev/kfd").exists() or Path("/dev/dxg").exists()):
+        parser.error("--device cuda: no GPU device file on this machine (no /dev/nvidia*), so torch sees no CUDA "
+                     "device; use --device cpu or --device auto")
 
 
 def _train(args, parser: argparse.ArgumentParser) -> int:

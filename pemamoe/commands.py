@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -45,9 +45,9 @@ def sweep_cli(argv=None) -> int:
                              f"default: {', '.join(compared_methods())})")
     parser.add_argument("--backend", default="local", choices=BACKENDS,
                         help="local: a process pool on this machine; ray: Ray tasks (default: local)")
-    parser.add_argument("--workers", type=int_arg(1), default=2,
+    parser.add_argument("--workers", type=int_arg(1, le=WORKERS_LIMIT), default=2,
                         help="populations trained at once, one core each (default: 2)")
-    parser.add_argument("--population", type=int_arg(1), default=DEFAULT_POPULATION,
+    parser.add_argument("--population", type=int_arg(1, le=WORKERS_LIMIT), default=DEFAULT_POPULATION,
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results",
@@ -60,7 +60,7 @@ def sweep_cli(argv=None) -> int:
                         help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
-    parser.add_argument("--hours", type=real_arg(gt=0), default=None, metavar="H",
+    parser.add_argument("--hours", type=real_arg(gt=0, le=HOURS_LIMIT), default=None, metavar="H",
                         help="train for at most H hours, then checkpoint every running population, stop, and "
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
@@ -175,6 +175,13 @@ def _check_store_arg(parser, flag: str, text: str) -> None:
     except ValueError as err:
         parser.error(f"{flag}: {err}")
     if not store.remote:
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            parser.error(f"{flag} {ascii(text)}: the path is not valid UTF-8; name a folder whose path is UTF-8")
+        if store.folder.exists() and not store.folder.is_dir():
+            parser.error(f"{flag} {text} is a file, not a folder; name a folder (it is created if missing) or a URL "
+                         "such as s3://bucket/prefix")
         parent = store.folder.absolute().parent
         if not parent.is_dir():
             parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
@@ -190,7 +197,7 @@ def _method(text: str) -> str:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-# %% notebooks/09e_commands.py, cell 10 (line 294)
+# %% notebooks/09e_commands.py, cell 10 (line 301)
 PAPER_SCALE_NOTEBOOKS = ("09_experiments.py", "10_ablations.py")  # what reads the paper-scale campaign
 PAPER_SCALE_FIGURES = "paper_figures/paper_scale"
 
@@ -515,7 +522,7 @@ def _terminate_as_interrupt():
         signal.signal(signal.SIGTERM, old)
 
 
-# %% notebooks/09e_commands.py, cell 11 (line 620)
+# %% notebooks/09e_commands.py, cell 11 (line 627)
 def _results_store(results):
     """A local results store under the repository root (as the notebooks resolve it); a URL as it is."""
     store = open_store(results)

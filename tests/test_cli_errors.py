@@ -2,6 +2,7 @@
 are parsed, in one line naming the flag, the value and what is allowed, before anything trains or
 any notebook runs; a notebook may be named by its bare file name or stem."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -66,9 +67,9 @@ def test_figures_unknown_notebook_is_a_usage_error_listing_the_notebooks(name, f
 
 # -- figures --workers, --backend --------------------------------------------------------------
 @pytest.mark.parametrize("argv, needles", [
-    (["--workers", "0"], ["--workers", "'0'", ">= 1"]),
-    (["--workers", "-3"], ["--workers", "'-3'", ">= 1"]),
-    (["--workers", "two"], ["--workers", "'two'", ">= 1"]),
+    (["--workers", "0"], ["--workers", "'0'", "in [1, 1024]"]),
+    (["--workers", "-3"], ["--workers", "'-3'", "in [1, 1024]"]),
+    (["--workers", "two"], ["--workers", "'two'", "in [1, 1024]"]),
     (["--backend", "rya"], ["--backend", "'rya'", "local", "ray"]),
 ])
 def test_figures_bad_workers_or_backend_is_a_usage_error(argv, needles, figures_calls, tmp_path, capsys):
@@ -417,7 +418,8 @@ def test_41i_every_command_checks_counts_with_the_same_words(argv, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
     assert exit_.value.code == 2
-    assert _error_line(capsys.readouterr().err).endswith(f"argument {argv[-2]}: must be an integer >= 1, got '0'")
+    line = _error_line(capsys.readouterr().err)  # bounded above too (issue 59), in the same words
+    assert re.search(rf"argument {argv[-2]}: must be an integer in \[1, [0-9,]+\], got '0'$", line), line
 
 
 def test_sweep_resolves_relative_stores_under_the_checkout_from_any_folder(tmp_path):
@@ -505,3 +507,86 @@ def test_figures_refuses_a_figures_dir_whose_path_is_not_utf8(figures_calls, tmp
     line = _error_line(capsys.readouterr().err)
     assert "--figures-dir" in line and "not valid UTF-8" in line
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", [["train", "--scale", "ci"], ["sweep", "--scale", "ci", "--status"],
+                                     ["figures", "--scale", "ci"]], ids=lambda c: c[0])
+def test_a_missing_plugin_is_refused_in_one_line_before_any_heavy_import(command):
+    env = {"PEMAMOE_PLUGINS": "no_such_module"}
+    proc = _cli(*command, env=env)
+    line = _usage_error(proc)
+    assert "PEMAMOE_PLUGINS names the module 'no_such_module', which cannot be imported" in line
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    code = textwrap.dedent(f"""
+        import os, sys
+        os.environ["PEMAMOE_PLUGINS"] = "no_such_module"
+        from pemamoe.__main__ import main
+        try:
+            main({command!r})
+        except SystemExit:
+            pass
+        print(sorted(m for m in {HEAVY!r} if m in sys.modules))
+    """)
+    loaded = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert loaded.stdout.strip().splitlines()[-1] == "[]", loaded.stdout
+
+
+def test_load_plugins_names_a_missing_module_in_one_line(monkeypatch):
+    from pemamoe.methods import PluginError, load_plugins
+
+    monkeypatch.setenv("PEMAMOE_PLUGINS", "os, no_such_module")
+    with pytest.raises(PluginError, match=r"^PEMAMOE_PLUGINS names the module 'no_such_module', which cannot be "
+                                          r"imported; name modules importable from PYTHONPATH"):
+        load_plugins()
+
+
+# -- issue 59: refusals in one line, before the trainer is imported; bounds on every number --------
+@pytest.mark.parametrize("argv, needles", [
+    (["train", "--iterations", "99999999999999999999999"], ["--iterations", "in [1, 10000000]"]),
+    (["train", "--noise-gamma", "1e308"], ["--noise-gamma", "<= 10"]),
+    (["train", "--method", "mlp", "--without", "kl_anchor"], ["--without", "--method pemamoe", "got --method mlp"]),
+    (["train", "--method", "mlp", "--noise-gamma", "0.1"], ["--noise-gamma", "got --method mlp"]),
+    (["sweep", "--workers", "99999999999"], ["--workers", "in [1, 1024]"]),
+    (["sweep", "--population", "99999999999"], ["--population", "in [1, 1024]"]),
+    (["sweep", "--hours", "1e308"], ["--hours", "<= 8760"]),
+    (["figures", "--workers", "99999999999"], ["--workers", "in [1, 1024]"]),
+], ids=lambda v: " ".join(v) if isinstance(v, list) and v and v[0] in ("train", "sweep", "figures") else "")
+def test_an_out_of_bounds_or_inapplicable_number_is_refused_before_any_heavy_import(argv, needles):
+    loaded, err = _modules_after(argv)
+    assert loaded == "[]", (argv, loaded)
+    line = _error_line(err)
+    assert all(n in line for n in needles), line
+
+
+@pytest.mark.skipif(__import__("importlib.util").util.find_spec("torch") is None, reason="needs torch's files")
+def test_device_cuda_with_a_cpu_only_torch_is_refused_before_torch_is_imported():
+    import importlib.util
+
+    version = (Path(next(iter(importlib.util.find_spec("torch").submodule_search_locations))) / "version.py").read_text()
+    if "\ncuda: Optional[str] = None" not in version and "\ncuda = None" not in version:
+        pytest.skip("this torch is built for a GPU")
+    loaded, err = _modules_after(["train", "--scale", "ci", "--device", "cuda"])
+    assert loaded == "[]", loaded
+    assert "--device cuda" in _error_line(err) and "torch sees no CUDA device" in err
+
+
+@pytest.mark.parametrize("command, flag", [("train", "--results-dir"), ("sweep", "--results-dir"),
+                                           ("sweep", "--records-dir"), ("figures", "--results-dir")])
+def test_a_file_as_a_store_folder_is_refused_naming_the_flag(command, flag, tmp_path):
+    target = tmp_path / "a_file"
+    target.write_text("mine\n")
+    argv = {"train": ["train", "--scale", "ci", "--method", "mlp"], "sweep": ["sweep", "--scale", "ci"],
+            "figures": ["figures", "--scale", "ci", "--figures-dir", str(tmp_path / "figs")]}[command]
+    loaded, err = _modules_after([*argv, flag, target])
+    assert loaded == "[]", loaded
+    line = _error_line(err)
+    assert f"{flag} {target} is a file, not a folder" in line, line
+    assert target.read_text() == "mine\n"
+
+
+def test_train_refuses_an_out_whose_path_is_not_utf8_and_writes_nothing(tmp_path, capsys):
+    bad = os.fsdecode(bytes(tmp_path) + b"/run\xff")
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--method", "mlp", "--out", bad])
+    assert exit_.value.code == 2
+    assert "--out" in _error_line(capsys.readouterr().err) and os.listdir(tmp_path) == []
