@@ -57,7 +57,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_bytes, atomic_write_json, check_scale
-from pemamoe.runs import read_config, read_json, read_parquet, verify_done
+from pemamoe.runs import RunFolderError, read_config, read_json, read_parquet, verify_done
 from pemamoe.train_config import TIMING_COLUMNS, TRAINING_NUMERICS, TrainConfig
 
 RECORD_FORMAT = 1
@@ -299,7 +299,13 @@ def record_timing(marker_path) -> dict:
     """The measured compute of the training that first made the record, and the processors of the
     training whose bytes it holds ({} if none; records before December 2026 name no processors)."""
     path = Path(marker_path).with_name(Path(marker_path).stem + ".timing.json")
-    return read_json(path) if path.exists() else {}
+    if not path.exists():
+        return {}
+    try:
+        return read_json(path)
+    except RunFolderError as err:  # a record's file, not a run folder's: nothing to delete but the file
+        raise RecordError(path, f"{err.problem}; it holds only the measured compute and processors of the record "
+                                f"{Path(marker_path).name}: restore it (git checkout -- {path}) or delete it") from None
 
 
 def committed_records_mb(records_dir=RECORDS_DIR) -> dict:

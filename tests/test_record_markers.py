@@ -114,3 +114,19 @@ def test_a_log_whose_rows_do_not_match_the_marker_is_refused(ci_records):
     log.write_bytes(parquet_bytes(frame.iloc[:1]))
     _edit(marker, lambda d: d["sha256"].__setitem__("data", hashlib.sha256(log.read_bytes()).hexdigest()))
     _refused(marker, "has rows 2 and env_steps", "but its log has 1 rows")
+
+
+def test_a_damaged_timing_file_is_named_as_a_records_file_not_a_run_folder(ci_records):
+    """Issue 59: `sweep --status` called records/<scale> a run folder and advised deleting it."""
+    from pemamoe.commands import error_line
+    from pemamoe.records import record_timing
+
+    marker = _marker(ci_records, CONFIGS[0])
+    timing = marker.with_name(marker.stem + ".timing.json")
+    timing.write_text("{not json")
+    with pytest.raises(RecordError) as caught:
+        record_timing(marker)
+    line = error_line(caught.value)
+    assert line.startswith(f"run record {timing}: is not valid JSON") and "run folder" not in line, line
+    assert f"restore it (git checkout -- {timing}) or delete it" in line
+    assert marker.exists() and read_record(marker)  # the record itself is untouched and still reads
