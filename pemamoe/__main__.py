@@ -46,8 +46,11 @@ def main(argv=None) -> int:
         _add_train_parser(sub)
     else:
         sub.add_parser("train", help=TRAIN_HELP, add_help=False)
-    sub.add_parser("export", help="write pemamoe/ from the notebooks' exported cells")
-    sub.add_parser("check-export", help="fail if pemamoe/ differs from what the notebooks export")
+    for name, text in (("export", "write pemamoe/ from the notebooks' exported cells"),
+                       ("check-export", "fail if pemamoe/ differs from what the notebooks export")):
+        sub.add_parser(name, help=text).add_argument(
+            "--root", default=None, metavar="CHECKOUT",
+            help="the pemamoe checkout (default: the one this package is in)")
     if argv[:1] == ["sweep"]:  # the sweep command owns its own options
         if _option_value(argv[1:], "--backend") == "ray":
             _require_extra("python -m pemamoe sweep --backend ray", RAY_MODULES, "ray", parser)
@@ -61,7 +64,8 @@ def main(argv=None) -> int:
     if args.command in ("export", "check-export"):
         from pemamoe import literate
 
-        return literate.main(["export" if args.command == "export" else "check"])
+        root = ["--root", args.root] if args.root is not None else []
+        return literate.main(["export" if args.command == "export" else "check", *root])
     if args.command == "figures":
         from pemamoe.core import check_scale
 
