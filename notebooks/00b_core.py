@@ -343,6 +343,14 @@ def real_arg(*, gt: float | None = None, ge: float | None = None, le: float | No
     return parse
 
 
+TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's one-line errors show their traceback
+
+
+def traceback_wanted() -> bool:
+    """Whether $PEMAMOE_TRACEBACK asks the commands for the traceback behind their one-line errors."""
+    return os.environ.get(TRACEBACK_ENV, "").strip() not in ("", "0")
+
+
 def one_line(message) -> str:
     """`message` (an exception or text) as one line: its whitespace runs, newlines included, become
     single spaces."""

@@ -42,7 +42,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store, figure_notebooks, traceback_wanted, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -136,7 +136,7 @@ def sweep_cli(argv=None) -> int:
         return 128 + getattr(stop, "signum", signal.SIGINT)
     except Exception as err:
         line = error_line(err, stores, start_over="delete the run folder to train the run again from the start")
-        if line is None:
+        if line is None or traceback_wanted():
             raise
         print(f"{parser.prog}: error: {line}", file=sys.stderr, flush=True)
         return 1

@@ -1,7 +1,6 @@
 """Command line: `python -m pemamoe <command>` (hand-written dispatcher; the work is in modules)."""
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -142,11 +141,10 @@ def _check_environment(parser) -> None:
         parser.exit(2, f"{parser.prog}: error: {one_line(err)}\n")
 
 
-TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's errors show their traceback
-
-
 def _traceback_wanted() -> bool:
-    return os.environ.get(TRACEBACK_ENV, "").strip() not in ("", "0")
+    from pemamoe.core import traceback_wanted  # $PEMAMOE_TRACEBACK
+
+    return traceback_wanted()
 
 
 def _check_figures_dir(figures_dir, scale: str, parser) -> None:
@@ -305,7 +303,7 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         return 130
     except Exception as err:
         line = error_line(err, [args.store], start_over="delete the folder, or pass --no-resume to start it over")
-        if line is None:
+        if line is None or _traceback_wanted():
             raise
         print(f"{parser.prog}: error: {line}", file=sys.stderr)
         return 1

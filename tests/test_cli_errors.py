@@ -590,3 +590,25 @@ def test_train_refuses_an_out_whose_path_is_not_utf8_and_writes_nothing(tmp_path
         main(["train", "--scale", "ci", "--method", "mlp", "--out", bad])
     assert exit_.value.code == 2
     assert "--out" in _error_line(capsys.readouterr().err) and os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", ["train", "sweep", "figures"])
+def test_pemamoe_traceback_shows_the_traceback_behind_a_one_line_error(command, monkeypatch, tmp_path, capsys):
+    import pemamoe.__main__
+    import pemamoe.commands
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pemamoe.__main__, "_train", full_disk)
+    monkeypatch.setattr(pemamoe.commands, "_sweep", full_disk)
+    monkeypatch.setattr(pemamoe.commands, "make_figures", full_disk)
+    argv = {"train": ["train", "--scale", "ci", "--out", str(tmp_path / "run")],
+            "sweep": ["sweep", "--scale", "ci", "--records-dir", str(tmp_path / "records")],
+            "figures": ["figures", "--scale", "ci", "--figures-dir", str(tmp_path / "figs")]}[command]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and len(err.strip().splitlines()) == 1, err
+    monkeypatch.setenv("PEMAMOE_TRACEBACK", "1")
+    with pytest.raises(OSError, match="No space left"):
+        main(argv)
