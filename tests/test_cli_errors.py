@@ -612,3 +612,36 @@ def test_pemamoe_traceback_shows_the_traceback_behind_a_one_line_error(command, 
     monkeypatch.setenv("PEMAMOE_TRACEBACK", "1")
     with pytest.raises(OSError, match="No space left"):
         main(argv)
+
+
+@pytest.mark.parametrize("cuda, hip, devices, refused", [
+    ("None", "None", ["/dev/nvidia0"], "built for CPUs only"),
+    ("'12.4'", "None", [], "no GPU device file"),
+    ("'12.4'", "None", ["/dev/nvidia0"], None),
+    (None, None, [], None),  # a version.py this check cannot read: the trainer decides
+])
+def test_the_fast_device_check_refuses_only_what_cannot_see_a_gpu(cuda, hip, devices, refused, tmp_path, monkeypatch,
+                                                                   capsys):
+    import argparse
+    import glob
+    import importlib.machinery
+    import importlib.util
+
+    import pemamoe.__main__ as cli
+
+    torch_dir = tmp_path / "torch"
+    torch_dir.mkdir()
+    lines = ["__version__ = '9.9'"] + ([f"cuda: Optional[str] = {cuda}", f"hip: Optional[str] = {hip}"] if cuda else [])
+    (torch_dir / "version.py").write_text("\n".join(lines) + "\n")
+    spec = importlib.machinery.ModuleSpec("torch", None, is_package=True)
+    spec.submodule_search_locations = [str(torch_dir)]
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: spec if name == "torch" else None)
+    monkeypatch.setattr(glob, "glob", lambda pattern: devices if pattern.startswith("/dev/nvidia") else [])
+    monkeypatch.setattr(cli.sys, "platform", "linux")
+    parser = argparse.ArgumentParser(prog="t")
+    if refused is None:
+        cli._check_device("cuda", parser)
+        return
+    with pytest.raises(SystemExit):
+        cli._check_device("cuda", parser)
+    assert refused in _error_line(capsys.readouterr().err)
