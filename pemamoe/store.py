@@ -3,7 +3,7 @@
 
 __all__ = ['STORE_FILES', 'SEALED_FILES', 'LEASE_PREFIX', 'LEGACY_LEASE', 'OBJECT_PREFIX', 'SYNC_SECONDS', 'LEASE_STALE_SECONDS', 'CACHE_ENV', 'StoreLeaseError', 'ENV_SECONDS_LIMIT', 'check_store_environment', 'cache_root', 'ResultsStore', 'open_store', 'BUCKET_PROTOCOLS', 'StoreAccessError', 'check_access', 'store_access_error', 'pull_run', 'run_objects', 'push_run', 'refresh_finished', 'object_name', 'lease_generations', 'StoreLease', 'checked_out', 'pull_tree', 'push_paths', 'fetch_run']
 
-# %% notebooks/09f_results_store.py, cell 4 (line 119)
+# %% notebooks/09f_results_store.py, cell 4 (line 121)
 import hashlib
 import json
 import os
@@ -54,7 +54,7 @@ def _heartbeat(holder: dict) -> float:
         return 0.0
 
 
-# %% notebooks/09f_results_store.py, cell 6 (line 179)
+# %% notebooks/09f_results_store.py, cell 6 (line 181)
 ENV_SECONDS_LIMIT = {SYNC_ENV: 86400.0, STALE_ENV: 30 * 86400.0}  # the largest value each setting takes
 
 
@@ -150,7 +150,7 @@ def open_store(results="results") -> ResultsStore:
     return results if isinstance(results, ResultsStore) else ResultsStore(results)
 
 
-# %% notebooks/09f_results_store.py, cell 8 (line 289)
+# %% notebooks/09f_results_store.py, cell 8 (line 291)
 BUCKET_PROTOCOLS = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")  # a URL's first component is a bucket
 
 
@@ -221,7 +221,7 @@ def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
     return None
 
 
-# %% notebooks/09f_results_store.py, cell 9 (line 361)
+# %% notebooks/09f_results_store.py, cell 9 (line 363)
 def _bucket(store) -> "str | None":
     """The bucket of a remote store whose protocol has buckets, else None."""
     protocol = store.protocol
@@ -261,7 +261,7 @@ def _access_errors(store):
         raise access from err
 
 
-# %% notebooks/09f_results_store.py, cell 11 (line 419)
+# %% notebooks/09f_results_store.py, cell 11 (line 421)
 def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> dict:
     """Copy the run's `names` from the store into store.run_dir; return {name: (mtime_ns, size,
     sha256)} of those now in the cache folder (what push_run need not send back). Raises
@@ -397,7 +397,7 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
         (folder / "done.json").unlink()
 
 
-# %% notebooks/09f_results_store.py, cell 13 (line 565)
+# %% notebooks/09f_results_store.py, cell 13 (line 567)
 def _lease_name(generation: int) -> str:
     return f"{LEASE_PREFIX}{generation}.json"
 
@@ -568,7 +568,7 @@ class _Fence:
                                            "(delete the run's folder in the store to train it again)")
 
 
-# %% notebooks/09f_results_store.py, cell 15 (line 753)
+# %% notebooks/09f_results_store.py, cell 15 (line 755)
 class _Mirror(threading.Thread):
     """Pushes the checked-out runs every `every` seconds; gives up a run for good when its lease is
     lost (`lost`: run index -> the StoreLeaseError), and ends when it has lost them all."""
