@@ -64,7 +64,7 @@
 # stale time its holder declared in it (`$PEMAMOE_LEASE_STALE_SECONDS` of the holder, default
 # `LEASE_STALE_SECONDS`; its worker died: a killed machine cannot release anything), lets the next
 # worker create generation g + 1. The taker's own setting does not shorten a holder's declaration
-# (issue 59: it took live leases); to take a dead worker's run sooner, delete its lease object. Nobody deletes a lease or writes another worker's: a generation
+# (issue 59: it took live leases). Nobody deletes a lease or writes another worker's: a generation
 # is never used twice, and a worker learns that it lost a run by seeing a newer lease.
 #
 # Each holder uploads a run's files to **objects of its own generation**, `<run>/.g<g>.<name>`,
