@@ -42,7 +42,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store, figure_notebooks, traceback_wanted, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, write_figures_readme)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -195,6 +195,14 @@ def error_line(err: BaseException, stores=(), start_over: str | None = None) -> 
     if isinstance(err, (RunLockedError, StoreLeaseError, StoreAccessError, OSError, *loaded)):
         return one_line(err)
     return None
+
+
+TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's one-line errors show their traceback
+
+
+def traceback_wanted() -> bool:
+    """Whether $PEMAMOE_TRACEBACK asks the commands for the traceback behind their one-line errors."""
+    return os.environ.get(TRACEBACK_ENV, "").strip() not in ("", "0")
 
 
 def figures_error_line(err: BaseException, stores=()) -> str | None:

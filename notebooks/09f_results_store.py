@@ -123,7 +123,6 @@ seed = 0
 import hashlib
 import json
 import os
-import shutil
 import socket
 import sys
 import threading
@@ -133,7 +132,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_path, one_line, require
-from pemamoe.runs import PicklableError
+from pemamoe.runs import PicklableError, file_digest, file_stamp, link_snapshot
 
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
 STORE_FILES = ("config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "sweep.json", "done.json")
@@ -434,7 +433,7 @@ def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> di
             if fence.object(name) is not None:
                 tmp = installs.enter_context(atomic_path(folder / name))
                 store.fs.get_file(store.key(scale, run, fence.object(name)), str(tmp))
-                digests[name] = _digest(tmp)
+                digests[name] = file_digest(tmp)
                 fence.check(name, digests[name])
     for name in names:
         if fence.object(name) is None:
@@ -465,23 +464,23 @@ def push_run(lease: "StoreLease", folder, pushed: dict | None = None) -> dict:
         lease.objects.pop("done.json", None)
         _remove(store, store.key(scale, run, "done.json"))  # and a seal of an earlier version's layout
     for name in STORE_FILES[:-1]:
-        stamp = _stamp(folder / name)
+        stamp = file_stamp(folder / name)
         if stamp is None:
             if pushed.pop(name, None) is not None:  # deleted here since (a run started over): not listed
                 lease.objects.pop(name, None)
             continue
         if pushed.get(name, ())[:2] == stamp and name in lease.objects:
             continue  # an unchanged file this generation uploaded: a pulled one goes up once, as its own
-        with _snapshot(folder / name) as snap:
+        with link_snapshot(folder / name) as snap:
             if snap is None:  # replaced or removed meanwhile: the next push sees it
                 continue
-            state = (*_stamp(snap), _digest(snap))
+            state = (*file_stamp(snap), file_digest(snap))
             store.fs.put_file(str(snap), store.key(scale, run, lease.object_name(name)))
         pushed[name], lease.objects[name] = state, lease.object_name(name)
-    seal = folder / "done.json" if sealed and (pushed.get("done.json", ())[:2] != _stamp(folder / "done.json")
+    seal = folder / "done.json" if sealed and (pushed.get("done.json", ())[:2] != file_stamp(folder / "done.json")
                                                or "done.json" not in lease.objects) else None
-    with _snapshot(seal) as snap:
-        state = None if snap is None else (*_stamp(snap), _digest(snap))
+    with link_snapshot(seal) as snap:
+        state = None if snap is None else (*file_stamp(snap), file_digest(snap))
         if state is not None:  # its own object, which nobody reads until the manifest below names it
             store.fs.put_file(str(snap), store.key(scale, run, lease.object_name("done.json")))
             lease.objects["done.json"] = lease.object_name("done.json")
@@ -500,46 +499,8 @@ def _remove(store: ResultsStore, key: str) -> None:
         pass
 
 
-def _stamp(path: Path) -> tuple | None:
-    """(mtime_ns, size) of a file, None when it is missing: what says it changed since a push."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_mtime_ns, st.st_size
-
-
-def _digest(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def _stats(folder: Path, digests: dict) -> dict:
-    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := _stamp(folder / name)) is not None}
-
-
-@contextmanager
-def _snapshot(path):
-    """A hard link to `path` (a copy where links fail) that an atomic replace of `path` leaves alone;
-    None when `path` is None or missing. Named like a torn atomic write (.*.tmp): a killed push's
-    link is removed with those when the run's folder is next locked."""
-    snap = None
-    if path is not None:
-        snap = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.push.tmp")
-        try:
-            os.link(path, snap)
-        except FileNotFoundError:
-            snap = None
-        except OSError:
-            try:
-                shutil.copy2(path, snap)
-            except FileNotFoundError:
-                snap = None
-    try:
-        yield snap
-    finally:
-        if snap is not None:
-            snap.unlink(missing_ok=True)
+    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := file_stamp(folder / name)) is not None}
 
 
 def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
@@ -895,7 +856,7 @@ with tempfile.TemporaryDirectory() as tmp:
         print("A's push:", err)
     assert read_run() == sealed
     store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", a.object_name("metrics.parquet")))
-    a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
+    a.files = {**a.files, "metrics.parquet": file_digest(folder_a / "metrics.parquet")}
     store_a.fs.pipe_file(a.key, a._body())  # the late write and A's manifest of it
     refresh_finished(store_b, "ci", "demo-run")  # read as B sealed it: no error
     assert read_run() == sealed and (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"

@@ -142,7 +142,7 @@ def _check_environment(parser) -> None:
 
 
 def _traceback_wanted() -> bool:
-    from pemamoe.core import traceback_wanted  # $PEMAMOE_TRACEBACK
+    from pemamoe.commands import traceback_wanted  # $PEMAMOE_TRACEBACK
 
     return traceback_wanted()
 

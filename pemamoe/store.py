@@ -7,7 +7,6 @@ __all__ = ['STORE_FILES', 'SEALED_FILES', 'LEASE_PREFIX', 'LEGACY_LEASE', 'OBJEC
 import hashlib
 import json
 import os
-import shutil
 import socket
 import sys
 import threading
@@ -17,7 +16,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_path, one_line, require
-from pemamoe.runs import PicklableError
+from pemamoe.runs import PicklableError, file_digest, file_stamp, link_snapshot
 
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
 STORE_FILES = ("config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "sweep.json", "done.json")
@@ -54,7 +53,7 @@ def _heartbeat(holder: dict) -> float:
         return 0.0
 
 
-# %% notebooks/09f_results_store.py, cell 6 (line 181)
+# %% notebooks/09f_results_store.py, cell 6 (line 180)
 ENV_SECONDS_LIMIT = {SYNC_ENV: 86400.0, STALE_ENV: 30 * 86400.0}  # the largest value each setting takes
 
 
@@ -150,7 +149,7 @@ def open_store(results="results") -> ResultsStore:
     return results if isinstance(results, ResultsStore) else ResultsStore(results)
 
 
-# %% notebooks/09f_results_store.py, cell 8 (line 291)
+# %% notebooks/09f_results_store.py, cell 8 (line 290)
 BUCKET_PROTOCOLS = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")  # a URL's first component is a bucket
 
 
@@ -221,7 +220,7 @@ def store_access_error(store, err: BaseException) -> "StoreAccessError | None":
     return None
 
 
-# %% notebooks/09f_results_store.py, cell 9 (line 363)
+# %% notebooks/09f_results_store.py, cell 9 (line 362)
 def _bucket(store) -> "str | None":
     """The bucket of a remote store whose protocol has buckets, else None."""
     protocol = store.protocol
@@ -261,7 +260,7 @@ def _access_errors(store):
         raise access from err
 
 
-# %% notebooks/09f_results_store.py, cell 11 (line 421)
+# %% notebooks/09f_results_store.py, cell 11 (line 420)
 def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> dict:
     """Copy the run's `names` from the store into store.run_dir; return {name: (mtime_ns, size,
     sha256)} of those now in the cache folder (what push_run need not send back). Raises
@@ -276,7 +275,7 @@ def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> di
             if fence.object(name) is not None:
                 tmp = installs.enter_context(atomic_path(folder / name))
                 store.fs.get_file(store.key(scale, run, fence.object(name)), str(tmp))
-                digests[name] = _digest(tmp)
+                digests[name] = file_digest(tmp)
                 fence.check(name, digests[name])
     for name in names:
         if fence.object(name) is None:
@@ -307,23 +306,23 @@ def push_run(lease: "StoreLease", folder, pushed: dict | None = None) -> dict:
         lease.objects.pop("done.json", None)
         _remove(store, store.key(scale, run, "done.json"))  # and a seal of an earlier version's layout
     for name in STORE_FILES[:-1]:
-        stamp = _stamp(folder / name)
+        stamp = file_stamp(folder / name)
         if stamp is None:
             if pushed.pop(name, None) is not None:  # deleted here since (a run started over): not listed
                 lease.objects.pop(name, None)
             continue
         if pushed.get(name, ())[:2] == stamp and name in lease.objects:
             continue  # an unchanged file this generation uploaded: a pulled one goes up once, as its own
-        with _snapshot(folder / name) as snap:
+        with link_snapshot(folder / name) as snap:
             if snap is None:  # replaced or removed meanwhile: the next push sees it
                 continue
-            state = (*_stamp(snap), _digest(snap))
+            state = (*file_stamp(snap), file_digest(snap))
             store.fs.put_file(str(snap), store.key(scale, run, lease.object_name(name)))
         pushed[name], lease.objects[name] = state, lease.object_name(name)
-    seal = folder / "done.json" if sealed and (pushed.get("done.json", ())[:2] != _stamp(folder / "done.json")
+    seal = folder / "done.json" if sealed and (pushed.get("done.json", ())[:2] != file_stamp(folder / "done.json")
                                                or "done.json" not in lease.objects) else None
-    with _snapshot(seal) as snap:
-        state = None if snap is None else (*_stamp(snap), _digest(snap))
+    with link_snapshot(seal) as snap:
+        state = None if snap is None else (*file_stamp(snap), file_digest(snap))
         if state is not None:  # its own object, which nobody reads until the manifest below names it
             store.fs.put_file(str(snap), store.key(scale, run, lease.object_name("done.json")))
             lease.objects["done.json"] = lease.object_name("done.json")
@@ -342,46 +341,8 @@ def _remove(store: ResultsStore, key: str) -> None:
         pass
 
 
-def _stamp(path: Path) -> tuple | None:
-    """(mtime_ns, size) of a file, None when it is missing: what says it changed since a push."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_mtime_ns, st.st_size
-
-
-def _digest(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def _stats(folder: Path, digests: dict) -> dict:
-    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := _stamp(folder / name)) is not None}
-
-
-@contextmanager
-def _snapshot(path):
-    """A hard link to `path` (a copy where links fail) that an atomic replace of `path` leaves alone;
-    None when `path` is None or missing. Named like a torn atomic write (.*.tmp): a killed push's
-    link is removed with those when the run's folder is next locked."""
-    snap = None
-    if path is not None:
-        snap = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.push.tmp")
-        try:
-            os.link(path, snap)
-        except FileNotFoundError:
-            snap = None
-        except OSError:
-            try:
-                shutil.copy2(path, snap)
-            except FileNotFoundError:
-                snap = None
-    try:
-        yield snap
-    finally:
-        if snap is not None:
-            snap.unlink(missing_ok=True)
+    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := file_stamp(folder / name)) is not None}
 
 
 def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
@@ -397,7 +358,7 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
         (folder / "done.json").unlink()
 
 
-# %% notebooks/09f_results_store.py, cell 13 (line 567)
+# %% notebooks/09f_results_store.py, cell 13 (line 528)
 def _lease_name(generation: int) -> str:
     return f"{LEASE_PREFIX}{generation}.json"
 
@@ -568,7 +529,7 @@ class _Fence:
                                            "(delete the run's folder in the store to train it again)")
 
 
-# %% notebooks/09f_results_store.py, cell 15 (line 755)
+# %% notebooks/09f_results_store.py, cell 15 (line 716)
 class _Mirror(threading.Thread):
     """Pushes the checked-out runs every `every` seconds; gives up a run for good when its lease is
     lost (`lost`: run index -> the StoreLeaseError), and ends when it has lost them all."""

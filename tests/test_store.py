@@ -179,12 +179,12 @@ def test_a_lease_is_exclusive_and_a_stale_one_is_taken_over(s3_store):
     from pemamoe.store import StoreLease, StoreLeaseError, open_store
 
     store = open_store(s3_store)
-    first = StoreLease(store, "ci", "mlp-s0-x").acquire()
+    first = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # declares itself stale after 0.1 s
     with pytest.raises(StoreLeaseError, match="held by .* renewed"):  # the conditional put refuses a second
         StoreLease(store, "ci", "mlp-s0-x").acquire()
     first.renew()
     time.sleep(0.2)
-    second = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # first looks dead: taken over
+    second = StoreLease(store, "ci", "mlp-s0-x").acquire()  # first looks dead by its own declaration: taken over
     assert (first.generation, second.generation) == (1, 2)
     with pytest.raises(StoreLeaseError, match=r"lost its lease \(generation 1\) to generation 2"):
         first.renew()  # the old holder learns that it lost the lease
