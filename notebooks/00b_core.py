@@ -268,11 +268,10 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
 # (appendix 09c), the experiments (notebook 09), the phase controller's mechanisms (notebook 06)
 # and the seeds a `TrainConfig` accepts (appendix 07c).
 #
-# `int_arg` and `real_arg` are argparse's `type=` for every count and number of every command: a
-# bad value is refused while the arguments are parsed, naming the flag (argparse adds it), the
-# value as typed and what is allowed, in the words of `require` (`--workers: must be an integer
-# >= 1, got '0'`). `one_line` flattens any error message to the single `error:` line a command
-# ends with.
+# `int_arg` and `real_arg` are argparse's `type=` for every count and number of every command, each
+# bounded on both sides: a bad value is refused while the arguments are parsed, naming the flag,
+# the value as typed and what is allowed, in `require`'s words (`--workers: must be an integer in
+# [1, 1024], got '0'`). `one_line` flattens any error to the single `error:` line a command ends with.
 
 # %%
 #| export
@@ -293,12 +292,14 @@ MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseCon
     "temperature_schedule",
 )
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
+ITERATIONS_LIMIT, NOISE_GAMMA_LIMIT = 10**7, 10.0  # upper bounds (issue 59): 926x the paper's 10,800; 2,000x its 0.005
+WORKERS_LIMIT, HOURS_LIMIT = 1024, 8760.0  # workers (or runs of one population) of a sweep or figures; --hours: a year
 
 
-def int_arg(low: int, below: int | None = None):
-    """argparse `type=`: an integer >= low (and < below, if given), else ArgumentTypeError naming
-    the value as typed and what is allowed."""
-    allowed = f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+def int_arg(low: int, below: int | None = None, *, le: int | None = None):
+    """argparse `type=`: an integer >= low (< below, or <= le), else ArgumentTypeError naming it and what is allowed."""
+    allowed = f"in [{low}, {le}]" if le is not None else f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+    below = le + 1 if le is not None else below
 
     def parse(text: str) -> int:
         import argparse
@@ -314,10 +315,10 @@ def int_arg(low: int, below: int | None = None):
     return parse
 
 
-def real_arg(*, gt: float | None = None, ge: float | None = None):
-    """argparse `type=`: a finite number > gt (or >= ge), else ArgumentTypeError naming the value
-    as typed and what is allowed."""
+def real_arg(*, gt: float | None = None, ge: float | None = None, le: float | None = None):
+    """argparse `type=`: a finite number > gt (or >= ge; <= le), else ArgumentTypeError naming it and what is allowed."""
     allowed = f" > {gt:g}" if gt is not None else f" >= {ge:g}" if ge is not None else ""
+    allowed += (" and" if allowed else "") + f" <= {le:g}" if le is not None else ""
 
     def parse(text: str) -> float:
         import argparse
@@ -326,7 +327,7 @@ def real_arg(*, gt: float | None = None, ge: float | None = None):
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or (gt is not None and value <= gt) or (ge is not None and value < ge):
+        if not math.isfinite(value) or not _within(value, {"gt": gt, "ge": ge, "lt": None, "le": le}):
             raise argparse.ArgumentTypeError(f"must be a finite number{allowed}, got {text!r}")
         return value
 
@@ -803,9 +804,8 @@ def cpu_model() -> str:
 # kernel thinks the repository is, and the notebooks `make figures` runs, in order.
 
 # %%
-for bad in (dict(value=True, kind="int", ge=1), dict(value="100", kind="real", gt=0),
-            dict(value=float("inf"), kind="real", gt=0), dict(value="jax", kind="choice",
-                                                                allowed=("compiled", "numpy"))):
+for bad in (dict(value=True, kind="int", ge=1), dict(value="100", kind="real", gt=0), dict(value=float("inf"), kind="real",
+            gt=0), dict(value="jax", kind="choice", allowed=("compiled", "numpy"))):
     try:
         require("Demo", "field", **bad)
     except ValueError as err:

@@ -112,6 +112,8 @@ import numpy as np
 
 from pemamoe.core import require_field
 
+USERS_LIMIT = 10_000  # ground users at most (the paper has 20 to 100): every slot is O(users x UAVs)
+
 
 @dataclass(frozen=True)
 class MobilityConfig:
@@ -131,8 +133,8 @@ class MobilityConfig:
 
     def __post_init__(self):
         require_field(self, "area_m", "real", gt=0)
-        require_field(self, "n_hotspots", "int", ge=1)
-        require_field(self, "n_users", "int", ge=self.n_hotspots, note="every hotspot needs a user")
+        require_field(self, "n_hotspots", "int", ge=1, le=USERS_LIMIT)
+        require_field(self, "n_users", "int", ge=self.n_hotspots, le=USERS_LIMIT, note="every hotspot needs a user")
         require_field(self, "slot_s", "real", gt=0)
         require_field(self, "user_height_m", "real", ge=0)
         require_field(self, "gm_memory", "real", ge=0, lt=1)

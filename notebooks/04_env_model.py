@@ -78,6 +78,8 @@ from pemamoe.mobility import MobilityConfig, init_mobility, step_mobility
 from pemamoe.phases import PhaseConfig, PhaseClock, phase_values, sample_demand_classes
 from pemamoe.streams import BatchRandom  # per-environment random streams (appendix 04c)
 
+UAVS_LIMIT = 64  # UAVs (agents) at most; the paper has 3
+
 # %% [markdown]
 # ## One configuration object
 #
@@ -121,7 +123,7 @@ class EnvConfig:
     phases: PhaseConfig = field(default_factory=PhaseConfig)
 
     def __post_init__(self):
-        require_field(self, "n_uavs", "int", ge=1)
+        require_field(self, "n_uavs", "int", ge=1, le=UAVS_LIMIT)
         require_field(self, "uav_altitude_m", "real", gt=0)
         require_field(self, "max_step_m", "real", gt=0)
         require_field(self, "max_users_per_uav", "int", ge=1)
@@ -146,7 +148,7 @@ class EnvConfig:
                 else "the numpy engine's largest single draw holds")
         require_field(self, "rng_chunk", "int", ge=chunk,
                       note=f"the random numbers {what} per stream at {N} users and {U} UAVs; "
-                           f"raise rng_chunk to at least {chunk}")
+                           f"raise rng_chunk to at least {chunk}, or lower n_users or n_uavs")
         if self.energy.slot_s != self.mobility.slot_s:
             raise ValueError(
                 f"EnvConfig: energy.slot_s ({self.energy.slot_s}) and mobility.slot_s "

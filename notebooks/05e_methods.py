@@ -79,16 +79,42 @@ def register_method(spec: MethodSpec) -> MethodSpec:
     return METHOD_REGISTRY[spec.name]
 
 
-def load_plugins() -> None:
-    """Import the modules named in $PEMAMOE_PLUGINS (comma-separated), once: how methods, network
-    kinds and plasticity methods defined outside the package reach every process of a sweep."""
-    import importlib
+PLUGINS_ENV = "PEMAMOE_PLUGINS"
+
+
+class PluginError(ValueError):
+    """A module named in $PEMAMOE_PLUGINS that cannot be found: one line naming it and what is allowed."""
+
+
+def plugin_modules() -> list:
+    """The module names in $PEMAMOE_PLUGINS (comma-separated), in order."""
     import os
 
-    for module in filter(None, (m.strip() for m in os.environ.get("PEMAMOE_PLUGINS", "").split(","))):
+    return [m for m in (m.strip() for m in os.environ.get(PLUGINS_ENV, "").split(",")) if m]
+
+
+def missing_plugin_error(module: str, why: str = "") -> PluginError:
+    return PluginError(f"{PLUGINS_ENV} names the module {module!r}, which cannot be imported{why}; name modules "
+                       "importable from PYTHONPATH, comma-separated (e.g. PYTHONPATH=. PEMAMOE_PLUGINS=my_methods), "
+                       f"or unset {PLUGINS_ENV}")
+
+
+def load_plugins() -> None:
+    """Import the modules named in $PEMAMOE_PLUGINS (comma-separated), once: how methods, network
+    kinds and plasticity methods defined outside the package reach every process of a sweep.
+    A module that is not there raises PluginError, one line naming it (an error inside a plugin
+    that is there propagates as it is: it is the plugin's)."""
+    import importlib
+
+    for module in plugin_modules():
         if module not in _LOADED_PLUGINS:
+            try:
+                importlib.import_module(module)
+            except ModuleNotFoundError as err:
+                if err.name is None or not (module == err.name or module.startswith(err.name + ".")):
+                    raise  # the plugin is there; something it imports is not
+                raise missing_plugin_error(module) from None
             _LOADED_PLUGINS.add(module)
-            importlib.import_module(module)
 
 
 _LOADED_PLUGINS: set = set()

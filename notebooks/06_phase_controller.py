@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from pemamoe.core import MECHANISMS  # re-export: the mechanisms' names live in core, for the command line (00b)
-from pemamoe.core import require_field
+from pemamoe.core import NOISE_GAMMA_LIMIT, require_field
 from pemamoe.plasticity import (RunSettings, IterationSettings, NoPlasticity, PopulationSettings, base_entropy_coef,
                                 linear_anneal, register_plasticity)
 from pemamoe.popnets import gaussian_kl
@@ -239,7 +239,7 @@ class PhaseControllerConfig:
         require_field(self, "kl_coef", "real", ge=0)
         require_field(self, "kl_decay", "real", gt=0, le=1)
         require_field(self, "kl_release", "real", ge=0)
-        require_field(self, "noise_gamma", "real", ge=0)
+        require_field(self, "noise_gamma", "real", ge=0, le=NOISE_GAMMA_LIMIT)
         require_field(self, "noise_epochs", "int", ge=0)
         require_field(self, "noise_window_unit", "choice", NOISE_WINDOW_UNITS)
         require_field(self, "log_std_value", "real")

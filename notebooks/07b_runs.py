@@ -73,6 +73,9 @@ import fcntl
 import hashlib
 import json
 import os
+import shutil
+import uuid
+from contextlib import contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_write_json, cpu_model, one_line
@@ -370,6 +373,40 @@ def file_digest(path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def file_stamp(path: Path) -> tuple | None:
+    """(mtime_ns, size) of a file, None when it is missing: what says it changed since it was copied."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_mtime_ns, st.st_size
+
+
+@contextmanager
+def link_snapshot(path):
+    """A hard link to `path` (a copy where links fail) that an atomic replace of `path` leaves alone;
+    None when `path` is None or missing (the results store uploads from it, appendix 09f). Named
+    like a torn atomic write (.*.tmp): a killed upload's link is removed with those when the run's
+    folder is next locked."""
+    snap = None
+    if path is not None:
+        snap = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.push.tmp")
+        try:
+            os.link(path, snap)
+        except FileNotFoundError:
+            snap = None
+        except OSError:
+            try:
+                shutil.copy2(path, snap)
+            except FileNotFoundError:
+                snap = None
+    try:
+        yield snap
+    finally:
+        if snap is not None:
+            snap.unlink(missing_ok=True)
 
 
 # What a checkpoint or done.json written before processors were recorded says of its sessions.

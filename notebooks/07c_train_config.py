@@ -86,6 +86,7 @@ import torch
 
 from pemamoe.core import SEED_LIMIT  # re-export: in core, so that the command line checks --seed without torch (00b)
 from pemamoe.core import by_scale, check_scale, config_error, require, require_field
+from pemamoe.core import ITERATIONS_LIMIT
 from pemamoe.env import EnvConfig
 from pemamoe.methods import METHOD_REGISTRY, method_spec, compared_methods, network_kind
 from pemamoe.nets import NetConfig
@@ -274,6 +275,7 @@ class TrainConfig:
         for name in ("num_envs", "rollout_steps", "iterations", "phase_length_iters", "update_epochs",
                      "num_minibatches", "probe_size", "diag_every", "checkpoint_every"):
             require_field(self, name, "int", ge=1)
+        require_field(self, "iterations", "int", ge=1, le=ITERATIONS_LIMIT)
         require_field(self, "n_phases", "int", ge=1, le=3)
         require_field(self, "fixed_phase", "int", ge=0, lt=self.n_phases, optional=True,
                       note=f"a phase index below n_phases = {self.n_phases}, or None to cycle")

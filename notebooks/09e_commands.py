@@ -34,13 +34,16 @@ seed = 0
 
 # %%
 #| export
+import os
 import signal
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from pemamoe.core import (ACTOR_READINGS, BACKENDS, DEFAULT_POPULATION, EXPERIMENTS, READABLE_EXPERIMENTS, REPO_ROOT,
-                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, check_scale, checkout_store, current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
+                          SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, WORKERS_LIMIT, HOURS_LIMIT, check_scale, checkout_store,
+                          current_umask, figure_notebooks, int_arg, notebook_parameters, one_line, real_arg, repo_path,
                           run_notebook, atomic_write_text, cpu_model)
 from pemamoe.methods import METHOD_REGISTRY, compared_methods, method_spec
 from pemamoe.runs import RunFolderError, RunLockedError
@@ -96,9 +99,9 @@ def sweep_cli(argv=None) -> int:
                              f"default: {', '.join(compared_methods())})")
     parser.add_argument("--backend", default="local", choices=BACKENDS,
                         help="local: a process pool on this machine; ray: Ray tasks (default: local)")
-    parser.add_argument("--workers", type=int_arg(1), default=2,
+    parser.add_argument("--workers", type=int_arg(1, le=WORKERS_LIMIT), default=2,
                         help="populations trained at once, one core each (default: 2)")
-    parser.add_argument("--population", type=int_arg(1), default=DEFAULT_POPULATION,
+    parser.add_argument("--population", type=int_arg(1, le=WORKERS_LIMIT), default=DEFAULT_POPULATION,
                         help=f"at most this many compatible runs train together in one process (default {DEFAULT_POPULATION})")
     parser.add_argument("--address", default=None, help="Ray cluster address (ray backend)")
     parser.add_argument("--results-dir", default="results",
@@ -111,7 +114,7 @@ def sweep_cli(argv=None) -> int:
                         help="ignore the records: train into --results-dir whatever is not there, rewrite the records")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar (default: when stderr is a terminal)")
-    parser.add_argument("--hours", type=real_arg(gt=0), default=None, metavar="H",
+    parser.add_argument("--hours", type=real_arg(gt=0, le=HOURS_LIMIT), default=None, metavar="H",
                         help="train for at most H hours, then checkpoint every running population, stop, and "
                              "print what finished and what is left (rerun to go on)")
     parser.add_argument("--status", action="store_true",
@@ -142,7 +145,7 @@ def sweep_cli(argv=None) -> int:
         return 128 + getattr(stop, "signum", signal.SIGINT)
     except Exception as err:
         line = error_line(err, stores, start_over="delete the run folder to train the run again from the start")
-        if line is None:
+        if line is None or traceback_wanted():
             raise
         print(f"{parser.prog}: error: {line}", file=sys.stderr, flush=True)
         return 1
@@ -213,6 +216,32 @@ def error_line(err: BaseException, stores=(), start_over: str | None = None) -> 
     return None
 
 
+TRACEBACK_ENV = "PEMAMOE_TRACEBACK"  # set (to anything but 0): a command's one-line errors show their traceback
+
+
+def traceback_wanted() -> bool:
+    """Whether $PEMAMOE_TRACEBACK asks the commands for the traceback behind their one-line errors."""
+    return os.environ.get(TRACEBACK_ENV, "").strip() not in ("", "0")
+
+
+def figures_error_line(err: BaseException, stores=()) -> str | None:
+    """The one line `python -m pemamoe figures` ends with on `err` (None: a bug, whose traceback is
+    shown): a notebook that failed is named with its cell, its error and its executed copy (which
+    holds the traceback); the folder it draws into is always as it was."""
+    failed = getattr(err, "figures_notebook", None)
+    if failed is not None and type(err).__name__ == "PapermillExecutionError":
+        name, executed = failed
+        what = f"{err.ename}: {err.evalue}" if getattr(err, "ename", None) else one_line(err)[:300]
+        return one_line(f"notebook {name} failed in its cell {getattr(err, 'exec_count', '?')} ({what}); its executed "
+                        f"copy, with the traceback, is {executed}; the figures folder is as it was")
+    line = error_line(err, stores)
+    if line is None and isinstance(err, (FiguresDirError, TimeoutError)):
+        line = one_line(err)
+    if line is not None and failed is not None:
+        line = f"notebook {failed[0]}: {line}"
+    return None if line is None else f"{line} (the figures folder is as it was)"
+
+
 def _check_store_arg(parser, flag: str, text: str) -> None:
     """A store flag names a URL fsspec serves, or a local folder that may be new but whose parent
     folder exists: a typo in the path is a usage error, not a tree of new folders."""
@@ -221,6 +250,13 @@ def _check_store_arg(parser, flag: str, text: str) -> None:
     except ValueError as err:
         parser.error(f"{flag}: {err}")
     if not store.remote:
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            parser.error(f"{flag} {ascii(text)}: the path is not valid UTF-8; name a folder whose path is UTF-8")
+        if store.folder.exists() and not store.folder.is_dir():
+            parser.error(f"{flag} {text} is a file, not a folder; name a folder (it is created if missing) or a URL "
+                         "such as s3://bucket/prefix")
         parent = store.folder.absolute().parent
         if not parent.is_dir():
             parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
@@ -273,6 +309,16 @@ for _argv in (["--scale", "huge"], ["--results-dir", "/nonexistent/x", "--status
 # the folder only once every notebook has succeeded; when one fails, the error propagates, the copy
 # is deleted, and `paper_figures/` is left byte for byte as it was, its README still true of it.
 #
+# Nothing the user made is removed or replaced on the way (issue 59). A file, a symbolic link or a
+# mount point where the folder should be is refused before anything runs (`check_figures_dir`): a
+# rename cannot put a folder in its place without moving the user's file. A file the user saves in
+# the folder while the notebooks run is carried into the new folder at the swap; one with a
+# namesake among the new files keeps the earlier folder aside, named on stderr. SIGTERM unwinds as
+# Ctrl-C does, and both leave the folder as it was and no copy behind. What a killed run (SIGKILL,
+# a power cut) leaves beside the folder, `<name>.partial-*` and `<name>.old-*`, carries a mark
+# naming its process; the next run removes those whose process is gone (finishing or undoing the
+# swap the dead run was in), and leaves anything unmarked or a live run's alone.
+#
 # The paper scale is a campaign, not a rerun of everything: its runs cost hours each, so it trains
 # the main comparison with the two plasticity baselines (the experiment `campaign`, notebook 09)
 # and draws only what reads them, notebooks 09, 10 and 10b (`PAPER_SCALE_NOTEBOOKS`; notebook 10
@@ -322,45 +368,54 @@ def make_figures(scale: str = "small", figures_dir=None, notebooks=None, timeout
 
     check_scale(scale)
     figures_dir, notebooks, experiments = figures_plan(scale, figures_dir, notebooks)
+    check_figures_dir(figures_dir)
     figures_dir.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale_staging(figures_dir)
     say = (lambda msg: print(msg, flush=True)) if stream else (lambda msg: None)
     records, t0 = {}, time.perf_counter()
     if scale == "paper" and experiments is not None:
         say(f"[figures] the paper scale draws its campaign ({', '.join(nb.name for nb in notebooks)}) into "
             f"{figures_dir}; every other figure is the medium scale's")
-    if precompute if precompute is not None else experiments is not None:
-        say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
-        run_sweep([spec for name in experiments or figures_plan(scale)[2] for spec in experiment_specs(name, scale)],
-                  extra.get("backend", "local"), extra.get("workers", 2),
-                  _results_store(extra.get("results_dir", "results")), extra.get("ray_address"),
-                  records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
-        say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
-    # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
-    # that a failure never leaves new files under a README that names the old scale and inputs.
-    records_dir = repo_path(extra.get("records_dir", "records"))
-    markers_before = _record_markers(records_dir)
-    staging = _staging_copy(figures_dir)
-    try:
-        for i, nb in enumerate(notebooks, start=1):
-            before = {p: p.stat().st_mtime_ns for p in staging.iterdir() if p.is_file()}
-            start = time.perf_counter()
-            say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
-            declared = notebook_parameters(nb)
-            params = {"scale": scale, "figures_dir": str(staging), **{k: v for k, v in extra.items() if k in declared}}
-            # one folder per scale: a paper-scale run must not overwrite the medium scale's executed copies
-            run_notebook(nb, params, timeout=timeout, stream=stream, output_dir=REPO_ROOT / "build" / "executed" / scale)
-            now = time.perf_counter()
-            say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
-            for p in staging.iterdir():
-                if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
-                    records[p.name] = nb.name
-        write_figures_readme(staging, records, scale=scale, inputs=figure_inputs())
-        changed = _changed_files(staging, figures_dir)
-        trained = _record_markers(records_dir) - markers_before
-        _swap_in(staging, figures_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)  # gone already after a swap
+    with _terminate_as_interrupt():  # SIGTERM unwinds as Ctrl-C does: the copy below is removed
+        if precompute if precompute is not None else experiments is not None:
+            say(f"[figures] training the {scale} runs that have no record first (cached runs are skipped)")
+            run_sweep([spec for name in experiments or figures_plan(scale)[2] for spec in experiment_specs(name, scale)],
+                      extra.get("backend", "local"), extra.get("workers", 2),
+                      _results_store(extra.get("results_dir", "results")), extra.get("ray_address"),
+                      records_dir=repo_path(extra.get("records_dir", "records")), retrain=extra.get("retrain", False))
+            say(f"[figures] sweep done, {_clock(time.perf_counter() - t0)} elapsed")
+        # All or nothing: the notebooks write into a copy, swapped in only when every one succeeded, so
+        # that a failure never leaves new files under a README that names the old scale and inputs.
+        records_dir = repo_path(extra.get("records_dir", "records"))
+        markers_before = _record_markers(records_dir)
+        staging, listed = _staging_copy(figures_dir)
+        try:
+            for i, nb in enumerate(notebooks, start=1):
+                before = {p: p.stat().st_mtime_ns for p in staging.iterdir() if p.is_file()}
+                start = time.perf_counter()
+                say(f"[figures] {i}/{len(notebooks)} {nb.name} (scale={scale}) started, {_clock(start - t0)} elapsed")
+                declared = notebook_parameters(nb)
+                params = {"scale": scale, "figures_dir": str(staging), **{k: v for k, v in extra.items() if k in declared}}
+                # one folder per scale: a paper-scale run must not overwrite the medium scale's executed copies
+                executed = REPO_ROOT / "build" / "executed" / scale
+                try:
+                    run_notebook(nb, params, timeout=timeout, stream=stream, output_dir=executed)
+                except Exception as err:  # named by the command's one line (figures_error_line)
+                    err.figures_notebook = (nb.name, executed / f"{nb.stem}.ipynb")
+                    raise
+                now = time.perf_counter()
+                say(f"[figures] {i}/{len(notebooks)} {nb.name} done in {_clock(now - start)}, {_clock(now - t0)} elapsed")
+                for p in staging.iterdir():
+                    if p.is_file() and p.name != "README.md" and before.get(p) != p.stat().st_mtime_ns:
+                        records[p.name] = nb.name
+            write_figures_readme(staging, records, scale=scale, inputs=figure_inputs())
+            changed = _changed_files(staging, figures_dir)
+            trained = _record_markers(records_dir) - markers_before
+            _swap_in(staging, figures_dir, listed)
+        finally:
+            shutil.rmtree(staging.parent, ignore_errors=True)  # the staging folder's own parent: ours alone
     shown = ", ".join(changed[:6]) + (f" and {len(changed) - 6} more" if len(changed) > 6 else "")
+
     def count(n: int, noun: str) -> str:
         return f"{n} {noun}{'' if n == 1 else 's'}"
 
@@ -541,45 +596,222 @@ def _changed_files(staging: Path, folder: Path) -> list:
                   and not ((folder / p.name).is_file() and filecmp.cmp(p, folder / p.name, shallow=False)))
 
 
-def _staging_copy(folder: Path) -> Path:
-    """A new folder beside `folder` (the same file system, so that a rename can swap it in) holding
-    a copy of its contents, modification times kept, without the staging and aside folders a killed
-    run of a nested output folder (paper_figures/paper_scale) left inside it."""
+class FiguresDirError(ValueError):
+    """A figures folder that `make_figures` cannot replace as a whole: a file, a mount point, a path
+    that is not UTF-8. One line naming it and what is allowed."""
+
+
+def check_figures_dir(folder) -> Path:
+    """`folder` as make_figures needs it: missing (it is created) or a folder that a rename can
+    move aside, named by a UTF-8 path. FiguresDirError otherwise, before anything runs: a file
+    there is the user's, and is never moved, replaced or removed."""
+    folder = Path(folder)
+    try:
+        str(folder).encode("utf-8")
+    except UnicodeEncodeError:
+        raise FiguresDirError(f"figures folder {ascii(str(folder))}: its path is not valid UTF-8 (the notebooks "
+                              "and the provenance README name it as text); name a folder whose path is UTF-8") from None
+    if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+        raise FiguresDirError(f"figures folder {folder} is a {'symbolic link' if folder.is_symlink() else 'file'}, "
+                              "not a folder; it is left as it is: name a folder (it is created if missing)")
+    if folder.is_dir() and os.path.ismount(folder):
+        raise FiguresDirError(f"figures folder {folder} is a mount point, which cannot be replaced as a whole; "
+                              "name a folder inside it")
+    return folder
+
+
+STAGING_MARK = ".pemamoe-figures-staging.json"  # in each staging and aside folder make_figures creates
+
+
+def _staging_copy(folder: Path) -> tuple:
+    """(staging, listing): a new folder beside `folder` (the same file system, so that a rename can
+    swap it in) holding a copy of its contents, modification times kept, without the staging and
+    aside folders a killed run of a nested output folder (paper_figures/paper_scale) left inside
+    it; and what was copied ({relative path: (mtime_ns, size)}), so that a file the user saves in
+    `folder` meanwhile is carried over at the swap. The staging folder is
+    `<folder>.partial-*/<folder name>`, its parent marked as this process's (clean_stale_staging)."""
     import shutil
     import tempfile
 
-    staging = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.partial-"))
+    top = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.partial-"))
+    staging = top / folder.name
     try:
+        _mark(top, {})
         if folder.is_dir():
-            shutil.copytree(folder, staging, symlinks=True, dirs_exist_ok=True,  # folder's mode too
+            listed = _listing(folder)
+            shutil.copytree(folder, staging, symlinks=True,  # folder's mode too
                             ignore=lambda at, names: [n for n in names if Path(at) == folder and (folder / n).is_dir()
                                                       and (".partial-" in n or ".old-" in n)])
         else:
-            staging.chmod(0o777 & ~current_umask())  # what mkdir would give, not mkdtemp's 0o700
+            listed = {}
+            staging.mkdir()  # the mode mkdir gives
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(top, ignore_errors=True)
         raise
-    return staging
+    return staging, listed
 
 
-def _swap_in(staging: Path, folder: Path) -> None:
+def _swap_in(staging: Path, folder: Path, listed: dict) -> None:
     """Put `staging` in place of `folder`: the old folder renamed aside, the new one renamed in,
-    the old one removed (on a failed rename the old one is put back)."""
+    the files the user saved in the old one during the run carried over, the old one removed (on
+    a failed rename the old one is put back). SIGINT and SIGTERM wait until it is done."""
     import shutil
     import tempfile
 
-    if not folder.exists():
-        staging.rename(folder)
-        return
-    aside = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.old-"))
-    folder.rename(aside / folder.name)
+    blocked = {signal.SIGINT, signal.SIGTERM}
+    signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
     try:
-        staging.rename(folder)
-    except BaseException:
-        (aside / folder.name).rename(folder)
-        aside.rmdir()
-        raise
+        if not folder.exists():
+            staging.rename(folder)
+            return
+        aside = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f"{folder.name}.old-"))
+        try:
+            _mark(aside, listed)
+            folder.rename(aside / folder.name)
+        except BaseException:
+            shutil.rmtree(aside, ignore_errors=True)  # only our mark in it: the folder did not move
+            raise
+        try:
+            staging.rename(folder)
+        except BaseException:
+            (aside / folder.name).rename(folder)
+            shutil.rmtree(aside, ignore_errors=True)
+            raise
+        _finish_aside(aside, folder, listed)
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
+
+
+def _finish_aside(aside: Path, folder: Path, listed: dict) -> None:
+    """The old folder, renamed aside, once the new one is in place: every file in it that the run
+    did not copy (saved or changed by the user since the copy) moves into the new folder; one the
+    new folder also has stays aside, and so does the aside folder, named on stderr. Otherwise the
+    aside folder is removed."""
+    import shutil
+
+    old, kept = aside / folder.name, []
+    if old.exists():
+        for rel, stamp in _listing(old).items():
+            if listed.get(rel) == stamp:
+                continue
+            target = folder / rel
+            if target.exists() or target.is_symlink():
+                kept.append(rel)
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.rename(old / rel, target)
+    if kept:
+        print(one_line(f"[figures] {len(kept)} files saved in {folder} during the run have a new namesake there "
+                       f"({', '.join(kept[:3])}{', ...' if len(kept) > 3 else ''}); the earlier folder, with "
+                       f"them, is kept in {old}"), file=sys.stderr, flush=True)
+        return
     shutil.rmtree(aside, ignore_errors=True)
+
+
+def _listing(folder: Path) -> dict:
+    """{path relative to folder: (mtime_ns, size)} of every file and symbolic link under `folder`
+    (links not followed), without the staging and aside folders of nested output folders."""
+    found = {}
+    for at, dirs, files in os.walk(folder):
+        if Path(at) == folder:
+            dirs[:] = [d for d in dirs if ".partial-" not in d and ".old-" not in d]
+        for name in files + [d for d in dirs if os.path.islink(os.path.join(at, d))]:
+            st = os.lstat(os.path.join(at, name))
+            found[os.path.relpath(os.path.join(at, name), folder)] = (st.st_mtime_ns, st.st_size)
+    return found
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process `pid` (Linux: /proc/<pid>/stat's 22nd field), None where unknown:
+    with the pid it names one process, not a later one that reuses the number."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rfind(")") + 2:].split()
+    return fields[19] if len(fields) > 19 else None
+
+
+def _mark(top: Path, listed: dict) -> None:
+    import json
+    import socket
+
+    (top / STAGING_MARK).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                                "started": _process_start(os.getpid()), "listed": listed}))
+
+
+def _dead_owner(top: Path) -> dict | None:
+    """The mark of a staging or aside folder whose process (on this host) is gone, else None: not
+    ours, unreadable, of another host or of a live process."""
+    import json
+    import socket
+
+    try:
+        mark = json.loads((top / STAGING_MARK).read_text())
+        pid, host = int(mark["pid"]), mark["host"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if host != socket.gethostname() or pid == os.getpid():
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return mark
+    except PermissionError:
+        pass
+    started = _process_start(pid)
+    return mark if started is not None and mark.get("started") not in (None, started) else None
+
+
+def clean_stale_staging(folder) -> list:
+    """Remove what killed runs of make_figures for `folder` left beside it (SIGKILL, a power cut):
+    its `<name>.partial-*` staging folders, and its `<name>.old-*` aside folders after carrying the
+    user's files over as the run would have (or, when the run died between its two renames, putting
+    the old folder back). Only folders marked by a make_figures process of this host that is gone;
+    anything else is left alone. Returns the folders removed."""
+    import glob
+    import shutil
+
+    folder, removed = Path(folder), []
+    for top in sorted(folder.parent.glob(f"{glob.escape(folder.name)}.*-*")):
+        kind = top.name[len(folder.name):].split("-", 1)[0]
+        if kind not in (".partial", ".old") or top.is_symlink() or not top.is_dir():
+            continue
+        mark = _dead_owner(top)
+        if mark is None:
+            continue
+        if kind == ".old":
+            if not folder.exists() and (top / folder.name).is_dir():
+                (top / folder.name).rename(folder)  # killed between the renames: the old folder back
+            elif folder.is_dir():
+                listed = {k: tuple(v) for k, v in (mark.get("listed") or {}).items()}
+                _finish_aside(top, folder, listed)
+                if top.exists():
+                    continue  # kept, and said so
+            else:
+                continue
+        shutil.rmtree(top, ignore_errors=True)
+        removed.append(top)
+    return removed
+
+
+@contextmanager
+def _terminate_as_interrupt():
+    """In the main thread: SIGTERM raises KeyboardInterrupt, as Ctrl-C does (the old handler back after)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 # %%

@@ -48,8 +48,8 @@
 # store never holds a seal over older logs. One object is one PUT, so a reader sees a whole old
 # file or a whole new one. A push cut off half way leaves a checkpoint newer than the logs at
 # worst, which resumes exactly like a local folder that was killed between the two writes. The
-# files keep the bytes they have in a local folder; what the store adds lives beside them, in the
-# run's lease objects (below).
+# files keep the bytes they have in a local folder, each in an object of the generation that wrote
+# it (`.g<g>.<name>`, below), named by that generation's lease.
 #
 # ### Who may write a run: the lease and its generation
 #
@@ -60,15 +60,21 @@
 # workers that create the same generation at once, exactly one succeeds, on every store that
 # implements conditional writes (AWS S3 since 2024, MinIO, moto; `tests/test_store.py` checks it on
 # a moto server). Its holder rewrites the lease (the heartbeat) at every sync and marks it released
-# when it is done with the run. A lease that is released, or whose heartbeat is older than
-# `LEASE_STALE_SECONDS` (its worker died: a killed machine cannot release anything), lets the next
-# worker create generation g + 1. Nobody deletes a lease or writes another worker's: a generation
+# when it is done with the run. A lease that is released, or whose heartbeat is older than the
+# stale time its holder declared in it (`$PEMAMOE_LEASE_STALE_SECONDS` of the holder, default
+# `LEASE_STALE_SECONDS`; its worker died: a killed machine cannot release anything), lets the next
+# worker create generation g + 1. The taker's own setting does not shorten a holder's declaration
+# (issue 59: it took live leases). Nobody deletes a lease or writes another worker's: a generation
 # is never used twice, and a worker learns that it lost a run by seeing a newer lease.
 #
-# Each holder also writes into its lease, at every push, the sha256 of every file it has left in
-# the store: its **manifest**, the fencing token of this design. The newest generation that has
-# pushed is the truth about the run's bytes; a file whose bytes only an older generation lists was
-# written by a worker that had lost the lease by then.
+# Each holder uploads a run's files to **objects of its own generation**, `<run>/.g<g>.<name>`,
+# which no other worker writes, and writes into its lease, at every push, the sha256 of every file
+# and the object holding it: its **manifest**. The newest generation that has pushed is the run:
+# readers read the objects its manifest names, and a done marker in it is the seal. A generation
+# uploads every file once as its own, the ones it pulled unchanged included, so that a sealed
+# manifest names only objects its own worker wrote. (Runs stored by earlier versions hold plain
+# `<run>/<name>` objects and manifests of digests only; they are read as before, with the fence
+# below, and a new generation moves them into objects of its own at its first push.)
 #
 # What this guarantees, and what it does not:
 #
@@ -85,27 +91,24 @@
 #   runs again after the files and before the done marker. A holder that stalls past the stale time
 #   (a paused process, a frozen VM, a long GC) and then wakes therefore finds the newer lease
 #   and writes nothing.
-# * **What fencing adds: readers ignore late writes.** `pull_run`, `refresh_finished` and
-#   `fetch_run` check every file they copy against the newest manifest: a file listed only by an
-#   older generation is refused with one line naming the run and both generations, and under a done
-#   marker every file must be the one the sealing generation listed. A late write cannot pass for
-#   the sealed run.
+# * **A late upload never touches another generation's run.** A check followed by a put is two
+#   requests, and S3 has no put that is conditional on another object: a holder that passes its
+#   check and then stalls past the stale time inside its put (issue 59: a paused process) writes
+#   after a takeover. Its bytes land in its own generation's objects, which the newer generation's
+#   manifest does not name: a run the taker sealed stays byte for byte what it sealed, and is read
+#   as finished; the late writer learns at its next lease write that it lost the run.
+# * **Readers check every byte.** `pull_run`, `refresh_finished` and `fetch_run` check every file
+#   they copy against the manifest that names it: under a done marker every file must be the one
+#   the sealing generation listed, and (in a run of the earlier layout, where a late write could
+#   land on the plain object) a file listed only by an older generation is refused with one line
+#   naming the run and both generations.
 #
-# What it cannot exclude: a check followed by a put is two requests, and S3 has no put that is
-# conditional on another object. A holder that passes its check and then stalls for longer than
-# the stale time before its put lands (or whose put itself takes that long) writes after a
-# takeover. Renewing the heartbeat just before the check shrinks that window to the time between
-# the check and the end of the put, and the stale time (10 minutes by default) is many times the
-# sync interval and any upload. If it happens anyway, the late bytes are in the store. A sealed run
-# is then refused by every reader (visibly broken, never silently the wrong run: delete its folder
-# in the store to train it again); an unsealed one is refused once the late writer's manifest lists
-# them (it writes it right after its files). A late file its writer never got to list cannot be
-# told apart from a push cut off by a crash: a checkout of the unsealed run takes it and resumes
-# from it as after any crash (it is this run's own checkpoint or log, from a worker that trained
-# it); if it lands after the new holder's checkout, that holder's next push of the file replaces
-# it, and if there is none, the run is refused once sealed. Staleness also compares the taker's
-# clock with the holder's: clocks more than a fraction of the stale time apart weaken the first
-# point.
+# What it does not exclude: a stalled holder whose manifest write lands after a takeover, but
+# before the taker's first push, is the newest manifest for that while; readers then see the late
+# writer's run, whole and consistent (its own objects, its digests), until the taker pushes.
+# Staleness compares the taker's clock with the holder's: clocks more than a fraction of the stale
+# time apart weaken the first point. Objects of generations that lost a run stay in the store
+# (unread) until its folder is deleted.
 
 # %%
 #| default_exp store
@@ -120,7 +123,6 @@ seed = 0
 import hashlib
 import json
 import os
-import shutil
 import socket
 import sys
 import threading
@@ -130,13 +132,14 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from pemamoe.core import atomic_path, one_line, require
-from pemamoe.runs import PicklableError
+from pemamoe.runs import PicklableError, file_digest, file_stamp, link_snapshot
 
 # The files of a run folder that the store keeps, in upload order: done.json last (it seals the logs).
 STORE_FILES = ("config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "sweep.json", "done.json")
 SEALED_FILES = ("config.json", "done.json", "metrics.parquet", "episodes.parquet")  # what says a run is finished
 LEASE_PREFIX = ".lease-"  # a run's leases in the store: .lease-<generation>.json, one per holder
 LEGACY_LEASE = ".lease.json"  # the single lease of earlier versions: still respected while it is live
+OBJECT_PREFIX = ".g"  # a generation's own copy of a run file: .g<generation>.<name>, named by its manifest
 SYNC_SECONDS = 30.0  # how often a worker copies its runs' changed files to the store and renews its leases
 LEASE_STALE_SECONDS = 600.0  # a lease not renewed for this long belongs to a dead worker
 CACHE_ENV = "PEMAMOE_CACHE"  # the local cache's root (default ~/.cache/pemamoe)
@@ -176,6 +179,9 @@ def _heartbeat(holder: dict) -> float:
 
 # %%
 #| export
+ENV_SECONDS_LIMIT = {SYNC_ENV: 86400.0, STALE_ENV: 30 * 86400.0}  # the largest value each setting takes
+
+
 def _env_seconds(name: str, default: float) -> float:
     text = os.environ.get(name)
     if text is None or text.strip() == "":
@@ -184,7 +190,21 @@ def _env_seconds(name: str, default: float) -> float:
         value = float(text)
     except ValueError:
         value = float("nan")
-    return require("environment", name, value, "real", gt=0.0)
+    return require("environment", name, value, "real", gt=0.0, le=ENV_SECONDS_LIMIT[name])
+
+
+def check_store_environment() -> None:
+    """Read every PEMAMOE_* setting of the store once: a bad one raises ValueError, one line naming
+    the variable, its value and what is allowed (the commands call it before anything runs)."""
+    for name, default in ((SYNC_ENV, SYNC_SECONDS), (STALE_ENV, LEASE_STALE_SECONDS)):
+        _env_seconds(name, default)
+
+
+def _declared_stale(holder: dict, default: float) -> float:
+    value = holder.get("stale_after")
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value <= ENV_SECONDS_LIMIT[STALE_ENV]:
+        return float(value)
+    return default
 
 
 def cache_root() -> Path:
@@ -383,16 +403,17 @@ def _access_errors(store):
 # %% [markdown]
 # ## Pull and push
 #
-# `pull_run` makes the cache folder a copy of what the store holds for a run: the store is the
-# truth, so a cached file the store lacks is deleted (a done marker left from an earlier try must
-# not seal anything). `names` limits it to some files: the sweep's driver pulls only the sealed
+# `pull_run` makes the cache folder a copy of what the store holds for a run (the objects the newest
+# manifest names, `run_objects`): the store is the truth, so a cached file the store lacks is
+# deleted (a done marker left from an earlier try must not seal anything). `names` limits it to some files: the sweep's driver pulls only the sealed
 # files to learn whether a run is finished, never the checkpoint. Every file is checked against the
 # run's manifests before any of them replaces a cached one (`_Fence` below): a refused pull leaves
 # the cache as it was.
 #
-# `push_run` is the holder's side: it renews and checks the lease, copies back the files that
-# changed since the last push (by size and modification time), in the order above, writes the
-# manifest into the lease, checks again, and only then uploads the done marker. A file is uploaded
+# `push_run` is the holder's side: it renews and checks the lease, copies the files that changed
+# since the last push (by size and modification time), in the order above, to its own objects,
+# then the done marker to its own, and writes the manifest into the lease, checking again: the
+# manifest that names a done marker is the seal. A file is uploaded
 # from a hard link taken just before (training replaces its files by renaming new ones over them,
 # which leaves the link alone), so the sha256 in the manifest is that of the bytes uploaded.
 
@@ -409,15 +430,23 @@ def pull_run(store: ResultsStore, scale: str, run: str, names=STORE_FILES) -> di
     fence, digests = _Fence(store, scale, run, stored), {}
     with ExitStack() as installs:  # every file is checked before any is renamed into place
         for name in names:
-            if name in stored:
+            if fence.object(name) is not None:
                 tmp = installs.enter_context(atomic_path(folder / name))
-                store.fs.get_file(store.key(scale, run, name), str(tmp))
-                digests[name] = _digest(tmp)
+                store.fs.get_file(store.key(scale, run, fence.object(name)), str(tmp))
+                digests[name] = file_digest(tmp)
                 fence.check(name, digests[name])
     for name in names:
-        if name not in stored:
+        if fence.object(name) is None:
             (folder / name).unlink(missing_ok=True)
     return _stats(folder, digests)
+
+
+def run_objects(store: ResultsStore, scale: str, run: str) -> dict:
+    """{file name: the object of the run folder in the store that holds it} as readers see the run:
+    the newest generation's own objects (.g<generation>.<name>), or the plain names of a run stored
+    by an earlier version."""
+    fence = _Fence(store, scale, run, store.stored_files(scale, run))
+    return {name: fence.object(name) for name in STORE_FILES if fence.object(name) is not None}
 
 
 def push_run(lease: "StoreLease", folder, pushed: dict | None = None) -> dict:
@@ -431,29 +460,34 @@ def push_run(lease: "StoreLease", folder, pushed: dict | None = None) -> dict:
     folder, pushed = Path(folder), dict(pushed or {})
     sealed = (folder / "done.json").exists()
     lease.renew(pushed)
-    if not sealed and pushed.pop("done.json", None) is not None:  # started over here: unseal the store first
-        _remove(store, store.key(scale, run, "done.json"))
+    if not sealed and pushed.pop("done.json", None) is not None:  # started over here: unsealed by the manifest
+        lease.objects.pop("done.json", None)
+        _remove(store, store.key(scale, run, "done.json"))  # and a seal of an earlier version's layout
     for name in STORE_FILES[:-1]:
-        stamp = _stamp(folder / name)
+        stamp = file_stamp(folder / name)
         if stamp is None:
-            if pushed.pop(name, None) is not None:  # deleted here since (a run started over): there too
-                _remove(store, store.key(scale, run, name))
+            if pushed.pop(name, None) is not None:  # deleted here since (a run started over): not listed
+                lease.objects.pop(name, None)
             continue
-        if pushed.get(name, ())[:2] == stamp:
-            continue
-        with _snapshot(folder / name) as snap:
+        if pushed.get(name, ())[:2] == stamp and name in lease.objects:
+            continue  # an unchanged file this generation uploaded: a pulled one goes up once, as its own
+        with link_snapshot(folder / name) as snap:
             if snap is None:  # replaced or removed meanwhile: the next push sees it
                 continue
-            state = (*_stamp(snap), _digest(snap))
-            store.fs.put_file(str(snap), store.key(scale, run, name))
-        pushed[name] = state
-    seal = folder / "done.json" if sealed and pushed.get("done.json", ())[:2] != _stamp(folder / "done.json") else None
-    with _snapshot(seal) as snap:
-        state = None if snap is None else (*_stamp(snap), _digest(snap))
-        lease.files = {name: entry[2] for name, entry in pushed.items()} | ({"done.json": state[2]} if state else {})
-        lease.renew(pushed)  # the manifest, then: still the holder, and still no seal of another's?
+            state = (*file_stamp(snap), file_digest(snap))
+            store.fs.put_file(str(snap), store.key(scale, run, lease.object_name(name)))
+        pushed[name], lease.objects[name] = state, lease.object_name(name)
+    seal = folder / "done.json" if sealed and (pushed.get("done.json", ())[:2] != file_stamp(folder / "done.json")
+                                               or "done.json" not in lease.objects) else None
+    with link_snapshot(seal) as snap:
+        state = None if snap is None else (*file_stamp(snap), file_digest(snap))
+        if state is not None:  # its own object, which nobody reads until the manifest below names it
+            store.fs.put_file(str(snap), store.key(scale, run, lease.object_name("done.json")))
+            lease.objects["done.json"] = lease.object_name("done.json")
+        lease.files = {name: entry[2] for name, entry in pushed.items() if name in lease.objects} | (
+            {"done.json": state[2]} if state else {})
+        lease.renew(pushed)  # the manifest (with a done marker: the seal), then: still the holder?
         if state is not None:
-            store.fs.put_file(str(snap), store.key(scale, run, "done.json"))
             pushed["done.json"] = state
     return pushed
 
@@ -465,46 +499,8 @@ def _remove(store: ResultsStore, key: str) -> None:
         pass
 
 
-def _stamp(path: Path) -> tuple | None:
-    """(mtime_ns, size) of a file, None when it is missing: what says it changed since a push."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_mtime_ns, st.st_size
-
-
-def _digest(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def _stats(folder: Path, digests: dict) -> dict:
-    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := _stamp(folder / name)) is not None}
-
-
-@contextmanager
-def _snapshot(path):
-    """A hard link to `path` (a copy where links fail) that an atomic replace of `path` leaves alone;
-    None when `path` is None or missing. Named like a torn atomic write (.*.tmp): a killed push's
-    link is removed with those when the run's folder is next locked."""
-    snap = None
-    if path is not None:
-        snap = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.push.tmp")
-        try:
-            os.link(path, snap)
-        except FileNotFoundError:
-            snap = None
-        except OSError:
-            try:
-                shutil.copy2(path, snap)
-            except FileNotFoundError:
-                snap = None
-    try:
-        yield snap
-    finally:
-        if snap is not None:
-            snap.unlink(missing_ok=True)
+    return {name: (*stamp, digest) for name, digest in digests.items() if (stamp := file_stamp(folder / name)) is not None}
 
 
 def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
@@ -514,7 +510,7 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
     if not store.remote:
         return
     folder = store.run_dir(scale, run)
-    if "done.json" in store.stored_files(scale, run):
+    if _Fence(store, scale, run, store.stored_files(scale, run)).sealed:
         pull_run(store, scale, run, SEALED_FILES)
     elif (folder / "done.json").exists():  # the store has no seal: neither may the cache
         (folder / "done.json").unlink()
@@ -533,6 +529,12 @@ def refresh_finished(store: ResultsStore, scale: str, run: str) -> None:
 #| export
 def _lease_name(generation: int) -> str:
     return f"{LEASE_PREFIX}{generation}.json"
+
+
+def object_name(generation: int, name: str) -> str:
+    """The object of the run folder in the store that generation `generation` writes `name` to:
+    its own, which no other generation writes (a late upload lands there, never over another's)."""
+    return f"{OBJECT_PREFIX}{generation}.{name}"
 
 
 def lease_generations(names) -> list:
@@ -564,6 +566,7 @@ class StoreLease:
         self.stale_after = stale_after if stale_after is not None else _env_seconds(STALE_ENV, LEASE_STALE_SECONDS)
         self.owner = uuid.uuid4().hex
         self.generation, self.files, self.released = None, None, False
+        self.objects = {}  # file name -> the object this generation uploaded it to
 
     @property
     def label(self) -> str:
@@ -576,13 +579,20 @@ class StoreLease:
     def _key(self, generation) -> str:
         return self.store.key(self.scale, self.run, _lease_name(generation))
 
+    def object_name(self, name: str) -> str:
+        return object_name(self.generation, name)
+
     def _body(self) -> bytes:
         return json.dumps({"owner": self.owner, "host": socket.gethostname(), "pid": os.getpid(),
                            "heartbeat": time.time(), "stale_after": self.stale_after, "generation": self.generation,
-                           "released": self.released, "files": self.files}).encode()
+                           "released": self.released, "files": self.files,
+                           "objects": self.objects if self.files is not None else None}).encode()
 
     def _live(self, holder: dict) -> bool:
-        return not holder.get("released") and time.time() - _heartbeat(holder) <= self.stale_after
+        """Whether `holder`'s lease still counts, judged by the stale time its holder declared (its
+        own sync interval set it), not this taker's: a taker with a shorter one takes no live lease.
+        A lease that declares none, or a value out of bounds, is judged by this taker's."""
+        return not holder.get("released") and time.time() - _heartbeat(holder) <= _declared_stale(holder, self.stale_after)
 
     def acquire(self) -> "StoreLease":
         stored = self.store.stored_files(self.scale, self.run)
@@ -643,20 +653,36 @@ class _Fence:
 
     def __init__(self, store: ResultsStore, scale: str, run: str, stored: set):
         self.store, self.scale, self.run = store, scale, run
-        self.generations, self.sealed, self._files = lease_generations(stored), "done.json" in stored, {}
+        self.generations, self._files, self._objects = lease_generations(stored), {}, {}
         self.last = next((g for g in reversed(self.generations) if self.files(g) is not None), None)
+        # The newest manifest that names its objects is the run; else (an earlier version's layout) the plain names.
+        self.objects = self._objects.get(self.last) if self.last is not None else None
+        if self.objects is None:
+            self.objects = {name: name for name in stored if not name.startswith(".")}
+        self.sealed = "done.json" in self.objects
 
     def files(self, generation: int) -> dict | None:
         if generation not in self._files:
             body = _read_lease(self.store, self.store.key(self.scale, self.run, _lease_name(generation))) or {}
             self._files[generation] = body.get("files") if isinstance(body.get("files"), dict) else None
+            objects = body.get("objects")
+            if isinstance(objects, dict) and self._files[generation] is not None:
+                self._objects[generation] = {name: key for name, key in objects.items()
+                                             if key == object_name(generation, name)}  # its own, no other
         return self._files[generation]
+
+    def object(self, name: str) -> str | None:
+        """The object readers read `name` from; None when the run has no such file."""
+        return self.objects.get(name)
 
     def check(self, name: str, digest: str) -> None:
         """Refuse a file whose bytes only an older generation lists, and, under a done marker, one
-        that the last generation does not list (store without leases of this kind: nothing to check)."""
+        that the last generation does not list (store without leases of this kind: nothing to check).
+        The last generation's own objects only it writes: under its seal, their bytes are its."""
         if self.last is None or self.files(self.last).get(name) == digest:
             return
+        if self.last in self._objects and not self.sealed:
+            return  # its own object, which it is replacing: the manifest of the new bytes follows
         run, lease, did = f"{self.scale}/{self.run}", self.generations[-1], "sealed" if self.sealed else "wrote"
         key = self.store.key(self.scale, self.run, _lease_name(self.last))
         older = [g for g in self.generations if g < self.last and (self.files(g) or {}).get(name) == digest]
@@ -792,8 +818,9 @@ def fetch_run(store, scale: str, run: str) -> Path:
 # Two workers with caches of their own share one run in an in-memory store (fsspec's `memory://`,
 # which implements the exclusive create). A pushes and stalls; B finds A's lease stale, takes the
 # run over as generation 2, trains it on and seals it. When A wakes, its push is refused before it
-# uploads anything. Then the window no check can close: bytes of A's land anyway, as if its check
-# had passed just before the takeover. The reader refuses them, naming both generations.
+# uploads anything. Then the window no check can close: bytes of A's land anyway, with A's manifest
+# of them, as if its check had passed just before the takeover. They land in A's own objects: the
+# run a reader reads is still the one B sealed.
 
 # %%
 import tempfile
@@ -815,22 +842,25 @@ with tempfile.TemporaryDirectory() as tmp:
     (folder_b / "done.json").write_text("{}")
     push_run(b, folder_b, pushed_b)
     b.release()
-    sealed = {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in ("metrics.parquet", "done.json")}
+
+    def read_run():
+        return {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", key))
+                for name, key in run_objects(store_a, "ci", "demo-run").items()}
+
+    sealed = read_run()
     print(f"A generation {a.generation}, B generation {b.generation}; sealed by B:", sealed)
     (folder_a / "metrics.parquet").write_bytes(b"A's later logs")
     try:
         push_run(a, folder_a, pushed_a)
     except StoreLeaseError as err:
         print("A's push:", err)
-    assert sealed == {name: store_a.fs.cat_file(store_a.key("ci", "demo-run", name)) for name in sealed}
-    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", "metrics.parquet"))
-    a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
+    assert read_run() == sealed
+    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "demo-run", a.object_name("metrics.parquet")))
+    a.files = {**a.files, "metrics.parquet": file_digest(folder_a / "metrics.parquet")}
     store_a.fs.pipe_file(a.key, a._body())  # the late write and A's manifest of it
-    try:
-        refresh_finished(store_b, "ci", "demo-run")
-    except StoreLeaseError as err:
-        print("the reader:", err)
-    assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"  # the cache kept B's
+    refresh_finished(store_b, "ci", "demo-run")  # read as B sealed it: no error
+    assert read_run() == sealed and (folder_b / "metrics.parquet").read_bytes() == b"B's logs, all of them"
+    print("the run's objects after A's late write:", run_objects(store_a, "ci", "demo-run"))
     store_a.fs.rm(store_a.key("ci"), recursive=True)
 
 # %% [markdown]

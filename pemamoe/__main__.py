@@ -17,7 +17,7 @@ def main(argv=None) -> int:
         formatter_class=lambda prog: argparse.HelpFormatter(prog, max_help_position=20, width=100))
     sub = parser.add_subparsers(dest="command", required=True, title="commands")
     fig = sub.add_parser("figures", help="execute every notebook and regenerate paper_figures/")
-    from pemamoe.core import BACKENDS, SCALES, int_arg  # light: the parsers are built without torch
+    from pemamoe.core import BACKENDS, SCALES, WORKERS_LIMIT, int_arg  # light: the parsers are built without torch
 
     fig.add_argument("--scale", default="medium", choices=SCALES,
                      help="the preset scale (default: medium, whose run records are committed)")
@@ -32,19 +32,24 @@ def main(argv=None) -> int:
                           "(08_theory.py, 08_theory), or a path to one")
     fig.add_argument("--backend", default="local", choices=BACKENDS,
                      help="sweep backend: local | ray (default: local)")
-    fig.add_argument("--workers", type=int_arg(1), default=2, help="parallel training runs (default: 2)")
+    fig.add_argument("--workers", type=int_arg(1, le=WORKERS_LIMIT), default=2, help="parallel training runs (default: 2)")
     fig.add_argument("--ray-address", default=None, help="Ray cluster address (backend ray)")
     fig.add_argument("--results-dir", default="results",
                      help="the results store the runs without a record train into: a folder or a URL such as "
                           "s3://bucket/prefix (appendix 09f; default: results/)")
     sub.add_parser("sweep", help="run experiment sweeps (see notebook 09)", add_help=False)
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] in (["train"], ["sweep"], ["figures"]):
+        _check_environment(parser)
     if argv[:1] == ["train"]:  # built only for train (its --without choices load the phase controller lazily)
         _add_train_parser(sub)
     else:
         sub.add_parser("train", help=TRAIN_HELP, add_help=False)
-    sub.add_parser("export", help="write pemamoe/ from the notebooks' exported cells")
-    sub.add_parser("check-export", help="fail if pemamoe/ differs from what the notebooks export")
+    for name, text in (("export", "write pemamoe/ from the notebooks' exported cells"),
+                       ("check-export", "fail if pemamoe/ differs from what the notebooks export")):
+        sub.add_parser(name, help=text).add_argument(
+            "--root", default=None, metavar="CHECKOUT",
+            help="the pemamoe checkout (default: the one this package is in)")
     if argv[:1] == ["sweep"]:  # the sweep command owns its own options
         if _option_value(argv[1:], "--backend") == "ray":
             _require_extra("python -m pemamoe sweep --backend ray", RAY_MODULES, "ray", parser)
@@ -58,7 +63,8 @@ def main(argv=None) -> int:
     if args.command in ("export", "check-export"):
         from pemamoe import literate
 
-        return literate.main(["export" if args.command == "export" else "check"])
+        root = ["--root", args.root] if args.root is not None else []
+        return literate.main(["export" if args.command == "export" else "check", *root])
     if args.command == "figures":
         from pemamoe.core import check_scale
 
@@ -72,6 +78,7 @@ def main(argv=None) -> int:
         # A relative --figures-dir is relative to where the command runs (make_figures alone would
         # read it under the repository root, as the notebooks do).
         figures_dir = Path(args.figures_dir).resolve() if args.figures_dir else None
+        _check_figures_dir(figures_dir, args.scale, fig)
         if str(args.results_dir).strip() == "":
             fig.error("--results-dir must be a folder path or a URL, got an empty string")
         try:
@@ -87,14 +94,68 @@ def main(argv=None) -> int:
             fig.exit(1, f"{fig.prog}: error: {err}\n")
         from pemamoe.commands import make_figures  # after the checks: it imports the trainer
 
-        readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
-                              workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
-                              results_dir=results_dir)
+        try:
+            readme = make_figures(args.scale, figures_dir, args.notebook, backend=args.backend,
+                                  workers=args.workers, ray_address=args.ray_address, retrain=args.retrain,
+                                  results_dir=results_dir)
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (make_figures raises it for both)
+            if _traceback_wanted():
+                raise
+            print(f"\n{fig.prog}: {str(stop) or 'interrupted'}; the figures folder is as it was before the run "
+                  "(run the same command again to draw them)", file=sys.stderr)
+            return 143 if "SIGTERM" in str(stop) else 130
+        except Exception as err:
+            from pemamoe.commands import figures_error_line
+
+            line = figures_error_line(err, [results_dir])
+            if line is None or _traceback_wanted():
+                raise
+            print(f"{fig.prog}: error: {line}", file=sys.stderr)
+            return 1
         print(f"[figures] provenance written to {readme}")
         return 0
     if args.command == "train":
         return train_command(args, args.train_parser)
     return 2
+
+
+def _check_environment(parser) -> None:
+    """The PEMAMOE_* settings a command reads, checked before anything is imported or runs: the
+    store's intervals (bounded numbers) and $PEMAMOE_PLUGINS (every module it names is there; found,
+    not imported). One line naming the variable, its value and what is allowed."""
+    from importlib.util import find_spec
+
+    from pemamoe.methods import missing_plugin_error, plugin_modules
+    from pemamoe.store import check_store_environment
+
+    try:
+        check_store_environment()
+        for module in plugin_modules():
+            try:
+                found = find_spec(module)
+            except (ImportError, ValueError) as err:  # a dotted name whose package is not there
+                raise missing_plugin_error(module, f" ({one_line(err)})") from None
+            if found is None:
+                raise missing_plugin_error(module)
+    except ValueError as err:
+        parser.exit(2, f"{parser.prog}: error: {one_line(err)}\n")
+
+
+def _traceback_wanted() -> bool:
+    from pemamoe.commands import traceback_wanted  # $PEMAMOE_TRACEBACK
+
+    return traceback_wanted()
+
+
+def _check_figures_dir(figures_dir, scale: str, parser) -> None:
+    """--figures-dir (or the default) is a folder make_figures may replace: refused here, one line,
+    before any notebook runs (make_figures checks it again: nothing the user made is replaced)."""
+    from pemamoe.commands import FiguresDirError, check_figures_dir, figures_plan
+
+    try:
+        check_figures_dir(figures_plan(scale, figures_dir, [])[0])
+    except FiguresDirError as err:
+        parser.error(f"--figures-dir: {err}")
 
 
 def _results_dir(text: str) -> str:
@@ -116,6 +177,7 @@ def _check_parent_folder(flag: str, text: str, parser) -> None:
     store = open_store(text)
     if store.remote:
         return
+    _check_store_folder(flag, text, store, parser)
     parent = store.folder.absolute().parent
     if not parent.is_dir():
         parser.error(f"{flag} {text}: its parent folder {parent} does not exist; name a folder in an existing "
@@ -174,6 +236,7 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     # import. Every value is checked here, while the arguments are parsed (the seed's range too).
     from pemamoe.core import MECHANISMS, SCALES, SEED_LIMIT, TRAINING_SCALE_HELP, int_arg, real_arg
     from pemamoe.commands import SET_HELP
+    from pemamoe.core import ITERATIONS_LIMIT, NOISE_GAMMA_LIMIT
     from pemamoe.methods import METHOD_REGISTRY, load_plugins, proposed_method
 
     load_plugins()  # methods registered by $PEMAMOE_PLUGINS, as the trainer would see them
@@ -197,11 +260,11 @@ def _add_train_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--without", action="append", default=[], choices=MECHANISMS, metavar="MECHANISM",
                    help="switch a phase-controller mechanism off (repeatable; methods with the phase controller "
                         "only): %(choices)s")
-    p.add_argument("--noise-gamma", type=real_arg(ge=0), default=None, metavar="GAMMA",
+    p.add_argument("--noise-gamma", type=real_arg(ge=0, le=NOISE_GAMMA_LIMIT), default=None, metavar="GAMMA",
                    help="expert noise scale of the phase controller (methods with the phase controller only; default: the preset's)")
     p.add_argument("--device", default=None, choices=("cpu", "cuda", "auto"),
                    help="torch device (default: the config's)")
-    p.add_argument("--iterations", type=int_arg(1), default=None, metavar="N",
+    p.add_argument("--iterations", type=int_arg(1, le=ITERATIONS_LIMIT), default=None, metavar="N",
                    help="training iterations, overriding the preset's")
     p.add_argument("--no-resume", action="store_true",
                    help="start afresh even if --out holds a checkpoint or a finished run of this config")
@@ -223,10 +286,13 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
     if args.out is not None and args.out.strip() == "":
         parser.error("--out must name a folder, got an empty string (--out . is the current directory)")
     _check_out(args.out, parser)
+    _check_controller_flags(args, parser)  # what needs no trainer is checked before it is imported
+    _check_device(args.device, parser)
     try:
         args.store = open_store(checkout_store(args.results_dir, "results"))
     except ValueError as err:
         parser.error(f"--results-dir: {err}")
+    _check_store_folder("--results-dir", args.results_dir, args.store, parser)
     if args.store.remote and args.out is not None:
         parser.error(f"--out names a local folder and --results-dir {args.results_dir} a remote store; the run "
                      "goes to <store>/train/<run name>: pass one of them")
@@ -240,15 +306,81 @@ def train_command(args, parser: argparse.ArgumentParser) -> int:
         return 130
     except Exception as err:
         line = error_line(err, [args.store], start_over="delete the folder, or pass --no-resume to start it over")
-        if line is None:
+        if line is None or _traceback_wanted():
             raise
         print(f"{parser.prog}: error: {line}", file=sys.stderr)
         return 1
 
 
 def _check_out(out, parser) -> None:
+    if out is not None:
+        _check_utf8("--out", out, parser)
     if out is not None and Path(out).exists() and not Path(out).is_dir():
         parser.error(f"--out {out} is a file, not a folder; name a folder (it is created if missing)")
+
+
+def _check_utf8(flag: str, path, parser) -> None:
+    """A path the run folder's files name as text (config.json, done.json, records) must be UTF-8."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        parser.error(f"{flag} {ascii(str(path))}: the path is not valid UTF-8 (the run's files name it as "
+                     "text); name a folder whose path is UTF-8")
+
+
+def _check_store_folder(flag: str, text: str, store, parser) -> None:
+    """A local store named by `flag` is a folder, or not there yet (it is created): a file there is
+    refused here, naming the flag, rather than as "Not a directory" once the trainer runs."""
+    if store.remote:
+        return
+    _check_utf8(flag, text, parser)
+    if store.folder.exists() and not store.folder.is_dir():
+        parser.error(f"{flag} {text} is a file, not a folder; name a folder (it is created if missing) or a URL "
+                     "such as s3://bucket/prefix")
+
+
+def _check_controller_flags(args, parser) -> None:
+    """--without and --noise-gamma configure the phase controller: refused, before the trainer is
+    imported, for a method without it."""
+    from pemamoe.methods import METHOD_REGISTRY, method_spec
+
+    if not (args.without or args.noise_gamma is not None) or method_spec(args.method).plasticity == "phase_controller":
+        return
+    with_controller = " or ".join(f"--method {m}" for m, spec in METHOD_REGISTRY.items()
+                                  if spec.plasticity == "phase_controller")
+    parser.error(f"--without and --noise-gamma configure the phase controller, which only {with_controller} "
+                 f"uses; got --method {args.method}")
+
+
+def _check_device(device, parser) -> None:
+    """--device cuda on a machine whose torch cannot see a GPU, told without importing torch (10 s
+    here): a torch built for CPUs only (its version.py says cuda = None and hip = None), or no GPU
+    driver's device file. The trainer checks again (resolve_device) where this cannot tell."""
+    from importlib.util import find_spec
+
+    if device != "cuda":
+        return
+    spec = find_spec("torch")
+    if spec is None or not spec.submodule_search_locations:
+        return
+    try:
+        text = (Path(next(iter(spec.submodule_search_locations))) / "version.py").read_text()
+    except OSError:
+        return
+    import re
+
+    builds = {key: re.search(rf"^{key}\b[^=\n]*=\s*(.+)$", text, re.M) for key in ("cuda", "hip", "__version__")}
+    if builds["cuda"] is None or builds["hip"] is None:
+        return
+    version = builds["__version__"].group(1).strip().strip("'\"") if builds["__version__"] else "?"
+    if builds["cuda"].group(1).strip() == "None" and builds["hip"].group(1).strip() == "None":
+        parser.error(f"--device cuda: this machine's torch {version} is built for CPUs only, so torch sees no CUDA "
+                     "device; use --device cpu or --device auto")
+    import glob
+
+    if sys.platform.startswith("linux") and not (glob.glob("/dev/nvidia[0-9]*") or Path("/dev/kfd").exists() or Path("/dev/dxg").exists()):
+        parser.error("--device cuda: no GPU device file on this machine (no /dev/nvidia*), so torch sees no CUDA "
+                     "device; use --device cpu or --device auto")
 
 
 def _train(args, parser: argparse.ArgumentParser) -> int:

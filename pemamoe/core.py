@@ -202,12 +202,14 @@ MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseCon
     "temperature_schedule",
 )
 SEED_LIMIT = 2**63  # seeds are 0 <= seed < 2**63, so every environment's seed + index fits torch's 64-bit seed
+ITERATIONS_LIMIT, NOISE_GAMMA_LIMIT = 10**7, 10.0  # upper bounds (issue 59): 926x the paper's 10,800; 2,000x its 0.005
+WORKERS_LIMIT, HOURS_LIMIT = 1024, 8760.0  # workers (or runs of one population) of a sweep or figures; --hours: a year
 
 
-def int_arg(low: int, below: int | None = None):
-    """argparse `type=`: an integer >= low (and < below, if given), else ArgumentTypeError naming
-    the value as typed and what is allowed."""
-    allowed = f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+def int_arg(low: int, below: int | None = None, *, le: int | None = None):
+    """argparse `type=`: an integer >= low (< below, or <= le), else ArgumentTypeError naming it and what is allowed."""
+    allowed = f"in [{low}, {le}]" if le is not None else f">= {low}" if below is None else f"in [{low}, {_bound_text(below)})"
+    below = le + 1 if le is not None else below
 
     def parse(text: str) -> int:
         import argparse
@@ -223,10 +225,10 @@ def int_arg(low: int, below: int | None = None):
     return parse
 
 
-def real_arg(*, gt: float | None = None, ge: float | None = None):
-    """argparse `type=`: a finite number > gt (or >= ge), else ArgumentTypeError naming the value
-    as typed and what is allowed."""
+def real_arg(*, gt: float | None = None, ge: float | None = None, le: float | None = None):
+    """argparse `type=`: a finite number > gt (or >= ge; <= le), else ArgumentTypeError naming it and what is allowed."""
     allowed = f" > {gt:g}" if gt is not None else f" >= {ge:g}" if ge is not None else ""
+    allowed += (" and" if allowed else "") + f" <= {le:g}" if le is not None else ""
 
     def parse(text: str) -> float:
         import argparse
@@ -235,7 +237,7 @@ def real_arg(*, gt: float | None = None, ge: float | None = None):
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or (gt is not None and value <= gt) or (ge is not None and value < ge):
+        if not math.isfinite(value) or not _within(value, {"gt": gt, "ge": ge, "lt": None, "le": le}):
             raise argparse.ArgumentTypeError(f"must be a finite number{allowed}, got {text!r}")
         return value
 

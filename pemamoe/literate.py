@@ -272,6 +272,21 @@ class NoNotebooksError(ExportError):
     """There are no notebooks beside the package: an installed copy, not a checkout."""
 
 
+class NotACheckoutError(ExportError):
+    """notebooks/ beside the package, but no pyproject.toml naming pemamoe: a stray folder beside an
+    installed copy (in site-packages, say), whose modules export must not overwrite."""
+
+
+def require_checkout(root: Path) -> None:
+    """NotACheckoutError unless `root` is a pemamoe checkout (``_is_checkout``)."""
+    if not _is_checkout(root):
+        raise NotACheckoutError(
+            f"{root} is not a pemamoe checkout (no pyproject.toml there names the project), though it has "
+            "notebooks/: export and check write pemamoe/ of a checkout only, never an installed copy; run them in "
+            "a checkout or pass --root CHECKOUT"
+        )
+
+
 def notebook_files(root: Path) -> list[Path]:
     """The notebooks of the checkout at `root`, sorted; NoNotebooksError when there are none (a
     package installed with pip has no notebooks/ beside it, and exporting or checking it against
@@ -349,8 +364,10 @@ def export_all(root: Path) -> list[Path]:
     An orphan is removed only in a checkout (``_is_checkout``) and only when its header names a
     notebook of ``notebooks/`` that is gone or no longer exports it (``_generated``); any other
     module the notebooks do not export is left, and ``check_all`` reports it. With no notebooks
-    (an installed copy) nothing is read or written: NoNotebooksError."""
+    (an installed copy) nothing is read or written: NoNotebooksError; with notebooks but outside a
+    checkout (a stray notebooks/ beside an installed copy), NotACheckoutError."""
     plan = planned_modules(root)
+    require_checkout(root)
     changed = []
     for path, text in plan.items():
         if not path.exists() or path.read_text(encoding="utf-8") != text:
@@ -405,7 +422,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         notebook_files(args.root)  # before anything is read or written: an installed copy has none
-    except NoNotebooksError as err:
+        require_checkout(args.root)  # nor is a stray notebooks/ beside one a checkout
+    except (NoNotebooksError, NotACheckoutError) as err:
         print(f"{parser.prog}: error: {err}", file=sys.stderr)
         return 2
     try:

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_bytes, atomic_write_json, check_scale
-from pemamoe.runs import read_config, read_json, read_parquet, verify_done
+from pemamoe.runs import RunFolderError, read_config, read_json, read_parquet, verify_done
 from pemamoe.train_config import TIMING_COLUMNS, TRAINING_NUMERICS, TrainConfig
 
 RECORD_FORMAT = 1
@@ -171,6 +171,12 @@ def read_marker(marker_path) -> dict:
                           f"{config_hash!r} (config edited?)")
     if config.run_name() != marker["run"]:  # a record renamed as a whole
         raise RecordError(path, f"has run {marker['run']!r}, but its config is run {config.run_name()!r}")
+    block = record_block(config)  # the stamps the writer derived from the config: each checked against it
+    derived = {"numerics": TRAINING_NUMERICS, "iterations": config.iterations, "block": block,
+               "rows": -(-config.iterations // block), "env_steps": config.total_env_steps}
+    for key, value in derived.items():
+        if marker[key] != value or type(marker[key]) is not int:
+            raise RecordError(path, f"has {key} {marker[key]!r}, but its config gives {value!r} (marker edited?)")
     return marker
 
 
@@ -203,7 +209,12 @@ def _existing_record(marker_path) -> dict:
 def read_record(marker_path) -> tuple:
     """(config dict, per-row frame) of a verified record."""
     marker = _existing_record(marker_path)
-    return marker["config"], read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".parquet"))
+    frame = read_parquet(Path(marker_path).with_name(Path(marker_path).stem + ".parquet"))
+    last = int(frame["env_steps"].iloc[-1]) if len(frame) and "env_steps" in frame else None
+    if len(frame) != marker["rows"] or last != marker["env_steps"]:  # a log sealed under a wrong marker
+        raise RecordError(marker_path, f"has rows {marker['rows']} and env_steps {marker['env_steps']}, but its log "
+                                       f"has {len(frame)} rows ending at env_steps {last}")
+    return marker["config"], frame
 
 
 def read_record_actor(marker_path):
@@ -226,7 +237,13 @@ def record_timing(marker_path) -> dict:
     """The measured compute of the training that first made the record, and the processors of the
     training whose bytes it holds ({} if none; records before December 2026 name no processors)."""
     path = Path(marker_path).with_name(Path(marker_path).stem + ".timing.json")
-    return read_json(path) if path.exists() else {}
+    if not path.exists():
+        return {}
+    try:
+        return read_json(path)
+    except RunFolderError as err:  # a record's file, not a run folder's: nothing to delete but the file
+        raise RecordError(path, f"{err.problem}; it holds only the measured compute and processors of the record "
+                                f"{Path(marker_path).name}: restore it (git checkout -- {path}) or delete it") from None
 
 
 def committed_records_mb(records_dir=RECORDS_DIR) -> dict:

@@ -2,6 +2,7 @@
 are parsed, in one line naming the flag, the value and what is allowed, before anything trains or
 any notebook runs; a notebook may be named by its bare file name or stem."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -66,9 +67,9 @@ def test_figures_unknown_notebook_is_a_usage_error_listing_the_notebooks(name, f
 
 # -- figures --workers, --backend --------------------------------------------------------------
 @pytest.mark.parametrize("argv, needles", [
-    (["--workers", "0"], ["--workers", "'0'", ">= 1"]),
-    (["--workers", "-3"], ["--workers", "'-3'", ">= 1"]),
-    (["--workers", "two"], ["--workers", "'two'", ">= 1"]),
+    (["--workers", "0"], ["--workers", "'0'", "in [1, 1024]"]),
+    (["--workers", "-3"], ["--workers", "'-3'", "in [1, 1024]"]),
+    (["--workers", "two"], ["--workers", "'two'", "in [1, 1024]"]),
     (["--backend", "rya"], ["--backend", "'rya'", "local", "ray"]),
 ])
 def test_figures_bad_workers_or_backend_is_a_usage_error(argv, needles, figures_calls, tmp_path, capsys):
@@ -417,7 +418,8 @@ def test_41i_every_command_checks_counts_with_the_same_words(argv, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
     assert exit_.value.code == 2
-    assert _error_line(capsys.readouterr().err).endswith(f"argument {argv[-2]}: must be an integer >= 1, got '0'")
+    line = _error_line(capsys.readouterr().err)  # bounded above too (issue 59), in the same words
+    assert re.search(rf"argument {argv[-2]}: must be an integer in \[1, [0-9,]+\], got '0'$", line), line
 
 
 def test_sweep_resolves_relative_stores_under_the_checkout_from_any_folder(tmp_path):
@@ -449,3 +451,197 @@ def test_each_command_help_states_the_scale_default_the_top_level_help_promises(
         main([command, "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert f"(default: {default}" in help_text.split("--scale {ci,small,medium,paper}", 2)[-1]
+
+
+# -- issue 59: every figures failure is one line (PEMAMOE_TRACEBACK=1 shows the traceback) ---------
+def test_figures_failing_notebook_is_one_line_naming_it_and_its_executed_copy(tmp_path):
+    nb = tmp_path / "98_fails.py"
+    nb.write_text('# %% tags=["parameters"]\nscale = "small"\nfigures_dir = "paper_figures"\n\n'
+                  '# %%\nraise RuntimeError("this notebook fails")\n')
+    argv = ["figures", "--scale", "ci", "--notebook", nb, "--figures-dir", tmp_path / "figs"]
+    proc = _cli(*argv)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("python -m pemamoe figures: error: notebook 98_fails.py failed in its cell"), line
+    assert "RuntimeError: this notebook fails" in line and "build/executed/ci/98_fails.ipynb" in line, line
+    assert not (tmp_path / "figs").exists()
+    shown = _cli(*argv, env={"PEMAMOE_TRACEBACK": "1"})
+    assert shown.returncode == 1 and "Traceback (most recent call last)" in shown.stderr
+
+
+@pytest.mark.parametrize("error, needle", [
+    (OSError(28, "No space left on device"), "No space left on device"),
+    (KeyboardInterrupt(), "interrupted; the figures folder is as it was"),
+])
+def test_figures_a_full_disk_or_ctrl_c_is_one_line(error, needle, monkeypatch, tmp_path, capsys):
+    import pemamoe.commands
+
+    def failing(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(pemamoe.commands, "make_figures", failing)
+    code = _figures(tmp_path)
+    err = capsys.readouterr().err
+    assert code == (130 if isinstance(error, KeyboardInterrupt) else 1)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and needle in err, err
+
+
+def test_figures_a_damaged_record_is_one_line(monkeypatch, tmp_path, capsys):
+    import pemamoe.commands
+    from pemamoe.records import RecordError
+
+    def failing(*args, **kwargs):
+        raise RecordError("records/ci/x.json", "its log's sha256 does not match its marker")
+
+    monkeypatch.setattr(pemamoe.commands, "make_figures", failing)
+    assert _figures(tmp_path) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and "sha256 does not match" in err
+
+
+def test_figures_refuses_a_figures_dir_whose_path_is_not_utf8(figures_calls, tmp_path, capsys):
+    bad = os.fsdecode(bytes(tmp_path) + b"/figs\xff")
+    with pytest.raises(SystemExit) as exit_:
+        main(["figures", "--scale", "ci", "--figures-dir", bad])
+    assert exit_.value.code == 2 and figures_calls == []
+    line = _error_line(capsys.readouterr().err)
+    assert "--figures-dir" in line and "not valid UTF-8" in line
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", [["train", "--scale", "ci"], ["sweep", "--scale", "ci", "--status"],
+                                     ["figures", "--scale", "ci"]], ids=lambda c: c[0])
+def test_a_missing_plugin_is_refused_in_one_line_before_any_heavy_import(command):
+    env = {"PEMAMOE_PLUGINS": "no_such_module"}
+    proc = _cli(*command, env=env)
+    line = _usage_error(proc)
+    assert "PEMAMOE_PLUGINS names the module 'no_such_module', which cannot be imported" in line
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    code = textwrap.dedent(f"""
+        import os, sys
+        os.environ["PEMAMOE_PLUGINS"] = "no_such_module"
+        from pemamoe.__main__ import main
+        try:
+            main({command!r})
+        except SystemExit:
+            pass
+        print(sorted(m for m in {HEAVY!r} if m in sys.modules))
+    """)
+    loaded = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert loaded.stdout.strip().splitlines()[-1] == "[]", loaded.stdout
+
+
+def test_load_plugins_names_a_missing_module_in_one_line(monkeypatch):
+    from pemamoe.methods import PluginError, load_plugins
+
+    monkeypatch.setenv("PEMAMOE_PLUGINS", "os, no_such_module")
+    with pytest.raises(PluginError, match=r"^PEMAMOE_PLUGINS names the module 'no_such_module', which cannot be "
+                                          r"imported; name modules importable from PYTHONPATH"):
+        load_plugins()
+
+
+# -- issue 59: refusals in one line, before the trainer is imported; bounds on every number --------
+@pytest.mark.parametrize("argv, needles", [
+    (["train", "--iterations", "99999999999999999999999"], ["--iterations", "in [1, 10000000]"]),
+    (["train", "--noise-gamma", "1e308"], ["--noise-gamma", "<= 10"]),
+    (["train", "--method", "mlp", "--without", "kl_anchor"], ["--without", "--method pemamoe", "got --method mlp"]),
+    (["train", "--method", "mlp", "--noise-gamma", "0.1"], ["--noise-gamma", "got --method mlp"]),
+    (["sweep", "--workers", "99999999999"], ["--workers", "in [1, 1024]"]),
+    (["sweep", "--population", "99999999999"], ["--population", "in [1, 1024]"]),
+    (["sweep", "--hours", "1e308"], ["--hours", "<= 8760"]),
+    (["figures", "--workers", "99999999999"], ["--workers", "in [1, 1024]"]),
+], ids=lambda v: " ".join(v) if isinstance(v, list) and v and v[0] in ("train", "sweep", "figures") else "")
+def test_an_out_of_bounds_or_inapplicable_number_is_refused_before_any_heavy_import(argv, needles):
+    loaded, err = _modules_after(argv)
+    assert loaded == "[]", (argv, loaded)
+    line = _error_line(err)
+    assert all(n in line for n in needles), line
+
+
+@pytest.mark.skipif(__import__("importlib.util").util.find_spec("torch") is None, reason="needs torch's files")
+def test_device_cuda_with_a_cpu_only_torch_is_refused_before_torch_is_imported():
+    import importlib.util
+
+    version = (Path(next(iter(importlib.util.find_spec("torch").submodule_search_locations))) / "version.py").read_text()
+    if "\ncuda: Optional[str] = None" not in version and "\ncuda = None" not in version:
+        pytest.skip("this torch is built for a GPU")
+    loaded, err = _modules_after(["train", "--scale", "ci", "--device", "cuda"])
+    assert loaded == "[]", loaded
+    assert "--device cuda" in _error_line(err) and "torch sees no CUDA device" in err
+
+
+@pytest.mark.parametrize("command, flag", [("train", "--results-dir"), ("sweep", "--results-dir"),
+                                           ("sweep", "--records-dir"), ("figures", "--results-dir")])
+def test_a_file_as_a_store_folder_is_refused_naming_the_flag(command, flag, tmp_path):
+    target = tmp_path / "a_file"
+    target.write_text("mine\n")
+    argv = {"train": ["train", "--scale", "ci", "--method", "mlp"], "sweep": ["sweep", "--scale", "ci"],
+            "figures": ["figures", "--scale", "ci", "--figures-dir", str(tmp_path / "figs")]}[command]
+    loaded, err = _modules_after([*argv, flag, target])
+    assert loaded == "[]", loaded
+    line = _error_line(err)
+    assert f"{flag} {target} is a file, not a folder" in line, line
+    assert target.read_text() == "mine\n"
+
+
+def test_train_refuses_an_out_whose_path_is_not_utf8_and_writes_nothing(tmp_path, capsys):
+    bad = os.fsdecode(bytes(tmp_path) + b"/run\xff")
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--scale", "ci", "--method", "mlp", "--out", bad])
+    assert exit_.value.code == 2
+    assert "--out" in _error_line(capsys.readouterr().err) and os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", ["train", "sweep", "figures"])
+def test_pemamoe_traceback_shows_the_traceback_behind_a_one_line_error(command, monkeypatch, tmp_path, capsys):
+    import pemamoe.__main__
+    import pemamoe.commands
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pemamoe.__main__, "_train", full_disk)
+    monkeypatch.setattr(pemamoe.commands, "_sweep", full_disk)
+    monkeypatch.setattr(pemamoe.commands, "make_figures", full_disk)
+    argv = {"train": ["train", "--scale", "ci", "--out", str(tmp_path / "run")],
+            "sweep": ["sweep", "--scale", "ci", "--records-dir", str(tmp_path / "records")],
+            "figures": ["figures", "--scale", "ci", "--figures-dir", str(tmp_path / "figs")]}[command]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and len(err.strip().splitlines()) == 1, err
+    monkeypatch.setenv("PEMAMOE_TRACEBACK", "1")
+    with pytest.raises(OSError, match="No space left"):
+        main(argv)
+
+
+@pytest.mark.parametrize("cuda, hip, devices, refused", [
+    ("None", "None", ["/dev/nvidia0"], "built for CPUs only"),
+    ("'12.4'", "None", [], "no GPU device file"),
+    ("'12.4'", "None", ["/dev/nvidia0"], None),
+    (None, None, [], None),  # a version.py this check cannot read: the trainer decides
+])
+def test_the_fast_device_check_refuses_only_what_cannot_see_a_gpu(cuda, hip, devices, refused, tmp_path, monkeypatch,
+                                                                   capsys):
+    import argparse
+    import glob
+    import importlib.machinery
+    import importlib.util
+
+    import pemamoe.__main__ as cli
+
+    torch_dir = tmp_path / "torch"
+    torch_dir.mkdir()
+    lines = ["__version__ = '9.9'"] + ([f"cuda: Optional[str] = {cuda}", f"hip: Optional[str] = {hip}"] if cuda else [])
+    (torch_dir / "version.py").write_text("\n".join(lines) + "\n")
+    spec = importlib.machinery.ModuleSpec("torch", None, is_package=True)
+    spec.submodule_search_locations = [str(torch_dir)]
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: spec if name == "torch" else None)
+    monkeypatch.setattr(glob, "glob", lambda pattern: devices if pattern.startswith("/dev/nvidia") else [])
+    monkeypatch.setattr(cli.sys, "platform", "linux")
+    parser = argparse.ArgumentParser(prog="t")
+    if refused is None:
+        cli._check_device("cuda", parser)
+        return
+    with pytest.raises(SystemExit):
+        cli._check_device("cuda", parser)
+    assert refused in _error_line(capsys.readouterr().err)

@@ -403,3 +403,16 @@ def test_state_arrays_are_updated_in_place_on_both_engines(engine):
     for name, array in held.items():
         assert array is getattr(core, name), name
         assert not np.array_equal(array, before[name]), name  # it moved, and the held array shows it
+
+
+@pytest.mark.parametrize("overrides, named", [
+    (dict(n_users=10**9), r"MobilityConfig\.n_users must be an integer in \[3, 10000\]"),
+    (dict(n_hotspots=10**9), r"MobilityConfig\.n_hotspots must be an integer in \[1, 10000\]"),
+    (dict(n_uavs=10**6), r"EnvConfig\.n_uavs must be an integer in \[1, 64\]"),
+])
+def test_a_huge_user_or_uav_count_is_refused_naming_that_field(overrides, named):
+    """Issue 59: make_env(n_users=10**9) named rng_chunk, not n_users."""
+    import pemamoe
+
+    with pytest.raises(ValueError, match=named):
+        pemamoe.make_env(**overrides)

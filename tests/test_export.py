@@ -116,7 +116,9 @@ def test_export_removes_only_orphans_whose_notebook_is_gone_or_no_longer_exports
     # notebooks/ beside the package but no pyproject.toml naming pemamoe: not a checkout, nothing removed
     (repo_copy / "pyproject.toml").unlink()
     gone.write_text(literate.HEADER_MARKER + "notebooks/99_gone.py. DO NOT EDIT.\n")
-    assert literate.export_all(repo_copy) == [] and gone.exists()
+    with pytest.raises(literate.NotACheckoutError):  # nor is anything written there (issue 59)
+        literate.export_all(repo_copy)
+    assert gone.exists()
 
 
 NOTEBOOK = '''# %% [markdown]
@@ -347,3 +349,28 @@ def test_every_notebook_stays_within_900_lines():
     assert notebooks
     long = {p.name: n for p in notebooks if (n := len(p.read_text(encoding="utf-8").splitlines())) > 900}
     assert not long, long
+
+
+@pytest.mark.parametrize("command", ["export", "check-export"])
+def test_a_stray_notebooks_folder_beside_an_installed_copy_is_not_a_checkout(tmp_path, command):
+    """Issue 59: with a notebooks/ beside an installed copy, `python -m pemamoe export` overwrote the
+    installed modules; the refusal's advice, --root CHECKOUT, is accepted by `python -m pemamoe`."""
+    site = tmp_path / "site"
+    shutil.copytree(ROOT / "pemamoe", site / "pemamoe", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    shutil.copytree(ROOT / "notebooks", site / "notebooks")
+    (site / "notebooks" / "00b_core.py").write_text((ROOT / "notebooks" / "00b_core.py").read_text() + "\n# %%\n#| export\nSTRAY = 1\n")
+    before = _snapshot(site / "pemamoe")
+    env = {**os.environ, "PYTHONPATH": str(site), "PYTHONDONTWRITEBYTECODE": "1"}
+    env.pop("PEMAMOE_ROOT", None)
+    run = subprocess.run([sys.executable, "-m", "pemamoe", command], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and "is not a pemamoe checkout" in run.stderr, run.stderr
+    assert _snapshot(site / "pemamoe") == before
+    with pytest.raises(literate.NotACheckoutError):
+        literate.export_all(site)
+    assert _snapshot(site / "pemamoe") == before
+    # the advice works: --root names a checkout (this one, checked, nothing written)
+    ok = subprocess.run([sys.executable, "-m", "pemamoe", "check-export", "--root", str(ROOT)], cwd=tmp_path,
+                        env=env, capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and "matches" in ok.stdout, ok.stderr

@@ -193,3 +193,166 @@ def test_a_nested_folder_left_by_a_killed_run_is_not_copied_into_the_new_figures
                  precompute=False, stream=False)
     assert sorted(p.name for p in figs.iterdir() if p.is_dir()) == ["paper_scale"]
     assert (figs / "paper_scale" / "kept.csv").read_text() == "b\n"
+
+
+# --- issue 59: nothing the user made is removed or replaced; stale staging is cleaned -------------
+def test_a_file_as_figures_dir_is_refused_and_left_as_it_is(tmp_path):
+    """Issue 59 (major): a regular file named as the figures folder was moved aside and deleted."""
+    from pemamoe.commands import FiguresDirError
+
+    target = tmp_path / "figs"
+    target.write_text("the user's own file\n")
+    with pytest.raises(FiguresDirError, match=r"figures folder .*figs is a file, not a folder; it is left as it is"):
+        make_figures(scale="ci", figures_dir=target, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                     precompute=False, stream=False)
+    assert target.read_text() == "the user's own file\n"
+    assert _beside(tmp_path) == ["figs"]
+
+
+def test_figures_cli_refuses_a_file_as_figures_dir_in_one_line_and_keeps_it(tmp_path):
+    import subprocess
+    import sys
+
+    target = tmp_path / "figs"
+    target.write_text("keep me\n")
+    proc = subprocess.run([sys.executable, "-m", "pemamoe", "figures", "--scale", "ci", "--notebook", "01_channel",
+                           "--figures-dir", str(target)], cwd=REPO_ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    (line,) = [x for x in proc.stderr.splitlines() if "error:" in x]
+    assert "--figures-dir" in line and "is a file, not a folder" in line
+    assert target.read_text() == "keep me\n" and _beside(tmp_path) == ["figs"]
+
+
+def test_a_mount_point_as_figures_dir_is_refused_and_leaves_nothing_beside(tmp_path, monkeypatch):
+    import pemamoe.commands as commands
+
+    figs = _figures(tmp_path)
+    real = os.path.ismount
+    monkeypatch.setattr(commands.os.path, "ismount", lambda p: Path(p) == figs or real(p))
+    with pytest.raises(commands.FiguresDirError, match="is a mount point.*name a folder inside it"):
+        make_figures(scale="ci", figures_dir=figs, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                     precompute=False, stream=False)
+    assert _beside(tmp_path) == ["figs"]
+
+
+def test_a_failed_rename_aside_leaves_no_empty_old_folder(tmp_path, monkeypatch):
+    """A folder that cannot be renamed (a mount point the check did not see: EBUSY) is left as it was,
+    with no empty `*.old-*` folder beside it."""
+    import errno
+
+    figs = _figures(tmp_path)
+    before = _snapshot(figs)
+    rename = Path.rename
+
+    def busy(self, target):
+        if self == figs:
+            raise OSError(errno.EBUSY, "Device or resource busy", str(self))
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", busy)
+    with pytest.raises(OSError, match="busy"):
+        make_figures(scale="ci", figures_dir=figs, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                     precompute=False, stream=False)
+    assert _snapshot(figs) == before and _beside(tmp_path) == ["figs"]
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _mark(top: Path, pid: int, listed=None) -> None:
+    import json
+    import socket
+
+    from pemamoe.commands import STAGING_MARK
+
+    top.mkdir()
+    (top / STAGING_MARK).write_text(json.dumps({"pid": pid, "host": socket.gethostname(), "started": None,
+                                                "listed": listed or {}}))
+
+
+def test_staging_left_by_a_killed_run_is_cleaned_by_the_next_and_nothing_else(tmp_path):
+    """SIGKILL leaves `figs.partial-*` (and, between the two renames, `figs.old-*`); the next run
+    removes ours whose process is gone, and leaves a live run's and anything unmarked alone."""
+    figs = _figures(tmp_path)
+    dead = _dead_pid()
+    _mark(tmp_path / "figs.partial-dead1", dead)
+    (tmp_path / "figs.partial-dead1" / "figs").mkdir()
+    _mark(tmp_path / "figs.old-dead2", dead)  # swapped already: the aside copy is the previous figures
+    (tmp_path / "figs.old-dead2" / "figs").mkdir()
+    _mark(tmp_path / "figs.partial-live", os.getppid())  # a live process's: not ours to touch
+    (tmp_path / "figs.partial-users").mkdir()  # unmarked: the user's, whatever its name says
+    (tmp_path / "figs.partial-users" / "notes.txt").write_text("mine\n")
+    make_figures(scale="ci", figures_dir=figs, notebooks=_notebooks(tmp_path, ("98_atomic_writes.py", WRITES)),
+                 precompute=False, stream=False)
+    assert _beside(tmp_path) == ["figs", "figs.partial-live", "figs.partial-users"]
+    assert (tmp_path / "figs.partial-users" / "notes.txt").read_text() == "mine\n"
+
+
+def test_a_run_killed_between_its_two_renames_gets_its_folder_back(tmp_path):
+    from pemamoe.commands import clean_stale_staging
+
+    _mark(tmp_path / "figs.old-dead", _dead_pid())
+    (tmp_path / "figs.old-dead" / "figs").mkdir()
+    (tmp_path / "figs.old-dead" / "figs" / "kept.txt").write_text("the user's figures\n")
+    assert clean_stale_staging(tmp_path / "figs") == [tmp_path / "figs.old-dead"]
+    assert (tmp_path / "figs" / "kept.txt").read_text() == "the user's figures\n" and _beside(tmp_path) == ["figs"]
+
+
+def test_a_file_saved_in_the_figures_folder_during_the_run_is_kept(tmp_path, capsys):
+    """The user saves notes.txt (new) and atomic_table.csv (which the run rewrites too) into the
+    figures folder while the notebooks run: notes.txt is in the new folder; the user's
+    atomic_table.csv, which has a namesake there, stays aside, named, never deleted."""
+    figs = _figures(tmp_path)
+    user = PARAMETERS + f'''# %%
+from pathlib import Path
+Path({str(figs)!r}, "notes.txt").write_text("saved during the run\\n")
+Path({str(figs)!r}, "atomic_table.csv").write_text("the user's table\\n")
+'''
+    make_figures(scale="ci", figures_dir=figs,
+                 notebooks=_notebooks(tmp_path, ("98_user_saves.py", user), ("98_atomic_writes.py", WRITES)),
+                 precompute=False, stream=False)
+    assert (figs / "notes.txt").read_text() == "saved during the run\n"
+    assert (figs / "atomic_table.csv").read_text() == "scale\nci\n"
+    (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith("figs.old-")]
+    assert (aside / "figs" / "atomic_table.csv").read_text() == "the user's table\n"
+    assert str(aside / "figs") in capsys.readouterr().err
+
+
+def test_sigterm_during_figures_leaves_no_staging_and_the_folder_as_it_was(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    figs = _figures(tmp_path)
+    before = _snapshot(figs)
+    slow = PARAMETERS + '''# %%
+import time
+time.sleep(120)
+'''
+    (nb,) = _notebooks(tmp_path, ("98_slow.py", slow))
+    proc = subprocess.Popen([sys.executable, "-m", "pemamoe", "figures", "--scale", "ci", "--notebook", str(nb),
+                             "--figures-dir", str(figs)], cwd=REPO_ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        while not any(p.name.startswith("figs.partial-") for p in tmp_path.iterdir()):
+            assert time.time() < deadline and proc.poll() is None, proc.communicate()
+            time.sleep(0.2)
+        time.sleep(3)  # the kernel is running the notebook
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err
+    # the command's own line last, no traceback of it (the killed kernel may log its own shutdown)
+    assert "terminated (SIGTERM); the figures folder is as it was" in err.strip().splitlines()[-1], err
+    assert "KeyboardInterrupt" not in err and "pemamoe/" not in err, err
+    assert _snapshot(figs) == before and _beside(tmp_path) == ["figs"]

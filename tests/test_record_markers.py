@@ -88,3 +88,45 @@ def test_every_committed_marker_checks_against_itself():
     markers = [p for p in sorted(RECORDS_DIR.glob("*/*.json")) if not p.name.endswith(".timing.json")]
     for marker in markers:  # read only: no record of the repository is changed
         assert read_marker(marker)["run"] == marker.stem
+
+
+@pytest.mark.parametrize("key, value", [("env_steps", lambda v: 2 * v), ("rows", lambda v: v + 1),
+                                        ("block", lambda v: v + 1), ("iterations", lambda v: v * 10),
+                                        ("numerics", lambda v: v + 1), ("env_steps", lambda v: float(v))])
+def test_a_marker_stamp_that_its_config_does_not_give_is_refused(ci_records, key, value):
+    """Issue 59: env_steps, rows, block and numerics were never checked (a doubled env_steps was read)."""
+    marker = _marker(ci_records, CONFIGS[0])
+    _edit(marker, lambda d: d.__setitem__(key, value(d[key])))
+    _refused(marker, f"has {key} ", "but its config gives", "marker edited?")
+
+
+def test_a_log_whose_rows_do_not_match_the_marker_is_refused(ci_records):
+    """A marker and a log that both check (config, sha256) but disagree on rows: refused by the reader."""
+    import hashlib
+
+    import pandas as pd
+
+    from pemamoe.records import parquet_bytes
+
+    marker = _marker(ci_records, CONFIGS[0])
+    log = marker.with_name(marker.stem + ".parquet")
+    frame = pd.read_parquet(log)
+    log.write_bytes(parquet_bytes(frame.iloc[:1]))
+    _edit(marker, lambda d: d["sha256"].__setitem__("data", hashlib.sha256(log.read_bytes()).hexdigest()))
+    _refused(marker, "has rows 2 and env_steps", "but its log has 1 rows")
+
+
+def test_a_damaged_timing_file_is_named_as_a_records_file_not_a_run_folder(ci_records):
+    """Issue 59: `sweep --status` called records/<scale> a run folder and advised deleting it."""
+    from pemamoe.commands import error_line
+    from pemamoe.records import record_timing
+
+    marker = _marker(ci_records, CONFIGS[0])
+    timing = marker.with_name(marker.stem + ".timing.json")
+    timing.write_text("{not json")
+    with pytest.raises(RecordError) as caught:
+        record_timing(marker)
+    line = error_line(caught.value)
+    assert line.startswith(f"run record {timing}: is not valid JSON") and "run folder" not in line, line
+    assert f"restore it (git checkout -- {timing}) or delete it" in line
+    assert marker.exists() and read_record(marker)  # the record itself is untouched and still reads

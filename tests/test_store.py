@@ -333,21 +333,23 @@ def _newest_lease(store, key):
 
 
 def _run_bytes(store, scale, run):
-    """{name: bytes} of the run's files in the store (its leases left out)."""
-    return {name: store.fs.cat_file(store.key(scale, run, name))
-            for name in store.stored_files(scale, run) if not name.startswith(".lease")}
+    """{name: bytes} of the run's files in the store as readers see them (the objects the newest
+    manifest names)."""
+    from pemamoe.store import run_objects
+
+    return {name: store.fs.cat_file(store.key(scale, run, key)) for name, key in run_objects(store, scale, run).items()}
 
 
 def test_a_lease_is_exclusive_and_a_stale_one_is_taken_over(s3_store):
     from pemamoe.store import StoreLease, StoreLeaseError, open_store
 
     store = open_store(s3_store)
-    first = StoreLease(store, "ci", "mlp-s0-x").acquire()
+    first = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # declares itself stale after 0.1 s
     with pytest.raises(StoreLeaseError, match="held by .* renewed"):  # the conditional put refuses a second
         StoreLease(store, "ci", "mlp-s0-x").acquire()
     first.renew()
     time.sleep(0.2)
-    second = StoreLease(store, "ci", "mlp-s0-x", stale_after=0.1).acquire()  # first looks dead: taken over
+    second = StoreLease(store, "ci", "mlp-s0-x").acquire()  # first looks dead by its own declaration: taken over
     assert (first.generation, second.generation) == (1, 2)
     with pytest.raises(StoreLeaseError, match=r"lost its lease \(generation 1\) to generation 2"):
         first.renew()  # the old holder learns that it lost the lease
@@ -430,36 +432,100 @@ def test_a_push_is_refused_over_a_done_marker_it_did_not_write(s3_store, tmp_pat
     assert _run_bytes(store, "ci", "other") == {"config.json": b"{}", "done.json": b"B's seal", "sweep.json": b"{}"}
 
 
-def test_a_reader_refuses_a_file_of_an_older_generation(s3_store, tmp_path):
-    """The window no check closes: A's check passed just before B took over and B sealed; A's bytes
-    (and A's manifest of them) land after. Every reader refuses them, naming both generations, and
-    leaves its cache as it was."""
-    from pemamoe.store import (ResultsStore, StoreLease, StoreLeaseError, _digest, fetch_run, pull_run, push_run,
+def test_a_writer_paused_inside_an_upload_cannot_change_a_sealed_run(s3_store, tmp_path):
+    """Issue 59 (major): A passes its lease check, then pauses inside its metrics.parquet upload past
+    the stale time; B takes the run over, trains it to the end and seals it; A's upload then lands.
+    It lands in A's own object: the run readers see is byte for byte what B sealed, still finished,
+    and A learns at its next lease write that it lost the run."""
+    import threading
+
+    from pemamoe.store import (ResultsStore, StoreLease, StoreLeaseError, fetch_run, pull_run, push_run,
                                refresh_finished)
 
     store_a, store_b = ResultsStore(s3_store, cache_dir=tmp_path / "a"), ResultsStore(s3_store, cache_dir=tmp_path / "b")
-    a = StoreLease(store_a, "ci", "run", stale_after=0.2).acquire()
+    a = StoreLease(store_a, "ci", "run", stale_after=0.5).acquire()
     folder_a = _worker_folder(store_a.run_dir("ci", "run"), {"config.json": b"{}", "metrics.parquet": b"A's logs"})
-    push_run(a, folder_a)
-    time.sleep(0.3)
-    b = StoreLease(store_b, "ci", "run", stale_after=0.2).acquire()
-    pushed_b = pull_run(store_b, "ci", "run")
-    folder_b = store_b.run_dir("ci", "run")
-    _worker_folder(folder_b, {"metrics.parquet": b"B's logs", "done.json": b"B's seal"})
-    push_run(b, folder_b, pushed_b)
-    b.release()
-    refresh_finished(store_b, "ci", "run")  # what B sealed reads back
-    sealed = _run_bytes(store_b, "ci", "run")
+    pushed_a = push_run(a, folder_a)
+
+    inside, go_on, fs = threading.Event(), threading.Event(), store_a.fs
+    put_file = fs.put_file  # fsspec binds its sync methods to the instance
+
+    def paused_put(lpath, rpath, *args, **kwargs):
+        if threading.current_thread().name == "A" and rpath.endswith("metrics.parquet"):
+            inside.set()
+            assert go_on.wait(60)
+        return put_file(lpath, rpath, *args, **kwargs)
 
     (folder_a / "metrics.parquet").write_bytes(b"A's later logs")
-    store_a.fs.put_file(str(folder_a / "metrics.parquet"), store_a.key("ci", "run", "metrics.parquet"))
-    a.files = {**a.files, "metrics.parquet": _digest(folder_a / "metrics.parquet")}
-    store_a.fs.pipe_file(a.key, a._body())
+    outcome = []
+
+    def late_push():
+        try:
+            push_run(a, folder_a, pushed_a)
+            outcome.append("pushed")
+        except StoreLeaseError as err:
+            outcome.append(str(err))
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(fs, "put_file", paused_put):
+        writer = threading.Thread(target=late_push, name="A")
+        writer.start()
+        assert inside.wait(60)  # A passed its check and is inside the upload
+        time.sleep(0.7)  # ... past the stale time
+        b = StoreLease(store_b, "ci", "run", stale_after=0.5).acquire()
+        pushed_b = pull_run(store_b, "ci", "run")
+        folder_b = store_b.run_dir("ci", "run")
+        _worker_folder(folder_b, {"metrics.parquet": b"B's logs", "done.json": b"B's seal"})
+        push_run(b, folder_b, pushed_b)
+        b.release()
+        refresh_finished(store_b, "ci", "run")
+        sealed = _run_bytes(store_b, "ci", "run")
+        assert sealed == {"config.json": b"{}", "metrics.parquet": b"B's logs", "done.json": b"B's seal"}
+        go_on.set()  # A's bytes land now
+        writer.join(60)
+    assert outcome and "lost its lease (generation 1) to generation 2" in outcome[0], outcome
+    assert _run_bytes(store_b, "ci", "run") == sealed  # the sealed run is untouched
+    refresh_finished(store_b, "ci", "run")  # and read as sealed: no reader refuses it
+    fresh = ResultsStore(s3_store, cache_dir=tmp_path / "c")
+    folder = fetch_run(fresh, "ci", "run")
+    assert {n: (folder / n).read_bytes() for n in sealed} == sealed
+
+
+def _legacy_lease(store, run, generation, files, **extra):
+    """A lease as earlier versions wrote it: a manifest of digests over the plain file names."""
+    import hashlib
+
+    body = {"owner": f"o{generation}", "host": "h", "pid": 1, "heartbeat": 0.0, "stale_after": 1.0,
+            "generation": generation, "released": True, "files": {n: hashlib.sha256(b).hexdigest() for n, b in files.items()},
+            **extra}
+    store.fs.pipe_file(store.key("ci", run, f".lease-{generation}.json"), json.dumps(body).encode())
+
+
+def test_a_reader_refuses_a_file_of_an_older_generation_in_a_run_stored_by_an_earlier_version(s3_store, tmp_path):
+    """Runs written before generations had objects of their own keep their plain file names: there
+    a late write could land over the run, and every reader refuses it, naming both generations, and
+    leaves its cache as it was."""
+    from pemamoe.store import ResultsStore, StoreLeaseError, fetch_run, pull_run, refresh_finished
+
+    store = ResultsStore(s3_store, cache_dir=tmp_path / "b")
+    a_files = {"config.json": b"{}", "metrics.parquet": b"A's logs"}
+    b_files = {"config.json": b"{}", "metrics.parquet": b"B's logs", "done.json": b"B's seal"}
+    _legacy_lease(store, "run", 1, a_files)
+    _legacy_lease(store, "run", 2, b_files)
+    for name, data in b_files.items():
+        store.fs.pipe_file(store.key("ci", "run", name), data)
+    refresh_finished(store, "ci", "run")  # what B sealed reads back
+    folder_b = store.run_dir("ci", "run")
+    assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs"
+
+    store.fs.pipe_file(store.key("ci", "run", "metrics.parquet"), b"A's later logs")  # A's late bytes, listed
+    _legacy_lease(store, "run", 1, {**a_files, "metrics.parquet": b"A's later logs"})
     refused = r"ci/run: metrics.parquet in the store is from generation 1, older than generation 2, which sealed"
     with pytest.raises(StoreLeaseError, match=refused):
-        refresh_finished(store_b, "ci", "run")
+        refresh_finished(store, "ci", "run")
     with pytest.raises(StoreLeaseError, match=refused):
-        fetch_run(store_b, "ci", "run")
+        fetch_run(store, "ci", "run")
     assert (folder_b / "metrics.parquet").read_bytes() == b"B's logs"  # nothing of the refused pull installed
     fresh = ResultsStore(s3_store, cache_dir=tmp_path / "c")
     with pytest.raises(StoreLeaseError, match=refused):
@@ -467,11 +533,29 @@ def test_a_reader_refuses_a_file_of_an_older_generation(s3_store, tmp_path):
     assert not (fresh.run_dir("ci", "run") / "done.json").exists()
 
     # bytes that no generation lists, under a seal: refused too
-    store_a.fs.pipe_file(store_a.key("ci", "run", "metrics.parquet"), b"nobody's")
+    store.fs.pipe_file(store.key("ci", "run", "metrics.parquet"), b"nobody's")
     with pytest.raises(StoreLeaseError, match="metrics.parquet in the store is not the one generation 2 sealed"):
-        refresh_finished(store_b, "ci", "run")
-    store_a.fs.pipe_file(store_a.key("ci", "run", "metrics.parquet"), sealed["metrics.parquet"])
-    refresh_finished(store_b, "ci", "run")  # B's bytes back: read as sealed
+        refresh_finished(store, "ci", "run")
+    store.fs.pipe_file(store.key("ci", "run", "metrics.parquet"), b"B's logs")
+    refresh_finished(store, "ci", "run")  # B's bytes back: read as sealed
+
+
+def test_a_run_stored_by_an_earlier_version_is_taken_over_into_objects_of_its_own(s3_store, tmp_path):
+    """A new generation over a run in the earlier layout uploads every file once as its own object;
+    readers then read those, and the plain files no longer matter."""
+    from pemamoe.store import ResultsStore, StoreLease, pull_run, push_run, run_objects
+
+    store = ResultsStore(s3_store, cache_dir=tmp_path / "b")
+    files = {"config.json": b"{}", "metrics.parquet": b"A's logs", "checkpoint.pt": b"A's checkpoint"}
+    _legacy_lease(store, "run", 1, files)
+    for name, data in files.items():
+        store.fs.pipe_file(store.key("ci", "run", name), data)
+    assert run_objects(store, "ci", "run") == {n: n for n in ("config.json", "checkpoint.pt", "metrics.parquet")}
+    lease = StoreLease(store, "ci", "run").acquire()
+    pushed = pull_run(store, "ci", "run")
+    push_run(lease, store.run_dir("ci", "run"), pushed)
+    assert run_objects(store, "ci", "run") == {n: f".g2.{n}" for n in ("config.json", "checkpoint.pt", "metrics.parquet")}
+    assert _run_bytes(store, "ci", "run") == files
 
 
 _WORKER_ENV = {"PEMAMOE_LEASE_STALE_SECONDS": "5", "PEMAMOE_STORE_SYNC_SECONDS": "2"}
@@ -557,7 +641,7 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     import subprocess
     import sys
 
-    from pemamoe.store import open_store
+    from pemamoe.store import open_store, run_objects
     from pemamoe.experiments import run_sweep
 
     iterations = 40
@@ -567,12 +651,19 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     monkeypatch.chdir(work)  # a results/ or records/ written by mistake would appear here
     store = open_store(s3_store)
     keys = [f"ci/{s.to_config().run_name()}" for s in specs]
+    stale = "3"  # what the workers declare in their leases: a taker judges them by it (issue 59)
     driver = subprocess.Popen([sys.executable, "-c", _SWEEP_SCRIPT.format(iterations=iterations), s3_store],
-                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+                                   "PEMAMOE_LEASE_STALE_SECONDS": stale},
                               start_new_session=True)
+
+    def objects(k):
+        store.fs.invalidate_cache()
+        return run_objects(store, *k.split("/"))
+
     try:
         deadline = time.time() + 240
-        while not all(f"{k}/checkpoint.pt" in _bucket_files(s3_store) for k in keys):
+        while not all("checkpoint.pt" in objects(k) for k in keys):
             assert driver.poll() is None, "the sweep ended before it could be killed"
             assert time.time() < deadline, "no checkpoint reached the bucket"
             time.sleep(0.5)
@@ -581,24 +672,22 @@ def test_a_ray_sweep_on_s3_writes_only_to_the_bucket_and_resumes_after_a_kill(s3
     finally:
         if driver.poll() is None:
             os.killpg(driver.pid, signal.SIGKILL)
-    left = _bucket_files(s3_store)
     assert any(not _newest_lease(store, k)["released"] for k in keys)  # killed tasks release nothing
-    unfinished = [k for k in keys if f"{k}/done.json" not in left]
+    unfinished = [k for k in keys if "done.json" not in objects(k)]
     assert unfinished, "both runs finished before the kill: nothing was resumed"
     reached = {}
     for k in unfinished:
         unpacked = tmp_path / "ck.pt"
-        store.fs.get_file(f"{store.root}/{k}/checkpoint.pt", str(unpacked))
+        store.fs.get_file(f"{store.root}/{k}/{objects(k)['checkpoint.pt']}", str(unpacked))
         reached[k] = load_checkpoint(unpacked)["iteration"]
     assert all(0 < n < iterations for n in reached.values()), reached
 
-    monkeypatch.setenv("PEMAMOE_LEASE_STALE_SECONDS", "1")
-    time.sleep(1.5)
+    monkeypatch.setenv("PEMAMOE_LEASE_STALE_SECONDS", stale)
+    time.sleep(float(stale) + 0.5)
     bucket = s3_store.split("/")[2]
     records = f"s3://{bucket}/records"  # the records at a URL too: nothing but caches on local disk
     folders = run_sweep(specs, "ray", workers=2, results_dir=s3_store, records_dir=records, verbose=False)
-    done = _bucket_files(s3_store)
-    assert all(f"{k}/done.json" in done and _newest_lease(store, k)["released"] for k in keys)
+    assert all("done.json" in objects(k) and _newest_lease(store, k)["released"] for k in keys)
     cache = Path(os.environ["PEMAMOE_CACHE"])
     assert all(cache in f.parents for f in folders)  # the driver's view of the runs is its cache
     assert sorted(p.name for p in work.iterdir()) == []  # nothing written beside the cache
@@ -615,7 +704,7 @@ def test_train_takes_the_store_as_its_results_dir(tmp_path, monkeypatch, capsys)
     """`train --results-dir URL` leases, trains in the cache and leaves the run folder in the store
     (memory:// stands in for a bucket: it lives in this process); a bad URL is refused first."""
     from pemamoe.__main__ import main
-    from pemamoe.store import open_store
+    from pemamoe.store import open_store, run_objects
 
     monkeypatch.setenv("PEMAMOE_CACHE", str(tmp_path / "cache"))
     monkeypatch.chdir(tmp_path)
@@ -627,7 +716,9 @@ def test_train_takes_the_store_as_its_results_dir(tmp_path, monkeypatch, capsys)
     assert main(["train", "--method", "mlp", "--scale", "ci", "--results-dir", "memory://train-test/r"]) == 0
     store = open_store("memory://train-test/r")
     names = {p.rsplit("/", 1)[1] for p in store.fs.find(store.root)}
-    assert {"config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "done.json"} <= names
+    run = next(p for p in store.fs.find(store.root) if p.endswith(".lease-1.json")).split("/")[-2]
+    assert {"config.json", "checkpoint.pt", "metrics.parquet", "episodes.parquet", "done.json"} <= set(
+        run_objects(store, "train", run))
     assert {".lease-1.json"} == {n for n in names if n.startswith(".lease")} and sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
     leases = [json.loads(store.fs.cat_file(p)) for p in store.fs.find(store.root) if p.endswith(".lease-1.json")]
     assert len(leases) == 1 and leases[0]["released"]  # released, and kept: it carries the generation
@@ -637,3 +728,35 @@ def test_train_takes_the_store_as_its_results_dir(tmp_path, monkeypatch, capsys)
     assert "(trained)" in capsys.readouterr().out
     run = next(p for p in store.fs.find(store.root) if p.endswith(".lease-1.json")).split("/")[-2]
     assert _newest_lease(store, f"train/{run}")["generation"] == 2 and _newest_lease(store, f"train/{run}")["released"]
+
+
+def test_a_taker_judges_a_lease_by_the_stale_time_its_holder_declared(s3_store):
+    """Issue 59: a taker whose own PEMAMOE_LEASE_STALE_SECONDS is shorter took a live lease."""
+    from pemamoe.store import StoreLease, StoreLeaseError, open_store
+
+    store = open_store(s3_store)
+    holder = StoreLease(store, "ci", "run", stale_after=30).acquire()  # declares 30 s
+    time.sleep(0.3)
+    with pytest.raises(StoreLeaseError, match="held by .* go stale after 30 s"):
+        StoreLease(store, "ci", "run", stale_after=0.1).acquire()  # its own 0.1 s would call it stale
+    holder.release()
+    assert StoreLease(store, "ci", "run", stale_after=0.1).acquire().generation == 2
+
+
+@pytest.mark.parametrize("name, value, allowed", [
+    ("PEMAMOE_LEASE_STALE_SECONDS", "nan", "(0.0, 2592000.0]"),
+    ("PEMAMOE_STORE_SYNC_SECONDS", "-1", "(0.0, 86400.0]"),
+    ("PEMAMOE_STORE_SYNC_SECONDS", "1e308", "(0.0, 86400.0]"),
+    ("PEMAMOE_LEASE_STALE_SECONDS", "ten", "(0.0, 2592000.0]"),
+])
+@pytest.mark.parametrize("command", ["train", "sweep", "figures"])
+def test_a_bad_store_setting_in_the_environment_is_refused_in_one_line(command, name, value, allowed, monkeypatch,
+                                                                       capsys):
+    from pemamoe.__main__ import main
+
+    monkeypatch.setenv(name, value)
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--scale", "ci"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert name in err and allowed in err, err

@@ -148,7 +148,7 @@ def test_array_per_phase_values_become_hashable_tuples():
     ],
 )
 def test_a_bool_is_never_an_integer_setting(make, field):
-    with pytest.raises(ValueError, match=re.escape(field) + r" must be an integer >= \d+, got True"):
+    with pytest.raises(ValueError, match=re.escape(field) + r" must be an integer (>= \d+|in \[\d+, \d+\]), got True"):
         make()
 
 
@@ -250,3 +250,17 @@ def test_for_scale_refuses_a_bad_phase_length_or_epoch_count_before_rescaling_th
 
     with pytest.raises(ValueError, match=rf"^TrainConfig\.{field} must be an integer >= 1, got {value!r}$"):
         TrainConfig.for_scale("ci", method="pemamoe", **{field: value})
+
+
+def test_iterations_and_noise_gamma_are_bounded_in_the_configs():
+    """Issue 59: iterations=10**23 trained until stopped; noise_gamma=1e308 crashed at the first switch."""
+    from pemamoe.core import ITERATIONS_LIMIT, NOISE_GAMMA_LIMIT
+    from pemamoe.mappo import TrainConfig
+
+    with pytest.raises(ValueError, match=rf"^TrainConfig\.iterations must be an integer in \[1, {ITERATIONS_LIMIT}\], "
+                                         r"got 99999999999999999999999$"):
+        TrainConfig.for_scale("ci", method="mlp", iterations=99999999999999999999999)
+    with pytest.raises(ValueError, match=r"PhaseControllerConfig\.noise_gamma must be a finite float in \[0, 10.0\], "
+                                         r"got 1e\+308"):
+        TrainConfig.for_scale("ci", method="pemamoe", noise_gamma=1e308)
+    assert TrainConfig.for_scale("ci", method="pemamoe", noise_gamma=NOISE_GAMMA_LIMIT).controller.noise_gamma == 10.0
