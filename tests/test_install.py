@@ -24,6 +24,7 @@ DISTRIBUTION_OF = {"zmq": "pyzmq", "yaml": "PyYAML", "PIL": "pillow", "sklearn":
 # Modules that only an optional feature imports (inside the function that needs them), and the
 # extra of pyproject.toml that installs them. Every other third-party import is a core dependency.
 OPTIONAL = {"jupytext": "figures", "papermill": "figures", "traitlets": "figures", "zmq": "figures",
+            "jupyter_client": "figures",
             "rliable": "figures", "ray": "ray", "psutil": "ray", "fsspec": "store"}
 
 
