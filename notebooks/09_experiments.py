@@ -792,7 +792,7 @@ learned.pivot_table(index=["visit", "phase"], columns="method", values="fraction
 
 # %%
 from pemamoe.budget import block_steps, load_study, plasticity_words, revisit_learning
-from pemamoe.analysis import plot_visits
+from pemamoe.budget import plot_visits
 
 # the study trains medium's update settings (the paper's for MLP only, 2M steps: shorter than a paper visit)
 fresh = load_study(study) if scale != "paper" else load_study(study).iloc[:0]  # PE-MAMoE's is SMoE's run
@@ -806,7 +806,7 @@ write_table(learned.round(4), f"phase_learning_{scale}", figures_dir)
 if revisits.empty:  # no phase is visited twice (the ci schedule is one cycle)
     print("no revisits at this scale")
 else:
-    fig = plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale)  # appendix 09g
+    fig = plot_visits(metrics[metrics.method.isin(set(revisits.method))], fresh, scale)  # appendix 09b
     save_figure(fig, f"plasticity_loss_{scale}", figures_dir)
 revisits.filter(["method", "phase", "visit", "revisit_mean", "first_mean", "fresh_mean", "revisit_minus_first_mean",
                  "revisit_minus_fresh_mean", "revisit_end", "first_end", "fresh_end"]).round(3)

@@ -402,54 +402,13 @@ assert method_order(["zzz", "mlp", "pemamoe"])[:2] == ["mlp", "pemamoe"]
 # %% [markdown]
 # ## Figures of notebook 09's plasticity section
 #
-# Three helpers that notebook 09 calls: the learning curves within each phase visit
-# (`plot_visits`), the paper-scale revisits against first visits seed by seed
-# (`plot_seed_differences`), and the least active unit of each recorded final actor
+# Helpers that notebook 09 calls (the learning curves within each phase visit, `plot_visits`, are
+# appendix 09b's, beside the visit curves they draw): the paper-scale revisits against first visits
+# seed by seed (`plot_seed_differences`), and the least active unit of each recorded final actor
 # (`smallest_preactivation`, drawn by `plot_least_active_units`): why the paper's dormant fraction is 0.
 
 # %%
 #| export
-def plot_visits(metrics: pd.DataFrame, fresh: pd.DataFrame, scale: str):
-    """Coverage within each visit of each revisited phase (visits drawn solid, dashed, dotted),
-    mean over the seeds, with a fresh network's over the same steps where `fresh` has one; one row
-    of panels per phase, one column per method (notebook 09's plasticity-loss figure). Returns the figure."""
-    import matplotlib.pyplot as plt
-
-    from pemamoe.budget import block_steps, fresh_visit_curve, visit_curve  # budget imports this module
-    methods_here = [m for m in method_order(metrics.method) if m in set(metrics.method)]
-    phases_here = sorted({p for _, _, p in phase_visits(metrics)})
-    fig, axes = plt.subplots(len(phases_here), len(methods_here), figsize=(3.3 * len(methods_here), 2.6 * len(phases_here)),
-                             squeeze=False, sharey="row")
-    for j, method in enumerate(methods_here):
-        runs = metrics[metrics.method == method]
-        visits = phase_visits(runs)
-        for i, phase in enumerate(phases_here):
-            ax = axes[i][j]
-            horizon = None
-            for k, (a, b, p) in enumerate([v for v in visits if v[2] == phase]):
-                curve = visit_curve(runs, a, b, "coverage", block_steps(scale)).groupby("steps").value.mean()
-                horizon = curve.index.max() if horizon is None else min(horizon, curve.index.max())
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color=method_colour(method), ls=["-", "--", ":"][k % 3],
-                        lw=1.4, label=f"visit {k + 1}")
-            curve = fresh_visit_curve(fresh, method, phase, horizon, "coverage", block_steps(scale)) \
-                if horizon is not None else fresh.iloc[:0]  # the table's reference, or none
-            if len(curve):
-                curve = curve[curve.steps <= horizon].groupby("steps").value.mean()
-                ax.plot(curve.index / 1e6, curve.to_numpy(), color="#999999", lw=1.2, label="fresh network")
-            ax.set_title(f"{method_label(method)}, phase {phase}", fontsize=8)
-            if i == len(phases_here) - 1:
-                ax.set_xlabel("environment steps into the visit (millions)")
-    for i, phase in enumerate(phases_here):
-        axes[i][0].set_ylabel(f"coverage in phase {phase}")
-    axes[0][0].legend(fontsize=7)
-    n_seeds = metrics.groupby("method").seed.nunique().min()
-    against = "; grey: a fresh network trained in that phase alone" if len(fresh) else ""
-    fig.suptitle(f"Coverage within each visit of a phase, visit by visit (solid: first, dashed: second, dotted: third{against})"
-                 f"\nscale={scale}, mean over {n_seeds} seeds per method, per block of environment steps", fontsize=10)
-    fig.tight_layout()
-    return fig
-
-
 def plot_seed_differences(revisits: pd.DataFrame):
     """Each revisit's coverage minus its phase's first visit, seed by seed: one column of panels
     per phase, the mean over the visit (top) and the level over its last 10 % (bottom); per
