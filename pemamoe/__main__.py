@@ -385,8 +385,6 @@ def _check_device(device, parser) -> None:
 
 def _train(args, parser: argparse.ArgumentParser) -> int:
     from pemamoe import mappo
-    from pemamoe.mappo import METHODS
-    from pemamoe.methods import method_spec
     from pemamoe.train_config import parse_settings
 
     try:
@@ -401,11 +399,6 @@ def _train(args, parser: argparse.ArgumentParser) -> int:
         overrides["noise_gamma"] = args.noise_gamma
     if args.device is not None:
         overrides["device"] = args.device
-    uses_controller = method_spec(args.method).plasticity == "phase_controller"
-    if not uses_controller and (args.without or args.noise_gamma is not None):
-        with_controller = " or ".join(f"--method {m}" for m in METHODS if method_spec(m).plasticity == "phase_controller")
-        parser.error(f"--without and --noise-gamma configure the phase controller, which only {with_controller} "
-                     f"uses; got --method {args.method}")
     try:
         config = mappo.TrainConfig.for_scale(args.scale, method=args.method, seed=args.seed, **overrides)
         mappo.resolve_device(config.device)  # --device cuda on a machine whose torch sees no GPU
