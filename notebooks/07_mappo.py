@@ -765,14 +765,14 @@ from pemamoe.core import repo_path
 
 from types import SimpleNamespace
 
-from pemamoe.records import read_record, record_files, verify_record
+from pemamoe.records import find_record, read_record, verify_record
 
 run_root = repo_path(results_dir) / scale
 results = {}
 for method in ("pemamoe", "mlp"):
     cfg = TrainConfig.for_scale(scale, method=method, seed=seed)
     t0 = time.perf_counter()
-    marker = record_files(repo_path(records_dir), scale, cfg.run_name())["marker"]
+    marker = find_record(repo_path(records_dir), scale, cfg)  # the newest numerics version's record (appendix 09d)
     if not retrain and verify_record(marker, cfg) is not None:  # a damaged or foreign record raises, naming it
         results[method] = SimpleNamespace(config=cfg, metrics=read_record(marker)[1], from_cache="record")
     else:

@@ -51,7 +51,10 @@
 #    mismatch, naming the file. Checkpoints of format 4 and older carry no seal and are read as
 #    before. A checkpoint also records the `TRAINING_NUMERICS` version it was computed under
 #    (appendix 07c; absent means version 1): resuming it under another version would splice two
-#    arithmetics into one run, so `load_checkpoint` refuses, naming both versions.
+#    arithmetics into one run, so `load_checkpoint` refuses, naming both versions. It does not
+#    advise starting the folder over: the folder is named for the old version, and its work is the
+#    user's. A sweep never meets the refusal, since after a bump a config's folder has a new name
+#    (appendix 07c): it trains the config afresh there and leaves the old folder alone.
 # 6. **Errors survive a process pool.** `RunFolderError` and `RunLockedError` pickle with their
 #    message and attributes intact, so a sweep worker's error reaches the parent as itself instead
 #    of a `BrokenProcessPool`.
@@ -218,14 +221,17 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
                              f"{SEALED_FORMAT} and later carry one): it was rewritten or damaged, so it cannot be trusted")
     if config is not None:
         check_stored_config(ck["config"], config, path)
-        from pemamoe.train_config import TRAINING_NUMERICS
+        from pemamoe.train_config import training_numerics
 
         # Only a resume would mix two arithmetics in one run: a sealed, finished run is read as it is
         # (its folder's identity already carries the numerics it was computed under).
-        if resuming and ck.get("numerics", 1) != TRAINING_NUMERICS:
+        if resuming and ck.get("numerics", 1) != training_numerics():
             raise RunFolderError(path, f"was computed under training numerics version {ck.get('numerics', 1)!r}, "
-                                 f"but this code computes version {TRAINING_NUMERICS}: resuming it would mix two "
-                                 "arithmetics in one run")
+                                 f"but this code computes version {training_numerics()}: resuming it would mix two "
+                                 "arithmetics in one run",
+                                 f"finish it with the code of version {ck.get('numerics', 1)!r}, or train the config "
+                                 f"afresh under version {training_numerics()} in its own folder (the sweep does: "
+                                 "config.run_name()); this folder is left as it is")
         if not 0 <= int(ck["iteration"]) <= config.iterations:
             raise RunFolderError(path, f"is at iteration {ck['iteration']}, outside 0..{config.iterations}")
     if iteration is not None and int(ck["iteration"]) != iteration:

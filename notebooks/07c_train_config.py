@@ -117,6 +117,19 @@ from pemamoe.plasticity import RunSettings
 #   of every method and compares it with a stored fingerprint, so a change that moves the numbers
 #   without a bump fails the suite.
 #
+# A bump renames the *folders* a new training writes to; it does not disown the records already
+# made. A finished record is evidence produced by the code that made it, like a record made on
+# another processor, and it keeps its numerics stamp. So `identity`, `config_hash` and `run_name`
+# take an optional `numerics`: the name the same config had under an earlier version (version 1
+# still leaves the key out), and `run_names()` lists them all, newest first. The record lookup
+# (appendix 09d, `find_record`) tries them in that order, so after a bump the figures read, and
+# the sweep counts as done, the newest record a config has, of whichever version. What stays
+# refused is *resuming* a checkpoint across versions (appendix 07b): one run would then mix two
+# arithmetics. An unfinished run of an older version is left where it is, and the sweep trains the
+# config afresh under the new version, in its new folder. `training_numerics()` reads the constant
+# when called, and every module that stamps or checks a version asks it, so a test simulates a bump
+# by setting `pemamoe.train_config.TRAINING_NUMERICS` alone (`tests/test_numerics_lookup.py`).
+#
 # **Presets.** `for_scale(scale, method, seed, **overrides)` starts from the scale's numbers, takes
 # the method's controller preset from the registry, rescales its windows with `scale_controller`
 # and then applies the overrides, which may name a field of `TrainConfig`, of
@@ -171,6 +184,24 @@ PAPER_UPDATE_EPOCHS = 8
 # The version of the training arithmetic (see the identity above): bump it with any change that
 # alters the numbers a run computes for the same config, and refresh tests/numerics_fingerprint.json.
 TRAINING_NUMERICS = 2  # 2: the controller is inert before the first switch; gating choices (notebook 05)
+
+
+def training_numerics() -> int:
+    """The version of the training arithmetic this code computes: `TRAINING_NUMERICS`, read when
+    called. Every module that stamps or checks a version asks here, so a test can simulate a bump by
+    setting `pemamoe.train_config.TRAINING_NUMERICS` alone."""
+    return TRAINING_NUMERICS
+
+
+def check_numerics(numerics) -> int:
+    """`numerics` (None: the current version) as a version this code can name a run under: an int
+    from 1 (the runs made before the version existed) to the current one."""
+    current = training_numerics()
+    if numerics is None:
+        return current
+    if type(numerics) is not int or not 1 <= numerics <= current:
+        raise ValueError(f"numerics must be an int from 1 to {current} (this code's TRAINING_NUMERICS), got {numerics!r}")
+    return numerics
 # Columns that describe how a run was executed (speed, population size), not what it computed:
 # they differ between two executions of the same run and are left out of every comparison.
 TIMING_COLUMNS = ("sps", "sps_total", "rollout_time", "update_time", "diag_time", "wall_time", "population")
@@ -382,11 +413,14 @@ class TrainConfig:
         d.pop("label", None)
         return cls(**d)
 
-    def identity(self) -> dict:
+    def identity(self, numerics: int | None = None) -> dict:
         """What determines the computation: to_dict() without the phase controller for the
         baselines, which never use it (so a noise sweep over the MoE baseline is one run), plus
         the fully resolved environment, so a changed environment default (or step engine) can
-        never reuse results computed under the old one, plus TRAINING_NUMERICS once it is above 1."""
+        never reuse results computed under the old one, plus TRAINING_NUMERICS once it is above 1.
+        numerics: the identity this config had under that earlier version of the arithmetic (None:
+        the current one), what the record lookup of appendix 09d names older records by."""
+        numerics = check_numerics(numerics)
         d = self.to_dict()
         if not self.controller_enabled:
             d.pop("controller")
@@ -402,17 +436,23 @@ class TrainConfig:
         d["device"] = str(resolve_device(self.device).type)  # "auto" is whatever it resolves to
         if self.fixed_phase is None:  # the default leaves the identity (and the cache) of cycling runs unchanged
             d.pop("fixed_phase")
-        if TRAINING_NUMERICS != 1:  # version 1 is every run made before the version existed
-            d["numerics"] = TRAINING_NUMERICS
+        if numerics != 1:  # version 1 is every run made before the version existed
+            d["numerics"] = numerics
         return d
 
-    def config_hash(self) -> str:
-        """12 hex digits identifying the run (for result caches); see `identity`."""
-        text = json.dumps(self.identity(), sort_keys=True, separators=(",", ":"))
+    def config_hash(self, numerics: int | None = None) -> str:
+        """12 hex digits identifying the run (for result caches); see `identity` (and its
+        `numerics`: the hash of the same config under an earlier version)."""
+        text = json.dumps(self.identity(numerics), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:12]
 
-    def run_name(self) -> str:
-        return f"{self.method}-s{self.seed}-{self.config_hash()}"
+    def run_name(self, numerics: int | None = None) -> str:
+        return f"{self.method}-s{self.seed}-{self.config_hash(numerics)}"
+
+    def run_names(self) -> dict:
+        """{numerics version: run name} of this config under every version of the arithmetic,
+        newest (the current one) first: where the record lookup of appendix 09d looks, in order."""
+        return {n: self.run_name(n) for n in range(training_numerics(), 0, -1)}
 
     # -- presets --------------------------------------------------------------------------------
     @classmethod

@@ -84,7 +84,7 @@ from pemamoe.core import Progress, atomic_path
 from pemamoe.diagnostics import plasticity_diagnostics
 from pemamoe.env import UAVVectorEnv
 from pemamoe.runs import seal_checkpoint
-from pemamoe.train_config import TRAINING_NUMERICS
+from pemamoe.train_config import training_numerics
 
 CHECKPOINT_FORMAT = 5  # 5: sealed with its sha256 and stamped with TRAINING_NUMERICS; 4: rows in chunks (below)
 _EPISODE_SUMS = ("qos", "energy", "collision", "overlap", "collisions")
@@ -614,7 +614,7 @@ def write_checkpoint(obj, path: Path) -> None:
     path = Path(path)
     with atomic_path(path) as tmp:
         try:
-            torch.save({**obj, "format": CHECKPOINT_FORMAT, "numerics": TRAINING_NUMERICS}, tmp)
+            torch.save({**obj, "format": CHECKPOINT_FORMAT, "numerics": training_numerics()}, tmp)
             seal_checkpoint(tmp)
         except RuntimeError as err:  # torch's writer: "[enforce fail at inline_container.cc:...]", "file write failed"
             if "inline_container" not in str(err) and "write" not in str(err).lower():

@@ -731,11 +731,12 @@ missing = set(map(id, pending_runs(tuning, results_dir, records_dir, retrain)[1]
 have = [spec for spec in tuning if id(spec) not in missing]  # finished or recorded: nothing is trained
 print(f"tuning grid: {len(have)} of {len(tuning)} runs finished")
 if have:
-    grid = {spec.to_config().run_name(): tuple(dict(spec.overrides)[k] for k in ("lr", "ent_start", "ent_end"))
-            for spec in have}
+    have_records = sweep_records(have, backend, workers, results_dir, ray_address, records_dir)
+    # keyed by the record's own name (load_budget's `run`), which an older numerics version's record keeps
+    grid = {Path(record).stem: tuple(dict(spec.overrides)[k] for k in ("lr", "ent_start", "ent_end"))
+            for spec, record in zip(have, have_records)}
     preset = TrainConfig.for_scale("small")
-    tuned = tuning_table(load_budget(sweep_records(have, backend, workers, results_dir, ray_address, records_dir)), grid,
-                         centre=(preset.lr, preset.ent_start, preset.ent_end))
+    tuned = tuning_table(load_budget(have_records), grid, centre=(preset.lr, preset.ent_start, preset.ent_end))
     write_table(tuned.round(4), "tuning", figures_dir)
     display(tuned)
 

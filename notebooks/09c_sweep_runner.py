@@ -59,9 +59,11 @@ from pemamoe.core import BACKENDS, DEFAULT_POPULATION  # re-export: in core, for
 from pemamoe.core import REPO_ROOT, Progress, atomic_write_json, check_scale, one_line
 from pemamoe.env import compile_step_kernels
 from pemamoe.mappo import TrainConfig, population_key
+from pemamoe.train_config import training_numerics
 from pemamoe.methods import METHOD_REGISTRY, method_spec
-from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, portable_state_progress, record_files,
-                             record_timing, restore_portable_state, verify_record, write_portable_state, write_record)
+from pemamoe.records import (RECORDS_DIR, RecordError, drop_portable_state, find_record, portable_state_path,
+                             portable_state_progress, record_files, record_timing, restore_portable_state,
+                             verify_record, write_portable_state, write_record)
 from pemamoe.runs import verify_done
 from pemamoe.store import checked_out, open_store, pull_run, pull_tree, push_paths, refresh_finished
 
@@ -129,9 +131,15 @@ class RunSpec:
 # %% [markdown]
 # `run_sweep` drops finished runs first (`pending_runs`: a run is done when its folder's
 # `done.json` verifies, notebook 07b, or its record does, appendix 09d; two specs that resolve to
-# one folder train once), groups the rest into populations (`group_specs`: runs whose configs
-# differ only in the member fields of notebook 07, at most `population` members each), then hands
-# the populations to a backend: `local`, a pool of worker processes, or `ray`, Ray tasks on a local
+# one folder train once). The record is looked up by `record_marker`, which takes the newest
+# numerics version's record of the config (`find_record`, appendix 09d): after a bump of
+# `TRAINING_NUMERICS` the committed records still count as done, and nothing is retrained. The
+# run folder, by contrast, is always the current version's: an unfinished run of an older version
+# cannot be resumed (appendix 07b), so such a config trains afresh in its new folder, the sweep says
+# so (`older_unfinished`), and the old folder and portable state are left untouched. It then
+# groups the rest into populations (`group_specs`: runs whose configs differ only in the member
+# fields of notebook 07, at most `population` members each), then hands the populations to a
+# backend: `local`, a pool of worker processes, or `ray`, Ray tasks on a local
 # instance or on a cluster. Each worker trains its population with `train_population` (notebook
 # 07), which resumes every member from its checkpoint and reads finished members back. SIGINT or
 # SIGTERM stop the sweep without leaving workers behind and raise `SweepInterrupted`; rerunning the
@@ -207,8 +215,28 @@ def _local_records(records_dir, specs) -> tuple:
 
 
 def record_marker(spec, records_dir=RECORDS_DIR) -> Path:
-    """Where the record of `spec`'s run lives (its marker; appendix 09d)."""
-    return record_files(records_dir, spec.scale, spec.to_config().run_name())["marker"]
+    """Where the record of `spec`'s run lives (its marker; appendix 09d): the newest numerics
+    version's record of its config (`find_record`), else where the current version's will be."""
+    return find_record(records_dir, spec.scale, spec.to_config())
+
+
+def older_unfinished(specs, results_dir, records_dir=None) -> dict:
+    """{spec: [paths]} of the specs whose config has unfinished work of an older numerics version
+    (appendix 07c) on this machine: a run folder with a checkpoint and no done.json, or, with
+    records_dir, a portable state. None of it can be resumed (appendix 07b); the sweep trains the
+    config afresh under its current name and leaves these as they are."""
+    store = open_store(results_dir)
+    out = {}
+    for spec in specs:
+        names = list(spec.to_config().run_names().values())[1:]  # the older versions' names
+        found = [store.run_dir(spec.scale, name) for name in names
+                 if (store.run_dir(spec.scale, name) / "checkpoint.pt").exists()
+                 and not (store.run_dir(spec.scale, name) / "done.json").exists()]
+        if records_dir is not None:
+            found += [p for p in (portable_state_path(records_dir, spec.scale, name) for name in names) if p.exists()]
+        if found:
+            out[spec] = found
+    return out
 
 
 def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="results", address=None,
@@ -247,6 +275,12 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     if verbose:
         print(f"[sweep] {len(by_folder)} runs, {len(by_folder) - len(todo)} cached, {len(todo)} to run "
               f"as {len(groups)} populations on {backend} ({workers} workers)", flush=True)
+        stale = older_unfinished(todo, store, records_dir)
+        if stale:
+            first = next(iter(stale.values()))[0]
+            print(f"[sweep] {len(stale)} of them have unfinished work of an older training numerics version (e.g. "
+                  f"{first}), which cannot be resumed under version {training_numerics()}: they train afresh under "
+                  "their new names, and the old folders and portable states are left as they are", flush=True)
     if todo:
         start = time.perf_counter()
         compile_step_kernels()  # once here, so that the workers load the compiled env rather than race to build it
@@ -267,7 +301,7 @@ def run_sweep(specs, backend: str = "local", workers: int = 2, results_dir="resu
     if records_dir is not None:  # finished folders without a (verified) record, e.g. trained before records
         for folder, spec in by_folder.items():
             config = spec.to_config()
-            marker = record_marker(spec, records_dir)
+            marker = record_files(records_dir, spec.scale, folder.name)["marker"]  # this version's: the folder's
             if verify_done(folder, config) and (retrain or not _record_ok(marker, config)):
                 _write_record_from(store, folder, spec.scale, records_dir, records_store)
     return [s.run_dir(store) for s in specs]

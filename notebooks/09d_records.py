@@ -58,7 +58,7 @@ import pandas as pd
 
 from pemamoe.core import REPO_ROOT, atomic_path, atomic_write_bytes, atomic_write_json, check_scale
 from pemamoe.runs import RunFolderError, read_config, read_json, read_parquet, verify_done
-from pemamoe.train_config import TIMING_COLUMNS, TRAINING_NUMERICS, TrainConfig
+from pemamoe.train_config import TIMING_COLUMNS, TrainConfig, training_numerics
 
 RECORD_FORMAT = 1
 RECORDS_DIR = REPO_ROOT / "records"  # tracked by git, one folder per scale (ci's is ignored)
@@ -192,7 +192,7 @@ def write_record(run_dir, scale: str, records_dir=RECORDS_DIR) -> Path:
     elif timing.get("processors") != processors:  # retrained: the bytes' processors
         atomic_write_json(files["timing"], {**timing, "processors": processors})
     marker = {"format": RECORD_FORMAT, "run": name, "scale": scale, "config": config.to_dict(),
-              "config_hash": config.config_hash(), "numerics": TRAINING_NUMERICS, "iterations": int(config.iterations),
+              "config_hash": config.config_hash(), "numerics": training_numerics(), "iterations": int(config.iterations),
               "block": block, "rows": int(-(-config.iterations // block)), "env_steps": int(metrics.env_steps.max()),
               "sha256": {"data": hashlib.sha256(data).hexdigest(), "actor": hashlib.sha256(actor).hexdigest()}}
     return atomic_write_json(files["marker"], marker)
@@ -223,18 +223,22 @@ def read_marker(marker_path) -> dict:
         raise RecordError(path, f"has sha256 {seals!r}, not {{'data': <hex>, 'actor': <hex>}}")
     if marker["run"] != path.stem:  # else the figures would read another run's files under this label
         raise RecordError(path, f"has run {marker['run']!r}, not its file's name {path.stem!r}")
+    numerics, current = marker["numerics"], training_numerics()
+    if type(numerics) is not int or not 1 <= numerics <= current:  # the version the config is hashed under
+        raise RecordError(path, f"has numerics {numerics!r}, but its config gives a version from 1 to {current} "
+                          "(this code's TRAINING_NUMERICS; marker edited?)")
     try:
         config = TrainConfig.from_dict(marker["config"])
-        config_hash = config.config_hash()
+        config_hash = config.config_hash(numerics)  # its identity under the arithmetic that made it
     except (TypeError, ValueError, AttributeError) as err:
         raise RecordError(path, f"has a config that is not a TrainConfig ({err})") from None
     if config_hash != marker["config_hash"]:
         raise RecordError(path, f"has config_hash {marker['config_hash']!r}, but its config hashes to "
                           f"{config_hash!r} (config edited?)")
-    if config.run_name() != marker["run"]:  # a record renamed as a whole
-        raise RecordError(path, f"has run {marker['run']!r}, but its config is run {config.run_name()!r}")
+    if config.run_name(numerics) != marker["run"]:  # a record renamed as a whole
+        raise RecordError(path, f"has run {marker['run']!r}, but its config is run {config.run_name(numerics)!r}")
     block = record_block(config)  # the stamps the writer derived from the config: each checked against it
-    derived = {"numerics": TRAINING_NUMERICS, "iterations": config.iterations, "block": block,
+    derived = {"iterations": config.iterations, "block": block,
                "rows": -(-config.iterations // block), "env_steps": config.total_env_steps}
     for key, value in derived.items():
         if marker[key] != value or type(marker[key]) is not int:
@@ -249,9 +253,9 @@ def verify_record(marker_path, config: TrainConfig | None = None) -> dict | None
     if not path.exists():
         return None
     marker = read_marker(path)
-    if config is not None and marker["config_hash"] != config.config_hash():
+    if config is not None and marker["config_hash"] != config.config_hash(marker["numerics"]):
         raise RecordError(path, f"belongs to config hash {marker['config_hash']!r}, not the requested "
-                          f"{config.config_hash()!r}")
+                          f"{config.config_hash(marker['numerics'])!r} (its hash under numerics {marker['numerics']})")
     for kind, suffix in (("data", ".parquet"), ("actor", ".actor.parquet")):
         file = path.with_name(path.stem + suffix)
         if not file.is_file():
@@ -314,6 +318,56 @@ def committed_records_mb(records_dir=RECORDS_DIR) -> dict:
     for folder in sorted(p for p in Path(records_dir).glob("*") if p.is_dir()):
         out[folder.name] = sum(f.stat().st_size for f in folder.iterdir() if f.is_file()) / 1e6
     return out
+
+
+# %% [markdown]
+# ## Finding a config's record, across numerics versions
+#
+# A record is named by its run, `<method>-s<seed>-<hash>`, and the hash carries the version of the
+# training arithmetic, `TRAINING_NUMERICS` (appendix 07c). A bump of that version (a faster update
+# whose floats round differently, say) renames every config, yet the records already committed
+# stay what they are: evidence made by the commit that made them, stamped with their version,
+# like a record made on another processor. So whatever *reads* a config's record asks
+# `find_record`, which tries the config's name under the current version first and then under each
+# older one (`TrainConfig.run_names()`), and takes the first marker that exists: the newest version
+# of the config's records wins, and a damaged newest record is refused by the reader rather than
+# quietly passed over for an older one. `read_marker` checks a marker against the version it is
+# stamped with (its config must hash to its `config_hash` under that version; a version newer than
+# the code's is refused), so an old record reads exactly as it did under the code that wrote it.
+#
+# Everything that decides what to read or to train goes through it: `record_marker` and with it
+# `pending_runs` (the sweep's "already done" test, `sweep --status` and the figures' first sweep),
+# `sweep_records` (what the notebooks read) and notebook 07's demonstration. What *writes* stays at
+# the current version: `write_record` names and stamps a record with the code's own version, and a
+# run folder in the results cache is named the same way, so after a bump a fresh training, or a
+# retraining with `retrain=True`, lands beside the old record without replacing it, and from then
+# on is the one read. An unfinished run of an older version is never resumed (appendix 07b): its
+# folder and its portable state stay where they are, and the sweep trains the config afresh under
+# its new name, saying so. Code that lists records by name instead (appendix 10b's campaign logs)
+# drops those `superseded` by a newer version's record of the same config.
+
+# %%
+#| export
+def find_record(records_dir, scale: str, config: TrainConfig) -> Path:
+    """The marker of `config`'s record at `scale`: the first that exists of its names under the
+    current numerics version and then each older one (`TrainConfig.run_names()`), so the newest
+    version wins; the current version's path when none exists (what a new record will be)."""
+    names = config.run_names()
+    for name in names.values():
+        marker = record_files(records_dir, scale, name)["marker"]
+        if marker.exists():
+            return marker
+    return record_files(records_dir, scale, next(iter(names.values())))["marker"]
+
+
+def superseded(marker_path) -> bool:
+    """Whether a newer numerics version's record of the same config lies beside this record (its
+    marker checked first, `read_marker`): then `find_record` reads that one, never this one."""
+    path = Path(marker_path)
+    marker = read_marker(path)
+    config = TrainConfig.from_dict(marker["config"])
+    return any(n > marker["numerics"] and path.with_name(f"{name}.json").exists()
+               for n, name in config.run_names().items())
 
 
 # %% [markdown]

@@ -50,7 +50,7 @@ import pandas as pd
 
 from pemamoe.core import REPO_ROOT, write_table
 from pemamoe.methods import method_label
-from pemamoe.records import read_record, record_files
+from pemamoe.records import read_record, record_files, superseded
 
 records = Path(records_dir) if Path(records_dir).is_absolute() else REPO_ROOT / records_dir
 paper_records = records / "paper"
@@ -116,7 +116,7 @@ def campaign_logs(method: str) -> dict:
     """{run name: record log} of the committed paper-scale records of `method` (every campaign)."""
     logs = {}
     for marker in sorted(paper_records.glob(f"{method}-s*.json")):
-        if marker.name.endswith(".timing.json"):
+        if marker.name.endswith(".timing.json") or superseded(marker):  # a newer numerics version's record wins
             continue
         config, log = read_record(record_files(records, "paper", marker.stem)["marker"])
         logs[marker.stem] = (config, log)

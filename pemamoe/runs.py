@@ -149,14 +149,17 @@ def load_checkpoint(path, config=None, iteration: int | None = None, resuming: b
                              f"{SEALED_FORMAT} and later carry one): it was rewritten or damaged, so it cannot be trusted")
     if config is not None:
         check_stored_config(ck["config"], config, path)
-        from pemamoe.train_config import TRAINING_NUMERICS
+        from pemamoe.train_config import training_numerics
 
         # Only a resume would mix two arithmetics in one run: a sealed, finished run is read as it is
         # (its folder's identity already carries the numerics it was computed under).
-        if resuming and ck.get("numerics", 1) != TRAINING_NUMERICS:
+        if resuming and ck.get("numerics", 1) != training_numerics():
             raise RunFolderError(path, f"was computed under training numerics version {ck.get('numerics', 1)!r}, "
-                                 f"but this code computes version {TRAINING_NUMERICS}: resuming it would mix two "
-                                 "arithmetics in one run")
+                                 f"but this code computes version {training_numerics()}: resuming it would mix two "
+                                 "arithmetics in one run",
+                                 f"finish it with the code of version {ck.get('numerics', 1)!r}, or train the config "
+                                 f"afresh under version {training_numerics()} in its own folder (the sweep does: "
+                                 "config.run_name()); this folder is left as it is")
         if not 0 <= int(ck["iteration"]) <= config.iterations:
             raise RunFolderError(path, f"is at iteration {ck['iteration']}, outside 0..{config.iterations}")
     if iteration is not None and int(ck["iteration"]) != iteration:
