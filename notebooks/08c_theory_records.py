@@ -107,11 +107,16 @@ from pemamoe.nets import NetConfig
 from pemamoe.records import RecordError, parquet_bytes
 from pemamoe.runs import read_json, read_parquet
 from pemamoe.toy_tracking import tracker_controller_config
-from pemamoe.train_config import TRAINING_NUMERICS
+from pemamoe.train_config import training_numerics
 
 THEORY_RECORD_FORMAT = 1
 THEORY_NUMERICS = 1  # raise when the learner's or an experiment's code changes what it computes
-THEORY_DIR = "theory"  # records/<scale>/theory/<experiment>.json (+ .<table>.parquet, .timing.json)
+THEORY_DIR = "theory"  # records/<scale>/theory/<name>.json (+ .<table>.parquet, .timing.json); see theory_record_name
+# The numerics versions the first records were made under: a record of these versions (or older ones)
+# is named by its experiment alone; a later version adds a tag ("-t2": THEORY_NUMERICS 2, "-n3":
+# TRAINING_NUMERICS 3), so a record of a newer version is written beside the older ones, never over them.
+THEORY_NAME_BASE = {"theory": 1, "training": 2}
+_NAME_TAGS = (("theory", "t"), ("training", "n"))
 THEORY_MARKER_KEYS = ("format", "experiment", "parameters", "parameters_hash", "tables", "values", "values_sha256",
                       "made_on")
 REPORTED_DIGITS = 6  # significant digits of the tables notebook 08 writes
@@ -165,11 +170,54 @@ def tracker_job_identity(job) -> dict:
 
 def theory_parameters(settings: dict, jobs=()) -> dict:
     """The parameters of an experiment: its settings (sizes, seeds), the count and sha256 of its
-    learner jobs (`tracker_job_identity`), THEORY_NUMERICS and TRAINING_NUMERICS."""
+    learner jobs (`tracker_job_identity`), THEORY_NUMERICS and TRAINING_NUMERICS (`training_numerics()`,
+    read at each call)."""
     jobs = list(jobs)
     return _plain({"settings": settings, "jobs": len(jobs),
                    "jobs_sha256": _sha256(_canonical([tracker_job_identity(j) for j in jobs])),
-                   "numerics": {"theory": THEORY_NUMERICS, "training": TRAINING_NUMERICS}})
+                   "numerics": {"theory": THEORY_NUMERICS, "training": training_numerics()}})
+
+
+def _numerics(parameters) -> dict:
+    """The numerics versions {"theory", "training"} of a record's parameters; THEORY_NAME_BASE's for
+    parameters that carry none (a record written by hand, as the tests do)."""
+    numerics = parameters.get("numerics") if isinstance(parameters, dict) else None
+    numerics = numerics if isinstance(numerics, dict) else {}
+    return {key: numerics.get(key, base) for key, base in THEORY_NAME_BASE.items()}
+
+
+def theory_record_name(experiment: str, numerics: dict | None = None) -> str:
+    """The file name (stem) of `experiment`'s record at these numerics versions (a parameters dict
+    or {"theory", "training"}; default: this code's): the experiment, tagged with each version above
+    THEORY_NAME_BASE, so "noise" up to THEORY_NUMERICS 1 and TRAINING_NUMERICS 2, "noise-n3" under
+    TRAINING_NUMERICS 3, "noise-t2-n3" under both bumps."""
+    if not _NAME.match(str(experiment)):
+        raise ValueError(f"theory record: experiment must match {_NAME.pattern}, got {experiment!r}")
+    if numerics is None:
+        numerics = {"theory": THEORY_NUMERICS, "training": training_numerics()}
+    versions = _numerics(numerics if "numerics" in numerics else {"numerics": numerics})
+    for key, _ in _NAME_TAGS:
+        if not (isinstance(versions[key], int) and not isinstance(versions[key], bool) and versions[key] >= 1):
+            raise ValueError(f"theory record: numerics.{key} must be an int >= 1, got {versions[key]!r}")
+    return str(experiment) + "".join(f"-{tag}{versions[key]}" for key, tag in _NAME_TAGS
+                                     if versions[key] > THEORY_NAME_BASE[key])
+
+
+def theory_parameters_at(parameters: dict, training: int) -> dict:
+    """`parameters` as they were asked under TRAINING_NUMERICS `training`: the same settings, jobs
+    and THEORY_NUMERICS, another training version (what a record of that version holds)."""
+    return _plain({**parameters, "numerics": {**parameters["numerics"], "training": training}})
+
+
+def _lookup_parameters(parameters: dict) -> list:
+    """The parameters whose record answers `parameters`, newest training version first: the asked
+    ones, then the same at each older TRAINING_NUMERICS (a record is the evidence of the commit that
+    made it; a bump of the training arithmetic leaves it readable). Parameters without a training
+    version (or THEORY_NUMERICS, which is never looked up across) have only themselves."""
+    training = parameters.get("numerics", {}).get("training") if isinstance(parameters.get("numerics"), dict) else None
+    if not (isinstance(training, int) and not isinstance(training, bool) and training >= 1):
+        return [_plain(parameters)]
+    return [theory_parameters_at(parameters, v) for v in range(training, 0, -1)]
 
 
 def parameters_hash(parameters: dict) -> str:
@@ -177,11 +225,10 @@ def parameters_hash(parameters: dict) -> str:
     return _sha256(_canonical(parameters))[:12]
 
 
-def theory_record_path(records_dir, scale: str, experiment: str) -> Path:
-    """The marker of one experiment's record at `scale`."""
-    if not _NAME.match(str(experiment)):
-        raise ValueError(f"theory record: experiment must match {_NAME.pattern}, got {experiment!r}")
-    return Path(records_dir) / check_scale(scale) / THEORY_DIR / f"{experiment}.json"
+def theory_record_path(records_dir, scale: str, experiment: str, numerics: dict | None = None) -> Path:
+    """The marker of one experiment's record at `scale` and these numerics versions (a parameters
+    dict or {"theory", "training"}; default: this code's), named by `theory_record_name`."""
+    return Path(records_dir) / check_scale(scale) / THEORY_DIR / f"{theory_record_name(experiment, numerics)}.json"
 
 
 def _table_path(marker_path: Path, name: str) -> Path:
@@ -226,11 +273,18 @@ def read_theory_marker(marker_path) -> dict:
     missing = [key for key in THEORY_MARKER_KEYS if key not in marker]
     if missing:
         raise TheoryRecordError(path, f"lacks the field(s) {', '.join(missing)}")
-    if marker["experiment"] != path.stem:
-        raise TheoryRecordError(path, f"is the record of {marker['experiment']!r}, not of its file's name {path.stem!r}")
     if parameters_hash(marker["parameters"]) != marker["parameters_hash"]:
         raise TheoryRecordError(path, f"has parameters_hash {marker['parameters_hash']!r}, but its parameters hash to "
                                 f"{parameters_hash(marker['parameters'])!r} (parameters edited?)")
+    try:
+        name = theory_record_name(marker["experiment"], marker["parameters"])
+    except ValueError as err:
+        raise TheoryRecordError(path, str(err).removeprefix("theory record: ")) from None
+    if name != path.stem:
+        numerics = _numerics(marker["parameters"])
+        raise TheoryRecordError(path, f"is the record of {marker['experiment']!r} at THEORY_NUMERICS {numerics['theory']}"
+                                f" and TRAINING_NUMERICS {numerics['training']}, so named {name!r}, not of its file's "
+                                f"name {path.stem!r}")
     if _sha256(_canonical(marker["values"])) != marker["values_sha256"]:
         raise TheoryRecordError(path, "has values that differ from the ones it sealed (values_sha256; edited?)")
     tables = marker["tables"]
@@ -276,6 +330,10 @@ def write_theory_record(marker_path, parameters: dict, tables: dict, values: dic
     then the marker that seals them, each atomically; `compute_s` goes to the timing file. Tables of
     an earlier record of the experiment that this one has not are removed. Returns the marker."""
     path = Path(marker_path)
+    experiment = path.stem.split("-")[0]
+    if theory_record_name(experiment, parameters) != path.stem:
+        raise ValueError(f"theory record: a record of {experiment!r} with these parameters is named "
+                         f"{theory_record_name(experiment, parameters)!r}, not {path.stem!r}")
     values = _plain(values or {})
     seals = {}
     for name, frame in tables.items():
@@ -291,7 +349,7 @@ def write_theory_record(marker_path, parameters: dict, tables: dict, values: dic
         atomic_write_bytes(_table_path(path, name), data)
         seals[name] = {"file": _table_path(path, name).name, "rows": int(len(frame)),
                        "sha256": hashlib.sha256(data).hexdigest()}
-    marker = {"format": THEORY_RECORD_FORMAT, "experiment": path.stem, "parameters": _plain(parameters),
+    marker = {"format": THEORY_RECORD_FORMAT, "experiment": experiment, "parameters": _plain(parameters),
               "parameters_hash": parameters_hash(parameters), "tables": seals, "values": values,
               "values_sha256": _sha256(_canonical(values)), "made_on": _made_on()}
     atomic_write_json(path, marker)
@@ -305,14 +363,23 @@ def write_theory_record(marker_path, parameters: dict, tables: dict, values: dic
 
 
 def find_theory_record(records_dir, scale: str, experiment: str, parameters: dict) -> Path | None:
-    """The marker of a record of `experiment` with these parameters: the scale's own, else another
-    scale's (the parameters, not the scale, say what was computed); None when there is none."""
-    want = parameters_hash(parameters)
-    own = theory_record_path(records_dir, scale, experiment)
-    for path in [own, *(theory_record_path(records_dir, s, experiment) for s in SCALES if s != scale)]:
-        if path.exists() and read_theory_marker(path)["parameters_hash"] == want:
-            return path
+    """The marker of the record that answers `parameters`: one of exactly these parameters, else of
+    the same at the newest older TRAINING_NUMERICS that has one (`_lookup_parameters`); at each
+    version the scale's own record, else another scale's (the parameters, not the scale, say what
+    was computed). None when there is none. A damaged marker on the way is refused, not passed over."""
+    scales = [scale, *(s for s in SCALES if s != scale)]
+    for asked in _lookup_parameters(parameters):
+        want = parameters_hash(asked)
+        for path in (theory_record_path(records_dir, s, experiment, asked) for s in scales):
+            if path.exists() and read_theory_marker(path)["parameters_hash"] == want:
+                return path
     return None
+
+
+def _other_records(folder: Path, experiment: str, own: Path) -> list:
+    """The markers of `experiment`'s records of other numerics versions in `folder`."""
+    pattern = re.compile(rf"^{experiment}(-t[0-9]+)?(-n[0-9]+)?\.json$")
+    return sorted(p for p in folder.glob(f"{experiment}*.json") if pattern.match(p.name) and p != own)
 
 
 def _shown(path: Path) -> str:
@@ -326,22 +393,32 @@ def theory_record(records_dir, scale: str, experiment: str, parameters: dict, co
                   say=print) -> tuple:
     """(tables, values) of `experiment` with these parameters: read from its record when one
     matches (see find_theory_record), else compute() -> (tables, values), written to the scale's
-    record and read back from it. retrain: compute and rewrite whatever is recorded. A damaged
-    record raises TheoryRecordError; one of other parameters is computed again (one line says so)."""
-    own = theory_record_path(records_dir, scale, experiment)
+    record and read back from it. The record written is named by the parameters' numerics versions
+    (`theory_record_path`), so after a bump it lies beside the older versions' records, never over
+    them. retrain: compute and rewrite the record of these parameters' versions, whatever is
+    recorded. A damaged record raises TheoryRecordError; one of other parameters is computed again
+    (one line says so)."""
+    own = theory_record_path(records_dir, scale, experiment, parameters)
     found = None if retrain else find_theory_record(records_dir, scale, experiment, parameters)
     if found is not None:
-        tables, values = read_theory_record(found, parameters)
+        made = read_theory_marker(found)
+        asked = next(p for p in _lookup_parameters(parameters) if parameters_hash(p) == made["parameters_hash"])
+        tables, values = read_theory_record(found, asked)
         timing = read_json(_timing_path(found)) if _timing_path(found).exists() else {}
         took = f", computing it took {timing['compute_s']:.0f} s" if "compute_s" in timing else ""
-        say(f"[theory record] {experiment}: read {_shown(found)} (made on {read_theory_marker(found)['made_on']['cpu']}"
-            f"{took})")
+        older = (f", under TRAINING_NUMERICS {_numerics(made['parameters'])['training']}"
+                 if made["parameters_hash"] != parameters_hash(parameters) else "")
+        say(f"[theory record] {experiment}: read {_shown(found)} (made on {made['made_on']['cpu']}{older}{took})")
         return tables, values
     if retrain:
         why = "retrain=True"
     elif own.exists():
         old = read_theory_marker(own)
         why = f"{_shown(own)} holds other parameters ({', '.join(_differences(old['parameters'], parameters)[:4])})"
+    elif _other_records(own.parent, experiment, own):
+        other = _other_records(own.parent, experiment, own)[-1]
+        diff = _differences(read_theory_marker(other)["parameters"], parameters)
+        why = f"{_shown(other)} holds other parameters ({', '.join(diff[:4])}); it stays, this one goes beside it"
     else:
         why = "no record"
     say(f"[theory record] {experiment}: computing ({why})")
