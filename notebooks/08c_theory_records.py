@@ -35,15 +35,16 @@
 #   job order, so the number of workers changes nothing.
 #
 # A record is one experiment of notebook 08 (`noise`, `routing`, `regret`), in
-# `records/<scale>/theory/`:
+# `records/<scale>/theory/`, under a name that is the experiment's, tagged with the numerics
+# versions it was computed under when they are newer than the first records' (below):
 #
-# * `<experiment>.json`, the **marker**: `format`, `experiment`, `parameters` and their
+# * `<name>.json`, the **marker**: `format`, `experiment`, `parameters` and their
 #   `parameters_hash`, `tables` (for each table its file, row count and sha256), `values`
 #   (the experiment's scalar results, JSON numbers, which read back exactly) with their
 #   `values_sha256`, and `made_on` (library versions and the processor, for the record's
 #   provenance, not its identity);
-# * `<experiment>.<table>.parquet`, one file per table, written as the run records write theirs;
-# * `<experiment>.timing.json`: how long computing it took, and where (a measurement, not part of
+# * `<name>.<table>.parquet`, one file per table, written as the run records write theirs;
+# * `<name>.timing.json`: how long computing it took, and where (a measurement, not part of
 #   the record).
 #
 # The **parameters** are everything the results depend on: the notebook's sizes and seeds
@@ -65,6 +66,33 @@
 # edited parameter or value, a table missing or changed) is refused with a `TheoryRecordError`
 # naming the file; delete it, or run with `retrain=True`, which ignores the records and rewrites
 # them.
+#
+# **Across a bump of the numerics.** The two versions are parameters, but they are not treated
+# alike. A bump of `TRAINING_NUMERICS` says that the shared training arithmetic (the PPO update,
+# `RunAdamW` of 06d, which the learner uses too) now rounds differently; a record computed before it
+# is still the evidence of the commit that made it, as a record made on another processor is, and
+# the run records of appendix 09d are read across such a bump for the same reason. So the lookup,
+# `find_theory_record`, asks first for the parameters as given and then for the same parameters at
+# each older training version, newest first, and takes the first record that holds them (at each
+# version the scale's own folder first, then the other scales'): after a bump, notebook 08, and with
+# it `make figures`, reads the committed records and computes nothing, and once a record of the new
+# version exists it wins over the older ones. What is written is named by its own versions: the
+# first records (`THEORY_NUMERICS` 1, `TRAINING_NUMERICS` 2, `THEORY_NAME_BASE`) by the experiment
+# alone, `noise.json`, a later version with a tag, `noise-n3.json` for training version 3. A
+# computation after a bump (a changed setting, or `retrain=True`) therefore lands beside the old
+# record and never over it; only a record of the very same versions is rewritten in place, as
+# before. A marker must sit under the name its parameters give, so an old record copied over a new
+# one's name is refused, and a damaged newest record is refused rather than passed over for an
+# older one.
+#
+# `THEORY_NUMERICS` is not looked across: it is raised when the learner's or an experiment's code
+# changes *what* it computes, so an older record answers another question and is not the
+# experiment's answer. Notebook 08 computes the experiment again, as for any change of its
+# parameters, and says so; but the new record is named `noise-t2.json` and goes beside the old one,
+# which stays, byte for byte, readable by its path. Refusing instead would stop `make figures`
+# until someone recomputed by hand, and rewriting in place would replace committed evidence with
+# one progress line as the only trace; writing beside does neither, and the commit that raises the
+# version is the place to commit the new records (and, if wanted, to delete the old ones).
 #
 # What stays processor-dependent is the analysis that notebook 08 runs on the records, in float64:
 # the logarithms and least squares of `fit_power_law` (numpy's `log` has an AVX-512
