@@ -21,6 +21,11 @@ records/paper/probes/readings_probe.csv, which notebook 10b reads for the readin
     python benchmarks/readings_probe.py train --methods smoe --hours 2.5
     python benchmarks/readings_probe.py unpack     # on a fresh machine, before train
     python benchmarks/readings_probe.py report
+
+The probe trains under TRAINING_NUMERICS 2, the arithmetic it started with (commit 21bf770): a
+member's run is named by that version (`PROBE_NUMERICS`) whatever the checkout, and `train` runs
+only from a checkout whose code computes that version (`git worktree add ../probe 21bf770`),
+since a checkpoint is never resumed under another arithmetic. `unpack` and `report` work anywhere.
 """
 
 import argparse
@@ -48,6 +53,7 @@ LOG_STD_READINGS = {
     "log sigma <- 0.3": {"controller.log_std_value": 0.3},
 }
 METHODS = ("smoe", "pemamoe", "moe", "mlp")
+PROBE_NUMERICS = 2  # the training arithmetic the probe was started under (see the docstring)
 
 
 def readings(method: str) -> dict:
@@ -69,11 +75,16 @@ def members(method: str, seeds=SEEDS) -> list:
 def train(methods, hours: float | None, iterations: int) -> None:
     from pemamoe.mappo import train_population
     from pemamoe.records import write_portable_state
+    from pemamoe.train_config import training_numerics
 
+    if training_numerics() != PROBE_NUMERICS:
+        raise SystemExit(f"error: the probe's runs compute TRAINING_NUMERICS {PROBE_NUMERICS}, this checkout "
+                         f"{training_numerics()}: train from a checkout at version {PROBE_NUMERICS} "
+                         "(git worktree add ../probe 21bf770); unpack and report work from this one")
     deadline = None if hours is None else time.time() + hours * 3600
     for method in methods:
         configs = [c for _, _, c in members(method)]
-        dirs = [RESULTS / c.run_name() for c in configs]
+        dirs = [RESULTS / c.run_name(PROBE_NUMERICS) for c in configs]
         start = time.time()
         train_population(configs, dirs, max_iterations=iterations, deadline=deadline)
         print(f"[probe] {method}: {len(configs)} members trained for {time.time() - start:.0f} s", flush=True)
@@ -90,15 +101,15 @@ def unpack(methods) -> None:
 
     for method in methods:
         for _, _, config in members(method):
-            if restore_portable_state(RESULTS / config.run_name(), "paper", STATES):
-                print(f"[probe] restored {config.run_name()}", flush=True)
+            if restore_portable_state(RESULTS / config.run_name(PROBE_NUMERICS), "paper", STATES):
+                print(f"[probe] restored {config.run_name(PROBE_NUMERICS)}", flush=True)
 
 
 def visit_rows(method: str, iterations: int) -> pd.DataFrame:
     """One row per member and phase visit of what the member logged so far (its run folder)."""
     rows = []
     for label, seed, config in members(method):
-        path = RESULTS / config.run_name() / "metrics.parquet"
+        path = RESULTS / config.run_name(PROBE_NUMERICS) / "metrics.parquet"
         if not path.exists():
             continue
         m = pd.read_parquet(path)
@@ -107,7 +118,7 @@ def visit_rows(method: str, iterations: int) -> pd.DataFrame:
         sigma = np.exp(m["log_std_mean"].to_numpy())
         for visit, g in m.groupby(m.iteration // L):
             first = int(g.index[0])
-            rows.append({"method": method, "reading": label, "seed": seed, "run": config.run_name(),
+            rows.append({"method": method, "reading": label, "seed": seed, "run": config.run_name(PROBE_NUMERICS),
                          "visit": int(visit), "phase": int(g.phase.iloc[0]), "iterations": len(g),
                          "coverage": g.coverage.mean(), "return": g.episode_return.mean(),
                          "gradient_steps": int(g.gradient_steps.sum()),

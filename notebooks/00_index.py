@@ -92,6 +92,7 @@
 # | (appendix to IV-A) the registries of methods and network kinds | `05e_methods.py` | `pemamoe/methods.py` | |
 # | (appendix to IV-A) parameter and compute counts, latency, the cost table's code | `05f_netcost.py` | `pemamoe/netcost.py` | |
 # | (appendix to IV-A) the gate's code, for one network and for a population | `05g_gating.py` | `pemamoe/gating.py` | |
+# | (appendix to IV-A) the networks' gradients, written out | `05h_backprop.py` | `pemamoe/backprop.py` | |
 # | IV-B plasticity injection, Algorithm 1 (phase controller) | `06_phase_controller.py` | `pemamoe/phase_controller.py` | schedule figures |
 # | (appendix) plasticity methods for a population of runs (the shared schedule, the interface, the registry) | `06b_plasticity.py` | `pemamoe/plasticity.py` | |
 # | (appendix) two plasticity baselines, ReDo and shrink-and-perturb, on the MLP and the SMoE network | `06c_plasticity_baselines.py` | `pemamoe/plasticity_baselines.py` | |

@@ -368,15 +368,20 @@ class GaussianActor(nn.Module):
         nn.init.zeros_(self.head.bias)
         self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
 
-    def run_features(self, p, x, tau=None, noise=None, experts=None):
+    def run_features(self, p, x, tau=None, noise=None, experts=None, saved=None):
         """R members at once: views p {name: (R, *shape)}, x (R, n, obs_dim) -> ((R, n, hidden),
-        (probs, experts, weights) or None); tau (R, n), noise (R, n, E), experts (R, n, k): gated kinds."""
+        (probs, experts, weights) or None); tau (R, n), noise (R, n, E), experts (R, n, k): gated kinds.
+        `saved`: a dict to keep what the kind's hand-written backward reads (appendix 05h), or None."""
         raise NotImplementedError
 
-    def run_mean(self, p, x, tau=None, noise=None, experts=None):
+    def run_mean(self, p, x, tau=None, noise=None, experts=None, saved=None):
         """R members at once: (policy mean (R, n, act_dim), gate as run_features); the features
         through the shared head, unless a kind gives each expert its own head."""
-        feat, gate = self.run_features(p, x, tau, noise, experts)
+        if saved is None:  # (a kind from a plugin may not take `saved`: appendix 05h differentiates it by autograd)
+            feat, gate = self.run_features(p, x, tau, noise, experts)
+        else:
+            feat, gate = self.run_features(p, x, tau, noise, experts, saved)
+            saved["features"] = feat
         return run_linear(feat, p["head.weight"], p["head.bias"]), gate
 
     def features(self, x, temperature=None, routing=None, deterministic_gate=False, with_aux=True):
@@ -455,6 +460,7 @@ class MLPActor(GaussianActor):
     """obs -> hidden -> hidden (ReLU) -> mean head; the trunk counts as one expert."""
 
     kind = "mlp"
+    hand_written_backward = True  # appendix 05h differentiates it by hand (read from this class only, not subclasses)
 
     def __init__(self, obs_dim: int, act_dim: int, cfg: NetConfig):
         super().__init__(obs_dim, act_dim, cfg)
@@ -464,9 +470,12 @@ class MLPActor(GaussianActor):
             nn.init.orthogonal_(layer.weight, cfg.gain_hidden)
             nn.init.zeros_(layer.bias)
 
-    def run_features(self, p, x, tau=None, noise=None, experts=None):
+    def run_features(self, p, x, tau=None, noise=None, experts=None, saved=None):
         h = F.relu(run_linear(x, p["fc1.weight"], p["fc1.bias"]))
-        return F.relu(run_linear(h, p["fc2.weight"], p["fc2.bias"])), None
+        out = F.relu(run_linear(h, p["fc2.weight"], p["fc2.bias"]))
+        if saved is not None:
+            saved.update(x=x, a1=h, a2=out)
+        return out, None
 
     def trunk_parameters(self) -> list:
         return [(name, None) for name in ("fc1.weight", "fc1.bias", "fc2.weight", "fc2.bias")]
@@ -508,6 +517,7 @@ class MoEActor(GaussianActor):
 
     kind = "moe"
     sparse = False
+    hand_written_backward = True  # appendix 05h differentiates it by hand (read from this class only, not subclasses)
 
     def __init__(self, obs_dim: int, act_dim: int, cfg: NetConfig):
         super().__init__(obs_dim, act_dim, cfg)
@@ -519,13 +529,14 @@ class MoEActor(GaussianActor):
         out = self.gate(x, temperature, routing, deterministic_gate, with_aux)
         return out.features, out
 
-    def run_features(self, p, x, tau=None, noise=None, experts=None):
-        return run_gate(p, "gate.", x, tau, noise, experts, self.gate)
+    def run_features(self, p, x, tau=None, noise=None, experts=None, saved=None):
+        return run_gate(p, "gate.", x, tau, noise, experts, self.gate, saved=saved)
 
-    def run_mean(self, p, x, tau=None, noise=None, experts=None):
+    def run_mean(self, p, x, tau=None, noise=None, experts=None, saved=None):
         if self.cfg.expert_heads == "shared":
-            return super().run_mean(p, x, tau, noise, experts)
-        return run_gate(p, "gate.", x, tau, noise, experts, self.gate, heads=(p["head.weight"], p["head.bias"]))
+            return super().run_mean(p, x, tau, noise, experts, saved)
+        return run_gate(p, "gate.", x, tau, noise, experts, self.gate, heads=(p["head.weight"], p["head.bias"]),
+                        saved=saved)
 
     def mean_of(self, x, feat, gate):
         if self.cfg.expert_heads == "shared":
@@ -561,6 +572,7 @@ class SMoEActor(MoEActor):
 
     kind = "smoe"
     sparse = True
+    hand_written_backward = True
 
 
 # %% [markdown]
@@ -600,6 +612,7 @@ class _Critic(nn.Module):
 
 class MLPCritic(_Critic):
     kind = "mlp"
+    hand_written_backward = True
 
     def __init__(self, state_dim: int, cfg: NetConfig):
         super().__init__()
@@ -617,6 +630,7 @@ class MLPCritic(_Critic):
 class MoECritic(_Critic):
     kind = "moe"
     sparse = False
+    hand_written_backward = True
 
     def __init__(self, state_dim: int, cfg: NetConfig):
         super().__init__()
@@ -632,6 +646,7 @@ class MoECritic(_Critic):
 class SMoECritic(MoECritic):
     kind = "smoe"
     sparse = True
+    hand_written_backward = True
 
 
 # %% [markdown]

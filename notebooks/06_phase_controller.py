@@ -411,7 +411,7 @@ def expert_parameters(actor, expert: int) -> list:
 #             loss = ppo_loss(...)                      # (R,), one loss per member
 #             kl = method.extra_loss({"obs": obs, "tau": routing.temperature, "noise": routing.noise,
 #                                     "experts": chosen, "mean": mean, "log_std": log_std})
-#             (loss + kl).sum().backward()              # kl is None while no member has an anchor
+#             grad = d(loss + kl) / d(parameters)       # kl is None while no member has an anchor
 #             actor_opt.step(sched.lr_actor, stepping, frozen)   # frozen: the router where sched.router_frozen
 #             method.after_minibatch(stepping)
 #             counts += experts chosen in the minibatch, per member

@@ -91,10 +91,9 @@ class RunAdamW:
         """lr (R,), stepping (R,) bool, frozen (R, G) bool or None. Uses and clears flat.grad."""
         p, grad = self.flat, self.flat.grad
         lr = lr.to(p.dtype).unsqueeze(1)
-        active_g = stepping.unsqueeze(1).expand(-1, self.n_groups)
-        if frozen is not None:
-            active_g = active_g & ~frozen
-        steps = self.steps + active_g.to(self.steps.dtype)
+        active_g = stepping.unsqueeze(1) if frozen is None else stepping.unsqueeze(1) & ~frozen  # (R, 1 or G)
+        steps = self.steps + active_g
+        active_g = active_g.expand(-1, self.n_groups)
         cpu = p.device.type == "cpu"  # on the CPU a data-dependent branch costs nothing; on a GPU it syncs
         if self.clock_offset is not None:  # entries reset on their own count from their reset (see reset)
             onehot = self._onehot()
@@ -116,14 +115,15 @@ class RunAdamW:
             bc2_sqrt = (1 - self.beta2 ** safe).sqrt().to(p.dtype) @ onehot
         if cpu and frozen is None and bool(stepping.all()):
             # the usual case, in place (on the CPU the check costs nothing; on a GPU it would sync)
-            p.mul_(1 - lr * self.weight_decay)
+            if self.weight_decay:
+                p.mul_(1 - lr * self.weight_decay)
             self.exp_avg.lerp_(grad, 1 - self.beta1)
-            self.exp_avg_sq.mul_(self.beta2).add_((1 - self.beta2) * grad * grad)
-            p.sub_(step_size * self.exp_avg / (self.exp_avg_sq.sqrt() / bc2_sqrt + self.eps))
+            self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
+            p.addcdiv_(self.exp_avg * step_size, self.exp_avg_sq.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
         else:
             m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
-            v = torch.where(active, self.exp_avg_sq * self.beta2 + (1 - self.beta2) * grad * grad, self.exp_avg_sq)
-            new = p * (1 - lr * self.weight_decay) - step_size * m / (v.sqrt() / bc2_sqrt + self.eps)
+            v = torch.where(active, (self.exp_avg_sq * self.beta2).addcmul_(grad, grad, value=1 - self.beta2), self.exp_avg_sq)
+            new = (p * (1 - lr * self.weight_decay)).addcdiv_(m * step_size, v.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
             p.copy_(torch.where(active, new, p))
             self.exp_avg, self.exp_avg_sq = m, v
         self.steps = steps

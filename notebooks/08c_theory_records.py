@@ -498,7 +498,7 @@ with tempfile.TemporaryDirectory() as scratch:
     print("the demo's progress lines:", *(line.replace("[theory record] ", "").replace(scratch, "<tmp>")
                                           for line in said), sep="\n  ")
     marker = theory_record_path(scratch, "ci", "demo")
-    table = marker.with_name("demo.runs.parquet")
+    table = marker.with_name(marker.stem + ".runs.parquet")
     table.write_bytes(table.read_bytes()[:-1] + b"\0")
     try:
         read_theory_record(marker)

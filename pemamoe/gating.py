@@ -17,14 +17,14 @@ def topk_weights(kept, top1_weight: str):
     """Mixing weights of the k selected experts from their router probabilities kept (..., k):
     renormalised over the k (the paper's equation); at k = 1, exactly 1 with the gradient that
     `top1_weight` names ("straight_through", "switch": the probability itself, "paper": none)."""
-    weights = kept / kept.sum(-1, keepdim=True)
     if kept.shape[-1] != 1:
-        return weights
-    if top1_weight == "straight_through":
-        return weights.detach() + (kept - kept.detach())
+        return kept / kept.sum(-1, keepdim=True)
     if top1_weight == "switch":
         return kept
-    return weights.detach()
+    ones = torch.ones_like(kept)  # kept / kept, exactly (the top probability is at least 1/E)
+    if top1_weight == "straight_through" and torch.is_grad_enabled():
+        return ones + (kept - kept.detach())
+    return ones
 
 
 class ContiguousGrad(torch.autograd.Function):
@@ -42,23 +42,27 @@ class ContiguousGrad(torch.autograd.Function):
         return grad.contiguous()
 
 
-def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=None):
+def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=None, saved=None):
     """Gated trunk of every member: x (R, n, in), tau (R, n), noise (R, n, E) or None
     (noiseless), experts (R, n, k) to replay or None -> (features (R, n, hidden),
     (probs (R, n, E), experts (R, n, k) or None for dense mixing, weights)).
     mix_selected(experts, weights) -> features: how a single network runs only the selected
     experts of a sparse gate (None: every expert, batched). heads (weight (R, E, out, hidden),
     bias (R, E, out)): each expert's own output layer, applied before the mixing, so that the
-    first result is the mixed output (R, n, out) instead of the mixed features."""
+    first result is the mixed output (R, n, out) instead of the mixed features. `saved` (a dict)
+    keeps what the hand-written backward of appendix 05h reads (the experts' saves, the noise scale,
+    probs, experts, weights and every expert's mixed output y)."""
     sparse, k = gate.sparse, gate.k
     logits = run_linear(x, p[prefix + "router.weight"], p[prefix + "router.bias"]) / tau.unsqueeze(-1)
+    scale = None
     if gate.noisy and noise is not None:
-        logits = logits + noise * run_noise_scale(p, prefix, x, gate)
+        scale = run_noise_scale(p, prefix, x, gate)
+        logits = logits + noise * scale
     probs = torch.softmax(logits, dim=-1)
     h = None
     if heads is not None or not (sparse and mix_selected is not None):
         h = run_experts(x, p[prefix + "experts.w1"], p[prefix + "experts.b1"], p[prefix + "experts.w2"],
-                        p[prefix + "experts.b2"])  # (R, E, n, hidden)
+                        p[prefix + "experts.b2"], saved)  # (R, E, n, hidden)
     if heads is not None:  # every expert's own output: (R, E, n, out), mixed below like the features
         (hw, hb), (R, E, n, hid) = heads, h.shape
         # One memory layout whatever R is, forward (the parameters: a reshape of a population's
@@ -68,18 +72,24 @@ def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=N
         h = torch.baddbmm(hb.contiguous().reshape(R * E, 1, -1), h.reshape(R * E, n, hid),
                           hw.transpose(-1, -2).contiguous().reshape(R * E, hid, -1))
         h = ContiguousGrad.apply(h).reshape(R, E, n, -1)
-    if not sparse:
-        features = torch.einsum("rne,renh->rnh", probs, h)
-        return features, (probs, None, probs)
-    if experts is None:
-        experts = probs.topk(k, dim=-1).indices
-    weights = topk_weights(probs.gather(2, experts), gate.top1_weight)
-    if h is None:
-        return mix_selected(experts, weights), (probs, experts, weights)
-    R, E, n, hid = h.shape
-    picked = h.permute(0, 2, 1, 3).gather(2, experts.unsqueeze(-1).expand(R, n, k, hid))  # (R, n, k, hidden)
-    features = (picked * weights.unsqueeze(-1)).sum(2)
-    return features, (probs, experts, weights)
+    if saved is not None:
+        saved.update(tau=tau, noise=noise, scale=scale, probs=probs, y=h)
+    if sparse:
+        if experts is None:
+            experts = probs.topk(k, dim=-1).indices
+        weights = topk_weights(probs.gather(2, experts), gate.top1_weight)
+        if h is None:
+            return mix_selected(experts, weights), (probs, experts, weights)
+        mix = torch.zeros_like(probs).scatter(2, experts, weights)  # each expert's weight per row, 0 if not chosen
+        gate_out = (probs, experts, weights)
+    else:
+        mix, gate_out = probs, (probs, None, probs)
+    # sum_e mix_e h_e, on contiguous weights: a product's memory order follows its operands', and
+    # the sum must add in the same order whatever the population's size
+    features = (h * mix.transpose(1, 2).contiguous().unsqueeze(-1)).sum(1)
+    if saved is not None:
+        saved.update(experts=gate_out[1], weights=gate_out[2], mix=mix)
+    return features, gate_out
 
 
 # The single network's gate: run_gate at R = 1, plus what only a single network does (draw its

@@ -13,8 +13,8 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 import torch
-import torch.nn.functional as F
 
+import pemamoe.backprop as backprop  # the networks' gradients, written out (appendix 05h)
 from pemamoe.bookkeeping import (  # re-export (public names only): the bookkeeping of appendix 07e
     EpisodeTracker, RowLog, RunningNorm, ValueNorms, collect_probe, explained_variance, merge_env_states,
     split_env_state)
@@ -218,46 +218,74 @@ _UPDATE_STATS = ("policy_loss", "value_loss", "entropy", "kl_ref", "load_balance
                  "approx_kl", "clip_frac", "grad_norm_actor", "grad_norm_critic")
 
 
+@torch.no_grad()  # the gradient is written out below and in appendix 05h: no autograd graph
 def _minibatch_loss(population: Population, settings, batch: Batch) -> tuple:
-    """PPO's loss on one minibatch `batch` (R, m, ...), per member (R,), and the statistics it logs
+    """PPO's loss on one minibatch `batch` (R, m, ...), per member (R,), the statistics it logs
     ({name: (R,) tensor}: `_UPDATE_STATS` but the gradient norms, and "ratio" (R, m*U) and the
-    chosen "experts"). The actor sees the m*U agent rows of the minibatch's m steps."""
+    chosen "experts"), and its gradient in the actor's and the critic's parameters, (R, P) and
+    (R, Q). The actor sees the m*U agent rows of the minibatch's m steps."""
     actor, critic, config = population.actor, population.critic, population.config
     R, steps, U = batch.logprobs.shape
     rows, clip = steps * U, settings.clip_coef.unsqueeze(1)  # each member's clip range, (R, 1)
     route = None if batch.routing is None else batch.routing.reshape(R, rows)
-    new = actor.evaluate(batch.obs.reshape(R, rows, -1), batch.actions.reshape(R, rows, -1), route)
+    saved_actor, saved_critic = {}, {}  # what the backward reads
+    action = batch.actions.reshape(R, rows, -1)
+    new = actor.evaluate(batch.obs.reshape(R, rows, -1), action, route, saved=saved_actor)
     logratio = new.log_prob - batch.logprobs.reshape(R, rows)
     ratio = logratio.exp()
     # every agent row of a step takes the step's team advantage, normalised over the member's minibatch
     adv = batch.advantages.unsqueeze(2).expand(R, steps, rows // steps).reshape(R, rows)
     if config.norm_adv:
         adv = (adv - adv.mean(1, keepdim=True)) / (adv.std(1, keepdim=True) + 1e-8)
-    pg_loss = torch.max(-adv * ratio, -adv * torch.clamp(ratio, 1 - clip, 1 + clip)).mean(1)
+    unclipped, clipped = -adv * ratio, -adv * torch.clamp(ratio, 1 - clip, 1 + clip)
+    pg_loss = torch.max(unclipped, clipped).mean(1)
 
-    v, c_lb, _ = critic(batch.states, settings.value_temperature)
+    v, c_lb, _ = critic(batch.states, settings.value_temperature, saved=saved_critic)
     if config.clip_vloss:
         v_clipped = batch.values + torch.clamp(v - batch.values, -clip, clip)
         v_loss = torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean(1)
     else:
         v_loss = ((v - batch.returns) ** 2).mean(1)
     sparse = actor.gated and actor.k < actor.n_experts
-    kl_ref = population.plasticity.extra_loss({
-        "obs": batch.obs.reshape(R, rows, -1), "tau": None if route is None else route.temperature,
-        "noise": None if route is None else route.noise, "experts": new.experts if sparse else None,
-        "mean": new.mean, "log_std": new.log_std})
+    with torch.enable_grad():  # a plasticity method's loss term is differentiated by autograd, in the policy's outputs only
+        mean, log_std = new.mean.detach().requires_grad_(True), new.log_std.detach().requires_grad_(True)
+        kl_ref = population.plasticity.extra_loss({
+            "obs": batch.obs.reshape(R, rows, -1), "tau": None if route is None else route.temperature,
+            "noise": None if route is None else route.noise, "experts": new.experts if sparse else None,
+            "mean": mean, "log_std": log_std})
+        extra = None if kl_ref is None else torch.autograd.grad(kl_ref.sum(), (mean, log_std), allow_unused=True)
     loss = (pg_loss + config.vf_coef * v_loss - settings.ent_coef * new.entropy + actor.lb_coef * new.load_balance
             + critic.lb_coef * c_lb)
     if kl_ref is not None:
+        kl_ref = kl_ref.detach()
         loss = loss + kl_ref
-    with torch.no_grad():
-        stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": new.entropy,
-                 "kl_ref": torch.zeros(R, device=loss.device) if kl_ref is None else kl_ref,  # 0 when none is added
-                 "load_balance": new.load_balance, "critic_load_balance": c_lb,
-                 "approx_kl": ((ratio - 1) - logratio).mean(1),  # CleanRL's low-variance estimator
-                 "clip_frac": ((ratio - 1.0).abs() > clip).float().mean(1),
-                 "ratio": ratio, "experts": new.experts}
-    return loss, stats
+
+    # The loss's gradient in what the networks output. The surrogate's max takes the unclipped
+    # term's gradient, -A * rho, where that term is the larger (where they tie, inside the clip
+    # range, autograd's half of each is the same); log-density: d/d mean = (a - mean) / sigma^2,
+    # d/d log sigma = (a - mean)^2 / sigma^2 - 1; the entropy's, -ent_coef per action dimension.
+    g_logp = torch.where(unclipped >= clipped, -adv * ratio, 0.0) / rows
+    diff = saved_actor["diff"]  # a - mean
+    g_mean = g_logp.unsqueeze(-1) * diff * saved_actor["inv_var"]
+    g_log_std = (g_mean * diff).sum(1) - g_logp.sum(1, keepdim=True) - settings.ent_coef.unsqueeze(1)
+    if config.clip_vloss:
+        inside = (v - batch.values).abs() <= clip
+        g_value = torch.where((v - batch.returns) ** 2 >= (v_clipped - batch.returns) ** 2,
+                              v - batch.returns, (v_clipped - batch.returns) * inside)
+    else:
+        g_value = v - batch.returns
+    g_value = g_value * (2 * config.vf_coef / v.shape[1])
+    if extra is not None:
+        g_mean = g_mean if extra[0] is None else g_mean + extra[0]
+        g_log_std = g_log_std if extra[1] is None else g_log_std + extra[1]
+    grads = backprop.actor_grads(actor, saved_actor, g_mean, g_log_std), backprop.critic_grads(critic, saved_critic, g_value)
+    stats = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": new.entropy,
+             "kl_ref": torch.zeros(R, device=loss.device) if kl_ref is None else kl_ref,  # 0 when none is added
+             "load_balance": new.load_balance, "critic_load_balance": c_lb,
+             "approx_kl": ((ratio - 1) - logratio).mean(1),  # CleanRL's low-variance estimator
+             "clip_frac": ((ratio - 1.0).abs() > clip).float().mean(1),
+             "ratio": ratio, "experts": new.experts}
+    return loss, stats, grads
 
 
 class _KLStop:
@@ -352,21 +380,21 @@ def ppo_update(population: Population, settings, batch: Batch) -> dict:
         counts = torch.zeros(R, actor.n_experts, device=device) if sparse else None  # experts chosen by stepped rows
         stepped_epoch = torch.zeros(R, dtype=torch.bool, device=device)
         for k in range(config.num_minibatches):
-            loss, mb_stats = _minibatch_loss(population, settings, steps.take(flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R))
+            loss, mb_stats, (actor.flat.grad, population.critic.flat.grad) = _minibatch_loss(
+                population, settings, steps.take(flat_perm[:, k * mb:(k + 1) * mb].reshape(-1), R))
             with torch.no_grad():
                 if first_ratio_dev is None:  # 0 up to rounding: the rollout's routing is replayed
                     first_ratio_dev = (mb_stats["ratio"] - 1.0).abs().amax(1)
                 stepping = kl_stop.check(mb_stats["approx_kl"], epoch)  # checked before the step it would take
-            (loss * stepping.to(loss.dtype)).sum().backward()
             mb_stats["grad_norm_actor"], mb_stats["grad_norm_critic"] = _gradient_step(
                 population, settings, stepping, frozen, frozen_rows)
             plasticity.after_minibatch(stepping)
             with torch.no_grad():
                 stats.add(mb_stats, stepping)
                 stepped_epoch |= stepping
-                if counts is not None:
-                    chosen = F.one_hot(mb_stats["experts"].reshape(R, -1), actor.n_experts).sum(1).float()
-                    counts += chosen * stepping.unsqueeze(1)
+                if counts is not None:  # each stepping member's routing slots, added to its experts' counts
+                    slots = mb_stats["experts"].reshape(R, -1)
+                    counts.scatter_add_(1, slots, stepping.float().unsqueeze(1).expand(slots.shape))
         kl_stop.end_epoch(mb_stats["approx_kl"], epoch)
         for r, n in enumerate(plasticity.after_epoch(counts, stepped_epoch)):
             noised[r] += n

@@ -282,42 +282,36 @@ def run_linear(x, weight, bias):
     return torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
 
 
-def run_experts(x, w1, b1, w2, b2):
+def run_experts(x, w1, b1, w2, b2, saved=None):
     """Every expert of every member on that member's rows: x (R, n, in), w1 (R, E, in, h) ->
-    (R, E, n, h), the ReLU trunk in -> h -> h (layer 1: one wide product per member when x needs
-    no gradient, else per expert; layer 2: one batched product over R*E)."""
+    (R, E, n, h), the ReLU trunk in -> h -> h, each layer one batched product over R*E. `saved` (a
+    dict) keeps what the hand-written backward of appendix 05h reads: the input copied once per
+    expert xe (R*E, n, in) and the layer activations a1 (R*E, n, h) and a2 (R, E, n, h)."""
     R, E, d, h = w1.shape
     n = x.shape[1]
-    if not x.requires_grad:
-        # Layer 1 of all E experts as one (n, in) @ (in, E*h) product per member: a wide product
-        # runs about 1.6x faster than E narrow ones (forward and backward). Every output column is
-        # the same dot product over `in`, so outputs and the weight and bias gradients are the same
-        # bits as the narrow products below (checked over many shapes in tests/test_population.py);
-        # the input's gradient would be summed in another order, hence only for inputs without one.
-        wide = w1.permute(0, 2, 1, 3).reshape(R, d, E * h)
-        a1 = torch.baddbmm(b1.reshape(R, 1, E * h), x, wide).reshape(R, n, E, h).transpose(1, 2)
-        a1 = F.relu(a1).reshape(R * E, n, h)
-    elif R > 1:
+    if x.requires_grad and R > 1:
         # Layer 1 as one product over R per expert, on x itself: no E-fold copy of x (about 2x
-        # faster at R = 16 on the CPU, forward and backward). Each batch entry is the same
-        # (n, in) @ (in, h) product as below, so outputs and gradients are the same bits (checked
-        # over many shapes, sign of zero included); `unbind` backward stacks, it adds nothing.
+        # faster at R = 16 on the CPU, forward and backward, where autograd differentiates an input).
+        # Each batch entry is the same (n, in) @ (in, h) product as below, so outputs and gradients
+        # are the same bits (checked over many shapes, sign of zero included).
+        xe = None
         a1 = torch.stack([torch.baddbmm(b1e.unsqueeze(1), x, w1e) for b1e, w1e in zip(b1.unbind(1), w1.unbind(1))], 1)
         a1 = F.relu(a1).reshape(R * E, n, h)
-    else:  # one member: a single call on E copies of x is cheaper than E calls
+    else:  # E copies of x, then a single call
         xe = x.unsqueeze(1).expand(R, E, n, d).reshape(R * E, n, d)
         a1 = F.relu(torch.baddbmm(b1.reshape(R * E, 1, h), xe, w1.reshape(R * E, d, h)))
-    a2 = F.relu(torch.baddbmm(b2.reshape(R * E, 1, h), a1, w2.reshape(R * E, h, h)))
-    return a2.reshape(R, E, n, h)
+    a2 = F.relu(torch.baddbmm(b2.reshape(R * E, 1, h), a1, w2.reshape(R * E, h, h))).reshape(R, E, n, h)
+    if saved is not None:
+        saved.update(x=x, xe=xe, a1=a1, a2=a2)
+    return a2
 
 
 def run_load_balance(probs, experts, n_experts):
     """Switch balance loss E * sum_i f_i P_i per member: probs (R, n, E), experts (R, n, k) -> (R,);
     f_i the share of the n*k routing slots on expert i (no gradient), P_i the mean of probs[..., i]."""
-    onehot = F.one_hot(experts.reshape(experts.shape[0], -1), n_experts).to(probs.dtype)
-    counts = onehot.sum(1)
-    f = counts / counts.sum(-1, keepdim=True)
-    return n_experts * (f * probs.mean(1)).sum(-1)
+    slots = experts.reshape(experts.shape[0], -1)
+    counts = torch.zeros_like(probs[:, 0]).scatter_add_(1, slots, torch.ones_like(slots, dtype=probs.dtype))
+    return (counts * probs.mean(1)).sum(-1) * (n_experts / slots.shape[1])  # f_i = counts_i / (n k)
 
 
 def run_noise_scale(p, prefix, x, gate):
@@ -339,6 +333,8 @@ class _Population:
         self.layout = ParamLayout(self.template)
         self.R = len(members)
         self.flat = self.layout.flatten(members).requires_grad_(True)
+        self._views = None  # (flat, its views), see params
+        self._grad = None  # (gradient buffer, its views), see grad_views
         gate = getattr(self.template, "gate", None)
         self.n_experts = 1 if gate is None else gate.n_experts
         self.k = 0 if gate is None else gate.k
@@ -346,13 +342,31 @@ class _Population:
         self.noise_mode = "off" if gate is None else gate.noise
         self.gated = gate is not None
         self.lb_coef = self.template.cfg.load_balance_coef
+        # the kind's gradient is written out (appendix 05h) when its own class says so; a subclass
+        # from a plugin, whose forward may differ, is differentiated by autograd
+        self.by_hand = bool(type(self.template).__dict__.get("hand_written_backward", False))
 
     def to(self, device):
         self.flat = self.flat.detach().to(device).requires_grad_(True)
         return self
 
     def params(self, flat=None) -> dict:
+        """{name: (R, *shape) view} of `flat` (default: the population's own parameters). Outside
+        autograd the views of the population's own tensor are made once and kept: the optimizer
+        and the plasticity methods change that tensor in place, so its views stay current."""
+        if flat is None and not torch.is_grad_enabled():
+            if self._views is None or self._views[0] is not self.flat:
+                self._views = (self.flat, self.layout.views(self.flat))
+            return self._views[1]
         return self.layout.views(self.flat if flat is None else flat)
+
+    def grad_views(self) -> tuple:
+        """(buffer (R, P), {name: (R, *shape) view of it}): where a hand-written backward (appendix
+        05h) writes the members' gradients, one buffer kept for the population's life."""
+        if self._grad is None or self._grad[0].shape != self.flat.shape or self._grad[0].device != self.flat.device:
+            buffer = torch.zeros_like(self.flat, requires_grad=False)
+            self._grad = (buffer, self.layout.views(buffer))
+        return self._grad
 
     def member_param(self, r: int, name: str) -> torch.Tensor:
         """Member r's parameter `name` as a view of the flat row, shaped like the parameter: edit it
@@ -393,10 +407,13 @@ class PopulationActor(_Population):
         self.act_dim = self.template.act_dim
         self.obs_dim = self.template.obs_dim
 
-    def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None):
-        """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None)."""
+    def mean_and_gate(self, obs, tau, noise=None, experts=None, flat=None, saved=None):
+        """obs (R, n, obs_dim) -> (mean (R, n, A), log_std (R, A), gate or None); `saved` as run_mean."""
         p = self.params(flat)
-        mean, gate = self.template.run_mean(p, obs, tau, noise, experts)
+        if saved is None or not self.by_hand:
+            mean, gate = self.template.run_mean(p, obs, tau, noise, experts)
+        else:
+            mean, gate = self.template.run_mean(p, obs, tau, noise, experts, saved)
         return mean, p["log_std"], gate
 
     @torch.no_grad()
@@ -472,11 +489,12 @@ class PopulationActor(_Population):
         moved = (chosen.sort(-1).values != stored.experts.sort(-1).values).any(-1).double().mean(1)
         return {"update/reroute_rate": moved.cpu().numpy()}
 
-    def evaluate(self, obs, action, routing=None, flat=None):
+    def evaluate(self, obs, action, routing=None, flat=None, saved=None):
         """PPO update pass with the stored routing, an ActorEvaluation: log_prob (R, n), entropy (R,),
         load-balance loss (R,), mean (R, n, A), log_std (R, A), experts (R, n, k) or None. The stored noise and
         temperature are always replayed; the stored experts only under update_routing="replay"
-        (under "current" the router chooses again, so a changed route shows in the ratio)."""
+        (under "current" the router chooses again, so a changed route shows in the ratio). `saved`:
+        a dict that keeps what the hand-written backward reads (appendix 05h), or None."""
         R, n, _ = obs.shape
         if routing is None:
             tau, noise, experts = obs.new_ones(R, n), None, None
@@ -484,8 +502,10 @@ class PopulationActor(_Population):
             tau, noise = routing.temperature, (routing.noise if self.noisy else None)
             replay = self.template.cfg.update_routing == "replay"
             experts = routing.experts if replay and self.k and self.k < self.n_experts else None
-        mean, log_std, gate = self.mean_and_gate(obs, tau, noise, experts, flat)
-        logp = gaussian_log_prob(action, mean, log_std)
+        if saved is not None:
+            saved["inputs"] = (obs, action, routing)
+        mean, log_std, gate = self.mean_and_gate(obs, tau, noise, experts, flat, saved)
+        logp = gaussian_log_prob(action, mean, log_std, saved)
         entropy = gaussian_entropy(log_std)
         if gate is None:
             return ActorEvaluation(logp, entropy, obs.new_zeros(R), mean, log_std, None)
@@ -498,11 +518,18 @@ class PopulationActor(_Population):
 class PopulationCritic(_Population):
     """R centralised critics of one kind; noiseless gating (see notebook 07 on why)."""
 
-    def __call__(self, state, tau):
-        """state (R, n, state_dim), tau (R,) -> (value (R, n), load balance (R,), probs or None)."""
+    def __call__(self, state, tau, saved=None, flat=None):
+        """state (R, n, state_dim), tau (R,) -> (value (R, n), load balance (R,), probs or None);
+        `saved` and `flat` as PopulationActor.evaluate."""
         R, n, _ = state.shape
-        p = self.layout.views(self.flat)
-        feat, gate = self.template.run_features(p, state, tau.reshape(R, 1).expand(R, n), None, None)
+        p = self.params(flat)
+        if saved is None or not self.by_hand:
+            feat, gate = self.template.run_features(p, state, tau.reshape(R, 1).expand(R, n), None, None)
+        else:
+            feat, gate = self.template.run_features(p, state, tau.reshape(R, 1).expand(R, n), None, None, saved)
+            saved["features"] = feat
+        if saved is not None:
+            saved["inputs"] = (state, tau)
         value = run_linear(feat, p["head.weight"], p["head.bias"]).squeeze(-1)
         if gate is None:
             return value, state.new_zeros(R), None
@@ -515,10 +542,14 @@ class PopulationCritic(_Population):
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 
-def gaussian_log_prob(action, mean, log_std):
-    """Diagonal Gaussian log-density summed over the action axis: (R, n, A) -> (R, n)."""
-    log_std = log_std.unsqueeze(1)
-    return (-((action - mean) ** 2) / (2 * torch.exp(2 * log_std)) - log_std - _HALF_LOG_2PI).sum(-1)
+def gaussian_log_prob(action, mean, log_std, saved=None):
+    """Diagonal Gaussian log-density summed over the action axis: (R, n, A) -> (R, n); `saved`
+    keeps the deviation a - mean and 1 / sigma^2 (R, 1, A), which its gradient reads."""
+    inv_var = torch.exp(-2 * log_std).unsqueeze(1)
+    diff = action - mean
+    if saved is not None:
+        saved.update(diff=diff, inv_var=inv_var)
+    return (-0.5 * diff * diff * inv_var - log_std.unsqueeze(1) - _HALF_LOG_2PI).sum(-1)
 
 
 def gaussian_entropy(log_std):

@@ -29,7 +29,7 @@ PAPER_PHASE_LENGTH = 1200  # iterations per phase in the paper (10,800 / 9)
 PAPER_UPDATE_EPOCHS = 8
 # The version of the training arithmetic (see the identity above): bump it with any change that
 # alters the numbers a run computes for the same config, and refresh tests/numerics_fingerprint.json.
-TRAINING_NUMERICS = 2  # 2: the controller is inert before the first switch; gating choices (notebook 05)
+TRAINING_NUMERICS = 3  # 3: the update's gradient written out (appendix 05h), leaner AdamW and mixing; 2: the controller inert before the first switch, gating choices
 
 
 def training_numerics() -> int:

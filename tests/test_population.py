@@ -294,9 +294,9 @@ def test_log_std_reset_survives_the_anchor_window():
 
 @pytest.mark.parametrize("R", [1, 2, 3, 12])
 @pytest.mark.parametrize("n,d", [(48, 177), (384, 177), (640, 531), (96, 40)])
-def test_wide_first_layer_gives_the_bits_of_the_narrow_products(R, n, d):
-    """run_experts computes layer 1 of all experts as one wide product when the input needs no
-    gradient; outputs and weight/bias gradients must equal the per-expert path bit for bit."""
+def test_first_layer_on_copies_gives_the_bits_of_the_per_expert_products(R, n, d):
+    """run_experts computes layer 1 on E copies of an input that needs no gradient and, at R > 1,
+    per expert on one that does; outputs and weight/bias gradients must be the same bits."""
     from pemamoe.popnets import run_experts
 
     g = torch.Generator().manual_seed(R * 1000 + n + d)
@@ -305,13 +305,13 @@ def test_wide_first_layer_gives_the_bits_of_the_narrow_products(R, n, d):
               torch.randn(R, 3, 32, 32, generator=g), torch.randn(R, 3, 32, generator=g)]
     upstream = torch.randn(R, 3, n, 32, generator=g)
     results = []
-    for input_grad in (False, True):  # False: the wide product; True: the narrow per-expert path
+    for input_grad in (False, True):  # False: E copies of x; True: per expert when R > 1
         leaves = [p.clone().requires_grad_() for p in params]
         out = run_experts(x.clone().requires_grad_(input_grad), *leaves)
         (out * upstream).sum().backward()
         results.append([out.detach(), *[p.grad for p in leaves]])
-    for wide, narrow in zip(*results):
-        assert torch.equal(wide.view(torch.int32), narrow.view(torch.int32))  # the bits, sign of zero included
+    for copied, narrow in zip(*results):
+        assert torch.equal(copied.view(torch.int32), narrow.view(torch.int32))  # the bits, sign of zero included
 
 
 def test_a_member_behind_catches_up_and_joins_the_population(tmp_path, monkeypatch):

@@ -23,7 +23,7 @@ from pemamoe.core import SCALES
 from pemamoe.records import RECORDS_DIR
 from pemamoe.toy_tracking import TrackerConfig, TrackingProblemConfig
 
-NOW = tc.TRAINING_NUMERICS
+NOW = 2  # the version the committed records carry; each test starts there (see `at_now`) and bumps
 NEXT = NOW + 1
 COMMITTED = sorted(p for p in RECORDS_DIR.glob(f"*/{tr.THEORY_DIR}/*.json") if not p.name.endswith(".timing.json"))
 THEORY_SCALES = [s for s in SCALES if s != "ci" and any(nb.name == "08_theory.py" for nb in figures_plan(s)[1])]
@@ -31,6 +31,13 @@ THEORY_SCALES = [s for s in SCALES if s != "ci" and any(nb.name == "08_theory.py
 
 def bump(monkeypatch, version: int = NEXT) -> None:
     monkeypatch.setattr(tc, "TRAINING_NUMERICS", version)
+
+
+@pytest.fixture(autouse=True)
+def at_now(monkeypatch):
+    """The code at the committed records' version, whatever the constant is today: every test
+    then models the bump NOW -> NEXT by hand (a later real bump leaves these tests as they are)."""
+    monkeypatch.setattr(tc, "TRAINING_NUMERICS", NOW)
 
 
 def refuse():
