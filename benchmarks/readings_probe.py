@@ -24,7 +24,8 @@ records/paper/probes/readings_probe.csv, which notebook 10b reads for the readin
 
 The probe trains under TRAINING_NUMERICS 2, the arithmetic it started with (commit 21bf770): a
 member's run is named by that version (`PROBE_NUMERICS`) whatever the checkout, and `train` runs
-only from a checkout whose code computes that version (`git worktree add ../probe 21bf770`),
+only from a checkout whose code computes that version (`git worktree add ../probe a9bbb68`, the last
+commit before the bump to 3, which also reads the portable states `unpack` restores),
 since a checkpoint is never resumed under another arithmetic. `unpack` and `report` work anywhere.
 """
 
@@ -80,7 +81,7 @@ def train(methods, hours: float | None, iterations: int) -> None:
     if training_numerics() != PROBE_NUMERICS:
         raise SystemExit(f"error: the probe's runs compute TRAINING_NUMERICS {PROBE_NUMERICS}, this checkout "
                          f"{training_numerics()}: train from a checkout at version {PROBE_NUMERICS} "
-                         "(git worktree add ../probe 21bf770); unpack and report work from this one")
+                         "(git worktree add ../probe a9bbb68); unpack and report work from this one")
     deadline = None if hours is None else time.time() + hours * 3600
     for method in methods:
         configs = [c for _, _, c in members(method)]
