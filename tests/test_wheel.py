@@ -3,6 +3,7 @@ declared dependencies (no lock) into a fresh virtual environment, trains a ci ru
 its cache and the configured package index, as a user's pip would."""
 
 import hashlib
+import os
 import shutil
 import subprocess
 import sys
@@ -12,10 +13,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+# the installed copy as a user runs it: a PYTHONPATH naming a checkout (as when the suite runs with
+# one) would make `python -m pemamoe` import that checkout instead
+USER_ENV = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
 
 
 def _run(cmd, cwd, timeout):
-    proc = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=USER_ENV)
     assert proc.returncode == 0, f"{' '.join(map(str, cmd))} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     return proc
 
@@ -46,7 +50,7 @@ def test_the_wheel_installs_with_its_declared_dependencies_and_trains(tmp_path):
                         tmp_path, 120).stdout.strip())
     before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in package.glob("*.py")}
     for command in ("export", "check-export"):
-        proc = subprocess.run([str(python), "-m", "pemamoe", command], cwd=tmp_path, capture_output=True, text=True,
+        proc = subprocess.run([str(python), "-m", "pemamoe", command], cwd=tmp_path, capture_output=True, text=True, env=USER_ENV,
                               timeout=300)
         lines = [line for line in proc.stderr.splitlines() if line.strip()]
         assert proc.returncode != 0 and len(lines) == 1 and "checkout" in lines[0], (command, proc.stdout, proc.stderr)
