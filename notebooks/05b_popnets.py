@@ -414,12 +414,18 @@ def run_experts(x, w1, b1, w2, b2, saved=None):
     return a2
 
 
+def routing_counts(experts, probs):
+    """(R, E): how many of each member's n*k routing slots chose each expert; experts (R, n, k),
+    probs (R, n, E) giving the shape and dtype."""
+    slots = experts.reshape(experts.shape[0], -1)
+    return torch.zeros_like(probs[:, 0]).scatter_add_(1, slots, torch.ones_like(slots, dtype=probs.dtype))
+
+
 def run_load_balance(probs, experts, n_experts):
     """Switch balance loss E * sum_i f_i P_i per member: probs (R, n, E), experts (R, n, k) -> (R,);
     f_i the share of the n*k routing slots on expert i (no gradient), P_i the mean of probs[..., i]."""
-    slots = experts.reshape(experts.shape[0], -1)
-    counts = torch.zeros_like(probs[:, 0]).scatter_add_(1, slots, torch.ones_like(slots, dtype=probs.dtype))
-    return (counts * probs.mean(1)).sum(-1) * (n_experts / slots.shape[1])  # f_i = counts_i / (n k)
+    counts = routing_counts(experts, probs)
+    return (counts * probs.mean(1)).sum(-1) * (n_experts / experts[0].numel())  # f_i = counts_i / (n k)
 
 
 def run_noise_scale(p, prefix, x, gate):

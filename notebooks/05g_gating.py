@@ -127,8 +127,6 @@ def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=N
         h = torch.baddbmm(hb.contiguous().reshape(R * E, 1, -1), h.reshape(R * E, n, hid),
                           hw.transpose(-1, -2).contiguous().reshape(R * E, hid, -1))
         h = ContiguousGrad.apply(h).reshape(R, E, n, -1)
-    if saved is not None:
-        saved.update(tau=tau, noise=noise, scale=scale, probs=probs, y=h)
     if sparse:
         if experts is None:
             experts = probs.topk(k, dim=-1).indices
@@ -143,7 +141,8 @@ def run_gate(p, prefix, x, tau, noise, experts, gate, mix_selected=None, heads=N
     # the sum must add in the same order whatever the population's size
     features = (h * mix.transpose(1, 2).contiguous().unsqueeze(-1)).sum(1)
     if saved is not None:
-        saved.update(experts=gate_out[1], weights=gate_out[2], mix=mix)
+        saved.update(tau=tau, noise=noise, scale=scale, probs=probs, y=h, experts=gate_out[1], weights=gate_out[2],
+                     mix=mix)
     return features, gate_out
 
 

@@ -72,7 +72,7 @@ import torch
 
 from pemamoe.gating import GatedExperts
 from pemamoe.nets import MLPActor, MLPCritic
-from pemamoe.popnets import PopulationActor, PopulationCritic
+from pemamoe.popnets import PopulationActor, PopulationCritic, routing_counts
 
 
 def linear_grads(x, g_out):
@@ -142,7 +142,7 @@ def gate_grads(p, prefix, gate: GatedExperts, saved, g_out, balance_coef: float)
         g_probs = torch.zeros_like(probs).scatter_(2, experts, g_kept)
     if balance_coef:
         chosen = saved["experts"] if gate.sparse else probs.argmax(-1, keepdim=True)
-        counts = torch.zeros_like(probs).scatter_(2, chosen, 1.0).sum(1)  # (R, E)
+        counts = routing_counts(chosen, probs)  # (R, E), as the balance loss counts them
         g_probs = g_probs + (balance_coef * E / n) * (counts / counts.sum(-1, keepdim=True)).unsqueeze(1)
     g_logits = probs * (g_probs - (g_probs * probs).sum(-1, keepdim=True))
     grads = {}

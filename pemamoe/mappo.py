@@ -241,11 +241,13 @@ def _minibatch_loss(population: Population, settings, batch: Batch) -> tuple:
     pg_loss = torch.max(unclipped, clipped).mean(1)
 
     v, c_lb, _ = critic(batch.states, settings.value_temperature, saved=saved_critic)
+    err = v - batch.returns
     if config.clip_vloss:
         v_clipped = batch.values + torch.clamp(v - batch.values, -clip, clip)
-        v_loss = torch.max((v - batch.returns) ** 2, (v_clipped - batch.returns) ** 2).mean(1)
+        err_clipped = v_clipped - batch.returns
+        v_loss = torch.max(err ** 2, err_clipped ** 2).mean(1)
     else:
-        v_loss = ((v - batch.returns) ** 2).mean(1)
+        v_loss = (err ** 2).mean(1)
     sparse = actor.gated and actor.k < actor.n_experts
     with torch.enable_grad():  # a plasticity method's loss term is differentiated by autograd, in the policy's outputs only
         mean, log_std = new.mean.detach().requires_grad_(True), new.log_std.detach().requires_grad_(True)
@@ -268,12 +270,11 @@ def _minibatch_loss(population: Population, settings, batch: Batch) -> tuple:
     diff = saved_actor["diff"]  # a - mean
     g_mean = g_logp.unsqueeze(-1) * diff * saved_actor["inv_var"]
     g_log_std = (g_mean * diff).sum(1) - g_logp.sum(1, keepdim=True) - settings.ent_coef.unsqueeze(1)
-    if config.clip_vloss:
+    if config.clip_vloss:  # the larger square's; the clipped one's only where the clamp passes v through
         inside = (v - batch.values).abs() <= clip
-        g_value = torch.where((v - batch.returns) ** 2 >= (v_clipped - batch.returns) ** 2,
-                              v - batch.returns, (v_clipped - batch.returns) * inside)
+        g_value = torch.where(err ** 2 >= err_clipped ** 2, err, err_clipped * inside)
     else:
-        g_value = v - batch.returns
+        g_value = err
     g_value = g_value * (2 * config.vf_coef / v.shape[1])
     if extra is not None:
         g_mean = g_mean if extra[0] is None else g_mean + extra[0]
