@@ -89,10 +89,18 @@ def linear_input_grad(g_out, weight):
     return torch.bmm(g_out, weight.contiguous())
 
 
+def relu_input_grad(g_a, a):
+    """The gradient reaching a ReLU's input from that of its output a: g_a where a > 0, else 0.
+    Computed as autograd computes it (aten.threshold_backward), in one pass: g_a * (a > 0) is the
+    same numbers (but the sign of a zero, which no sum or optimizer step below can tell apart) and
+    about 10x slower on the CPU, where making the boolean mask dominates."""
+    return torch.ops.aten.threshold_backward(g_a, a, 0)
+
+
 def mlp_trunk_grads(p, saved, g_a2) -> dict:
     """fc1 and fc2 of an MLP trunk (x -> a1 -> a2, ReLU after each) from the gradient of its output a2."""
-    g_p2 = g_a2 * (saved["a2"] > 0)
-    g_p1 = linear_input_grad(g_p2, p["fc2.weight"]) * (saved["a1"] > 0)
+    g_p2 = relu_input_grad(g_a2, saved["a2"])
+    g_p1 = relu_input_grad(linear_input_grad(g_p2, p["fc2.weight"]), saved["a1"])
     (g_w2, g_b2), (g_w1, g_b1) = linear_grads(saved["a1"], g_p2), linear_grads(saved["x"], g_p1)
     return {"fc1.weight": g_w1, "fc1.bias": g_b1, "fc2.weight": g_w2, "fc2.bias": g_b2}
 
@@ -101,9 +109,9 @@ def expert_trunk_grads(p, prefix, saved, g_a2) -> dict:
     """w1, b1, w2, b2 of every expert (`run_experts`) from the gradient of their outputs a2 (R, E, n, h)."""
     xe, a1, a2 = saved["xe"], saved["a1"], saved["a2"]
     R, E, n, h = a2.shape
-    g_p2 = (g_a2 * (a2 > 0)).reshape(R * E, n, h)
+    g_p2 = relu_input_grad(g_a2, a2).reshape(R * E, n, h)
     g_w2 = torch.bmm(a1.transpose(1, 2), g_p2)
-    g_p1 = torch.bmm(g_p2, p[prefix + "experts.w2"].contiguous().reshape(R * E, h, h).transpose(1, 2)) * (a1 > 0)
+    g_p1 = relu_input_grad(torch.bmm(g_p2, p[prefix + "experts.w2"].contiguous().reshape(R * E, h, h).transpose(1, 2)), a1)
     g_w1 = torch.bmm(xe.transpose(1, 2), g_p1)
     return {prefix + "experts.w1": g_w1.reshape(R, E, -1, h), prefix + "experts.b1": g_p1.sum(1).reshape(R, E, h),
             prefix + "experts.w2": g_w2.reshape(R, E, h, h), prefix + "experts.b2": g_p2.sum(1).reshape(R, E, h)}

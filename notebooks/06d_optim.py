@@ -53,6 +53,8 @@ seed = 0
 
 # %%
 #| export
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -85,6 +87,15 @@ class RunAdamW:
         self.steps = torch.zeros(R, self.n_groups, dtype=flat.dtype, device=flat.device)
         # (R, P): the group's step count at each entry's last partial reset (None until one happens)
         self.clock_offset = None
+        # torch's vectorised CPU sqrt takes about 30x longer on an exact zero than on a positive
+        # float, and about a third of the second moments are exactly zero (entries no gradient
+        # reaches: unchosen experts, dead units, always-zero inputs). Raised to the smallest normal
+        # float first, a zero adds at most sqrt(tiny) / sqrt(1 - beta2) to a denominator that then
+        # adds eps: when that is far below half a unit in eps's last place, as it is here, the
+        # denominator and so the step are the same bits; otherwise no floor.
+        finfo = torch.finfo(flat.dtype)
+        tiny, half_ulp = finfo.tiny, self.eps * finfo.eps / 8  # a lower bound of half eps's last place, with room
+        self.sqrt_floor = tiny if self.beta2 < 1 and math.sqrt(tiny / (1 - self.beta2)) < half_ulp else 0.0
 
     @torch.no_grad()
     def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
@@ -119,15 +130,19 @@ class RunAdamW:
                 p.mul_(1 - lr * self.weight_decay)
             self.exp_avg.lerp_(grad, 1 - self.beta1)
             self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-            p.addcdiv_(self.exp_avg * step_size, self.exp_avg_sq.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
+            p.addcdiv_(self.exp_avg * step_size, self._root(self.exp_avg_sq).div_(bc2_sqrt).add_(self.eps), value=-1.0)
         else:
             m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
             v = torch.where(active, (self.exp_avg_sq * self.beta2).addcmul_(grad, grad, value=1 - self.beta2), self.exp_avg_sq)
-            new = (p * (1 - lr * self.weight_decay)).addcdiv_(m * step_size, v.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
+            new = (p * (1 - lr * self.weight_decay)).addcdiv_(m * step_size, self._root(v).div_(bc2_sqrt).add_(self.eps), value=-1.0)
             p.copy_(torch.where(active, new, p))
             self.exp_avg, self.exp_avg_sq = m, v
         self.steps = steps
         self.flat.grad = None
+
+    def _root(self, v: torch.Tensor) -> torch.Tensor:
+        """sqrt(v) for the second moments v >= 0, zeros raised to the floor first (see __init__)."""
+        return v.clamp(min=self.sqrt_floor).sqrt_() if self.sqrt_floor else v.sqrt()
 
     def _onehot(self) -> torch.Tensor:
         if getattr(self, "_onehot_cache", None) is None:
@@ -242,3 +257,28 @@ gap = float((actor.flat[0].detach() - actor.layout.flatten([single])[0]).abs().m
 print(f"largest difference to torch.optim.AdamW after 5 steps: {gap:.2e}; step counts per group {actor_opt.steps.tolist()}")
 assert gap < 1e-6
 assert torch.equal(actor.flat[2].detach(), start[2]) and actor_opt.steps[2].sum() == 0
+
+# %% [markdown]
+# **The square root's floor changes no bit.** Half of every member's gradient entries are exactly
+# zero for five steps (as for experts no row reaches), so their second moments stay zero; the same
+# steps with the floor switched off must give the same parameters and moments, bit for bit.
+
+# %%
+def steps_with_floor(floor: float):
+    torch.manual_seed(0)
+    flat = actor.layout.flatten(singles).requires_grad_(True)
+    opt = RunAdamW(flat, group_of, len(names), eps=1e-5)
+    opt.sqrt_floor = floor
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(5):
+        grad = torch.randn(flat.shape, generator=g) * 1e-3
+        grad[:, : flat.shape[1] // 2] = 0.0
+        flat.grad = grad
+        opt.step(torch.full((R,), 1e-3, dtype=torch.float64), torch.tensor([True, True, True]))
+    return flat.detach(), opt.exp_avg, opt.exp_avg_sq
+
+
+floored, plain = steps_with_floor(actor_opt.sqrt_floor), steps_with_floor(0.0)
+assert actor_opt.sqrt_floor > 0 and (floored[2] == 0).any()
+assert all(torch.equal(a, b) for a, b in zip(floored, plain))
+print(f"floor {actor_opt.sqrt_floor:.2e}: {int((floored[2] == 0).sum())} zero second moments, same bits as without it")

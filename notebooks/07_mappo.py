@@ -305,7 +305,7 @@ class Batch(NamedTuple):
         ).flatten()
 
     def flatten(self) -> "Batch":
-        """(R, T, B, ...) -> (R*N, ...): one index_select per field then draws a minibatch of every member."""
+        """(R, T, B, ...) -> (R*N, ...), member by member: the rows `take` draws minibatches from."""
         R, T, B = self.obs.shape[:3]
         return self._map(lambda x: x.reshape(R * T * B, *x.shape[3:]))
 

@@ -4,6 +4,8 @@
 __all__ = ['GROUP_NAMES', 'RunAdamW', 'group_index']
 
 # %% notebooks/06d_optim.py, exported cell 1
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -36,6 +38,15 @@ class RunAdamW:
         self.steps = torch.zeros(R, self.n_groups, dtype=flat.dtype, device=flat.device)
         # (R, P): the group's step count at each entry's last partial reset (None until one happens)
         self.clock_offset = None
+        # torch's vectorised CPU sqrt takes about 30x longer on an exact zero than on a positive
+        # float, and about a third of the second moments are exactly zero (entries no gradient
+        # reaches: unchosen experts, dead units, always-zero inputs). Raised to the smallest normal
+        # float first, a zero adds at most sqrt(tiny) / sqrt(1 - beta2) to a denominator that then
+        # adds eps: when that is far below half a unit in eps's last place, as it is here, the
+        # denominator and so the step are the same bits; otherwise no floor.
+        finfo = torch.finfo(flat.dtype)
+        tiny, half_ulp = finfo.tiny, self.eps * finfo.eps / 8  # a lower bound of half eps's last place, with room
+        self.sqrt_floor = tiny if self.beta2 < 1 and math.sqrt(tiny / (1 - self.beta2)) < half_ulp else 0.0
 
     @torch.no_grad()
     def step(self, lr: torch.Tensor, stepping: torch.Tensor, frozen: torch.Tensor | None = None) -> None:
@@ -70,15 +81,19 @@ class RunAdamW:
                 p.mul_(1 - lr * self.weight_decay)
             self.exp_avg.lerp_(grad, 1 - self.beta1)
             self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-            p.addcdiv_(self.exp_avg * step_size, self.exp_avg_sq.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
+            p.addcdiv_(self.exp_avg * step_size, self._root(self.exp_avg_sq).div_(bc2_sqrt).add_(self.eps), value=-1.0)
         else:
             m = torch.where(active, self.exp_avg.lerp(grad, 1 - self.beta1), self.exp_avg)
             v = torch.where(active, (self.exp_avg_sq * self.beta2).addcmul_(grad, grad, value=1 - self.beta2), self.exp_avg_sq)
-            new = (p * (1 - lr * self.weight_decay)).addcdiv_(m * step_size, v.sqrt().div_(bc2_sqrt).add_(self.eps), value=-1.0)
+            new = (p * (1 - lr * self.weight_decay)).addcdiv_(m * step_size, self._root(v).div_(bc2_sqrt).add_(self.eps), value=-1.0)
             p.copy_(torch.where(active, new, p))
             self.exp_avg, self.exp_avg_sq = m, v
         self.steps = steps
         self.flat.grad = None
+
+    def _root(self, v: torch.Tensor) -> torch.Tensor:
+        """sqrt(v) for the second moments v >= 0, zeros raised to the floor first (see __init__)."""
+        return v.clamp(min=self.sqrt_floor).sqrt_() if self.sqrt_floor else v.sqrt()
 
     def _onehot(self) -> torch.Tensor:
         if getattr(self, "_onehot_cache", None) is None:

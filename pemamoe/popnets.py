@@ -340,6 +340,7 @@ class _Population:
         self.R = len(members)
         self.flat = self.layout.flatten(members).requires_grad_(True)
         self._views = None  # (flat, its views), see params
+        self._copies = None  # (flat's version, contiguous copies of its views) at R > 1, see params
         self._grad = None  # (gradient buffer, its views), see grad_views
         gate = getattr(self.template, "gate", None)
         self.n_experts = 1 if gate is None else gate.n_experts
@@ -357,13 +358,27 @@ class _Population:
         return self
 
     def params(self, flat=None) -> dict:
-        """{name: (R, *shape) view} of `flat` (default: the population's own parameters). Outside
-        autograd the views of the population's own tensor are made once and kept: the optimizer
-        and the plasticity methods change that tensor in place, so its views stay current."""
+        """{name: (R, *shape) tensor} of `flat` (default: the population's own parameters): views,
+        through which gradients flow back into `flat`.
+
+        Outside autograd, of the population's own tensor, they are made once per change of it and
+        are for reading. At R = 1 they are views. At R > 1 a view of one member's row segment is
+        strided by P, and every batched product over R*E that reshapes it would copy it each time
+        (forward and backward, every minibatch); so they are contiguous copies instead, made in
+        one call when `flat`'s version counter shows it was changed in place (an optimizer step,
+        a plasticity method's reset, an edit through `member_param`)."""
         if flat is None and not torch.is_grad_enabled():
             if self._views is None or self._views[0] is not self.flat:
-                self._views = (self.flat, self.layout.views(self.flat))
-            return self._views[1]
+                self._views, self._copies = (self.flat, self.layout.views(self.flat)), None
+            views = self._views[1]
+            if self.flat.shape[0] == 1:
+                return views
+            if self._copies is None or self._copies[0] != self.flat._version:
+                if self._copies is None:
+                    self._copies = (None, {n: torch.empty(v.shape, dtype=v.dtype, device=v.device) for n, v in views.items()})
+                torch._foreach_copy_(list(self._copies[1].values()), list(views.values()))
+                self._copies = (self.flat._version, self._copies[1])
+            return self._copies[1]
         return self.layout.views(self.flat if flat is None else flat)
 
     def grad_views(self) -> tuple:
