@@ -13,11 +13,10 @@
 # %% [markdown]
 # # 09 · Experiments: every comparison figure from real runs
 #
-# This notebook reproduces section VI of the paper: the four methods (MLP, dense MoE, sparse MoE
-# and PE-MAMoE) trained with the same MAPPO pipeline on the phase-switching environment, compared
-# on plasticity indicators (feature rank, dormant neurons), task performance (return, normalised
-# IQM), routing, and the system metrics (collisions, energy, served users, UAV using rate, mean
-# action).
+# This notebook reproduces section VI of the paper: the four methods (MLP, dense MoE, sparse MoE and
+# PE-MAMoE) trained with the same MAPPO pipeline on the phase-switching environment, compared on
+# plasticity indicators (feature rank, dormant neurons), task performance (return, normalised IQM),
+# routing, and the system metrics (collisions, energy, served users, UAV using rate, mean action).
 #
 # Compute and plotting are separate. The first half defines **sweeps**: a run is a point
 # (method, seed, ablation, noise level, scale) whose resolved training configuration is hashed to
@@ -82,7 +81,8 @@ from pemamoe.methods import method_spec
 #
 # * **main**: the four methods, each with every seed;
 # * **campaign**: main, with MLP + ReDo and MLP + shrink-and-perturb at the paper scale
-#   (`campaign_methods`): the paper-scale campaign, which `make figures SCALE=paper` draws (09e);
+#   (`campaign_methods`), which `make figures SCALE=paper` draws (09e); **campaign_v2**: campaign under
+#   the readings appendix 10b chooses (`CAMPAIGN_V2_READINGS`), five seeds at the paper scale;
 # * **noise**: PE-MAMoE at γ ∈ {0.001, 0.005, 0.01} and MoE at the same γ (see notebook 10 for how
 #   noise enters MoE);
 # * **tricks**: PE-MAMoE with one mechanism removed at a time: entropy reset/annealing, log-std
@@ -112,12 +112,14 @@ def main_specs(scale: str, seeds=None, methods=METHODS) -> list:
 
 
 CAMPAIGN_BASELINES = ("mlp_redo", "mlp_snp")  # what the paper scale adds to the main comparison
+CAMPAIGN_V2_READINGS = {"controller.log_std_value": 0.3, "target_kl_check": "epoch"}  # v2's --set (10b: why)
 
 
 def campaign_methods(scale: str, methods=METHODS) -> tuple:
     """`methods`, and at the paper scale, the only one with the updates per phase in which plasticity
     loss could appear, the two plasticity baselines on MLP (appendix 06c) too."""
     return tuple(methods) + tuple(m for m in CAMPAIGN_BASELINES if scale == "paper" and m not in methods)
+
 
 
 def trick_specs(scale: str, seeds=None) -> list:
@@ -182,6 +184,25 @@ def default_reading() -> str:
     return name
 
 
+def study_steps(study: str, steps, scale: str, default: int) -> int:
+    """A fixed-phase study's environment steps: `steps` (an integer >= 1), else `default` (a few iterations at ci)."""
+    steps = (64 * 4 if scale == "ci" else default) if steps is None else steps
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"{study}: steps must be an integer >= 1, got {steps!r}")
+    return steps
+
+
+def fixed_run(iterations: int) -> dict:
+    """A fixed-phase study run's length overrides: logged every 1/20 of it, checkpointed every 100 iterations."""
+    return {"iterations": iterations, "phase_length_iters": iterations,
+            "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
+
+
+def check_readings(study: str, names, known) -> None:
+    for name in (n for n in names if n not in known):
+        raise ValueError(f"{study} reading must be one of {', '.join(known)}, got {name!r}")
+
+
 def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), steps: int | None = None,
                  readings=tuple(BUDGET_READINGS)) -> list:
     """The study's runs: every method x phase x seed with the small update settings (the gated
@@ -189,23 +210,17 @@ def budget_specs(scale: str, seeds=None, methods=METHODS, phases=(0, 1, 2), step
     a method with a fixed-phase twin only under ours), then MLP in phase 0 with the paper's
     update settings."""
     check_scale(scale)
-    for name in readings:
-        if name not in BUDGET_READINGS:
-            raise ValueError(f"budget reading must be one of {', '.join(BUDGET_READINGS)}, got {name!r}")
+    check_readings("budget", readings, BUDGET_READINGS)
     preset = "ci" if scale == "ci" else "small"
     seeds = tuple(range(by_scale(scale, ci=1, small=3, paper=3))) if seeds is None else tuple(seeds)
-    steps = (64 * 4 if scale == "ci" else BUDGET_STEPS) if steps is None else steps
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"budget_specs: steps must be an integer >= 1, got {steps!r}")
+    steps = study_steps("budget_specs", steps, scale, BUDGET_STEPS)
 
     base = TrainConfig.for_scale(preset)
 
     def spec(method, seed, phase, update, reading=None):
         extra = dict(BUDGET_UPDATES[update])
         batch = extra.get("num_envs", base.num_envs) * extra.get("rollout_steps", base.rollout_steps)
-        iterations = -(-steps // batch)
-        extra.update(fixed_phase=phase, iterations=iterations, phase_length_iters=iterations,
-                     diag_every=max(1, min(100, iterations // 20)), checkpoint_every=max(1, min(100, iterations)))
+        extra.update(fixed_phase=phase, **fixed_run(-(-steps // batch)))
         extra.update(BUDGET_READINGS.get(reading, {}))
         tag = f"budget/{update}" if reading in (None, "ours") else f"budget/{update}/{reading}"
         return RunSpec(method, seed, preset, overrides=tuple(extra.items()), tag=tag)
@@ -256,21 +271,14 @@ def gating_specs(scale: str, seeds=None, readings=None, phases=(0, 1), steps: in
     preset = "ci" if scale == "ci" else "small"
     seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
     readings = tuple(GATING_READINGS) if readings is None else tuple(readings)
-    for name in readings:
-        if name not in GATING_READINGS:
-            raise ValueError(f"gating reading must be one of {', '.join(GATING_READINGS)}, got {name!r}")
-    steps = (64 * 4 if scale == "ci" else GATING_STEPS) if steps is None else steps
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"gating_specs: steps must be an integer >= 1, got {steps!r}")
-    base = TrainConfig.for_scale(preset)
-    iterations = -(-steps // base.batch_env_steps)
+    check_readings("gating", readings, GATING_READINGS)
+    steps = study_steps("gating_specs", steps, scale, GATING_STEPS)
+    iterations = -(-steps // TrainConfig.for_scale(preset).batch_env_steps)
     specs = []
     for name in readings:
         method, net = GATING_READINGS[name]
         gated = {**GATING_NOISE, **_OURS} if method != "mlp" else {}  # the sparse actor it ran: ours (05d), pinned
-        extra = {**gated, **net, "iterations": iterations,
-                 "phase_length_iters": iterations, "diag_every": max(1, min(100, iterations // 20)),
-                 "checkpoint_every": max(1, min(100, iterations))}
+        extra = {**gated, **net, **fixed_run(iterations)}
         specs += [RunSpec(method, seed, preset, overrides=tuple({**extra, "fixed_phase": phase}.items()),
                           tag=f"gating/{name}") for phase in phases for seed in seeds]
     return specs
@@ -302,15 +310,9 @@ def sparse_specs(scale: str, seeds=None, readings=None, phase: int = 0, steps: i
     preset = "ci" if scale == "ci" else "small"
     seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
     readings = tuple(SPARSE_READINGS) if readings is None else tuple(readings)
-    for name in readings:
-        if name not in SPARSE_READINGS:
-            raise ValueError(f"sparse reading must be one of {', '.join(SPARSE_READINGS)}, got {name!r}")
-    steps = (64 * 4 if scale == "ci" else SPARSE_STEPS) if steps is None else steps
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"sparse_specs: steps must be an integer >= 1, got {steps!r}")
-    iterations = -(-steps // TrainConfig.for_scale(preset).batch_env_steps)
-    extra = {"iterations": iterations, "phase_length_iters": iterations, "fixed_phase": phase,
-             "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
+    check_readings("sparse", readings, SPARSE_READINGS)
+    steps = study_steps("sparse_specs", steps, scale, SPARSE_STEPS)
+    extra = {"fixed_phase": phase, **fixed_run(-(-steps // TrainConfig.for_scale(preset).batch_env_steps))}
     return [RunSpec(method, seed, preset, overrides=tuple({**extra, **net}.items()), tag=f"sparse/{name}")
             for name in readings for method, net in [SPARSE_READINGS[name]] for seed in seeds]
 
@@ -332,18 +334,14 @@ def tuning_specs(scale: str, seeds=None, methods=METHODS, lrs=TUNING_LRS, entrop
     check_scale(scale)
     preset = "ci" if scale == "ci" else "small"
     seeds = tuple(range(by_scale(scale, ci=1, small=2, paper=2))) if seeds is None else tuple(seeds)
-    steps = (64 * 4 if scale == "ci" else BUDGET_STEPS) if steps is None else steps
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"tuning_specs: steps must be an integer >= 1, got {steps!r}")
+    steps = study_steps("tuning_specs", steps, scale, BUDGET_STEPS)
     for lr in lrs:
         if not isinstance(lr, float) or lr <= 0:
             raise ValueError(f"tuning_specs: every learning rate must be a float > 0, got {lr!r}")
     for pair in entropy:
         if len(pair) != 2 or min(pair) < 0:
             raise ValueError(f"tuning_specs: entropy settings are (ent_start, ent_end) pairs >= 0, got {pair!r}")
-    iterations = -(-steps // TrainConfig.for_scale(preset).batch_env_steps)
-    extra = {"fixed_phase": phase, "iterations": iterations, "phase_length_iters": iterations,
-             "diag_every": max(1, min(100, iterations // 20)), "checkpoint_every": max(1, min(100, iterations))}
+    extra = {"fixed_phase": phase, **fixed_run(-(-steps // TrainConfig.for_scale(preset).batch_env_steps))}
     specs = []
     for method in (m for m in methods if fixed_phase_twin(m, methods) is None):  # PE-MAMoE takes SMoE's
         net = {} if method_spec(method).network == "mlp" else _PAPERS
@@ -388,10 +386,11 @@ def with_reading(specs, reading: str) -> list:
 
 def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, reading: str | None = None) -> list:
     """The runs of one experiment ("main", "tricks", "noise"), of "all" three (the paper's 39-run
-    sweep), of the paper-scale campaign ("campaign": main with `campaign_methods`), of the learning-budget study ("budget"), the gating and sparse-actor comparisons
-    ("gating", "sparse"), the tuning grid ("tuning") or the top-2 arm ("top2"); only the first
-    three are part of "all". reading: None (NetConfig's defaults), "ours" or "paper", the gated
-    methods' actor pinned (`with_reading`; main, tricks, noise and all only)."""
+    sweep), of the paper-scale campaign ("campaign": main with `campaign_methods`; "campaign_v2": it
+    under CAMPAIGN_V2_READINGS), the learning-budget study ("budget"), the gating and sparse-actor
+    comparisons ("gating", "sparse"), the tuning grid ("tuning") or the top-2 arm ("top2"); only the
+    first three are part of "all". reading: None (NetConfig's defaults), "ours" or "paper", the gated
+    methods' actor pinned (`with_reading`; READABLE_EXPERIMENTS only)."""
     if reading is not None:
         if experiment not in READABLE_EXPERIMENTS:
             raise ValueError(f"reading applies to the experiments {', '.join(READABLE_EXPERIMENTS)}; "
@@ -403,6 +402,9 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, r
         return [s for make in makers.values() for s in make()]
     if experiment == "campaign":
         return main_specs(scale, seeds, campaign_methods(scale, methods))
+    if experiment == "campaign_v2":  # five seeds at the paper scale
+        seeds = tuple(range(by_scale(scale, ci=1, small=3, paper=5))) if seeds is None else seeds
+        return [s.with_overrides(CAMPAIGN_V2_READINGS) for s in main_specs(scale, seeds, campaign_methods(scale, methods))]
     if experiment == "budget":
         return budget_specs(scale, seeds, methods)
     if experiment == "gating":
@@ -432,8 +434,7 @@ def experiment_specs(experiment: str, scale: str, seeds=None, methods=METHODS, r
 #
 # At the `ci` scale this trains a few iterations per method in seconds; at `small` and `medium`
 # (the default of `make figures`) the runs are read from their committed records; finished runs
-# under `results/` are reused, never retrained. The
-# parameter `methods = None` means every registered method.
+# under `results/` are reused, never retrained. The parameter `methods = None` means every registered method.
 
 # %%
 import dataclasses as _dc
@@ -825,12 +826,11 @@ Markdown(plasticity_words(revisits))
 # driven by updates. The paper-scale campaign (9 visits of 1,200 iterations, 8 epochs of 32
 # minibatches, 18 runs: the four compared methods and the two MLP plasticity baselines, three seeds
 # each; `benchmarks/HISTORY.md` for its stages) is committed as records; this cell reads them,
-# trains nothing, and measures the same comparisons on them.
-# Revisits are set against first visits: the first visit of phase 0 is a fresh network (it has
-# seen nothing else, trained the same way), those of phases 1 and 2 have seen only the phases
-# before them. The learning-budget study's fresh MLP at the paper's update settings (09b) ran 2M
-# steps of phase 0 only, not a 2.5M-step visit, so it is not used here. Three seeds are few, so the
-# differences are shown seed by seed.
+# trains nothing, and measures the same comparisons on them. Revisits are set against first visits:
+# the first visit of phase 0 is a fresh network (it has seen nothing else, trained the same way),
+# those of phases 1 and 2 have seen only the phases before them. The learning-budget study's fresh
+# MLP at the paper's update settings (09b) ran 2M steps of phase 0 only, not a 2.5M-step visit, so
+# it is not used here. Three seeds are few, so the differences are shown seed by seed.
 
 # %%
 from pemamoe.analysis import plot_seed_differences

@@ -49,6 +49,7 @@ import numpy as np
 import pandas as pd
 
 from pemamoe.core import REPO_ROOT, write_table
+from pemamoe.experiments import CAMPAIGN_V2_READINGS
 from pemamoe.methods import method_label
 from pemamoe.records import read_record, record_files, superseded
 
@@ -179,11 +180,12 @@ budget.round(0)
 # %% [markdown]
 # ## The readings table
 #
-# Each row is one setting. "v1" is what campaign v1 ran; "v2" the default campaign v2 runs, chosen
-# by the rule above. The probe column is filled from the committed probe summary (and says how far
+# Each row is one setting. "v1" is what campaign v1 ran; "v2" what campaign v2 runs (`sweep
+# --experiment campaign_v2`, notebook 09), chosen by the rule above. The probe column is filled from the committed probe summary (and says how far
 # the probe has got).
 
 # %%
+V2 = CAMPAIGN_V2_READINGS  # what `sweep --experiment campaign_v2` sets (notebook 09)
 READINGS = [
     {"setting": "log-std reset: value and direction",
      "paper": "Algorithm 1 resets log σ at every switch, marked as re-opening exploration; the training table "
@@ -192,7 +194,7 @@ READINGS = [
                 "start: σ = 1); a value given for the log-std is a log σ",
      "candidates": "σ ← 0.3 (log σ = −1.20); log σ ← 0.3 (σ = 1.35); no reset",
      "v1": "σ ← 0.3",
-     "v2": "log σ ← 0.3 (`--set controller.log_std_value=0.3`)",
+     "v2": f"log σ ← {V2['controller.log_std_value']} (`--set controller.log_std_value={V2['controller.log_std_value']}`)",
      "why": "the only candidate that widens the policy at a switch, which is what the paper says the reset is "
             "for; σ ← 0.3 narrowed it at almost every switch of v1 (log_std_reset_direction.md); the value names the log-std as "
             "CleanRL does",
@@ -226,7 +228,8 @@ READINGS = [
      "candidates": "before every minibatch at 1.0 × (v1); after every epoch (CleanRL); no stop; before every "
                    "minibatch at 1.5 × (SB3: `--set target_kl=0.15`)",
      "v1": "before every minibatch",
-     "v2": "after every epoch (`--set target_kl_check=epoch`)",
+     "v2": {"epoch": "after every epoch", "minibatch": "before every minibatch"}[V2["target_kl_check"]]
+           + f" (`--set target_kl_check={V2['target_kl_check']}`)",
      "why": "the table's names are CleanRL's, and CleanRL checks per epoch; 'no stop' contradicts Algorithm 1's "
             "own conservative target KL; a per-minibatch check lets the ~1 % of rows a top-1 router moves since "
             "the rollout stop the sparse networks' updates (benchmarks/CONTROLLER_SWITCH.md), which starves "

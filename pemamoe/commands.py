@@ -39,7 +39,8 @@ def sweep_cli(argv=None) -> int:
                              "all: main, tricks and noise; budget: the learning-budget study (09b); gating: the "
                              "gating readings (05c); sparse: the sparse-actor readings (05d); tuning: learning rate x entropy "
                              "for every method alike (09b); top2: the top-2 arm beside top-1 (05d, 10); campaign: main "
-                             "with MLP + ReDo and MLP + shrink-and-perturb, the paper scale's comparison (default: main)")
+                             "with MLP + ReDo and MLP + shrink-and-perturb, the paper scale's comparison; campaign_v2: campaign "
+                             "under the readings appendix 10b chooses, 5 seeds at the paper scale (default: main)")
     parser.add_argument("--scale", default="small", choices=SCALES, help=TRAINING_SCALE_HELP)
     parser.add_argument("--reading", default=None, choices=ACTOR_READINGS,
                         help=f"pin the gated methods' sparse-actor reading (appendix 05d) in {', '.join(READABLE_EXPERIMENTS)} "

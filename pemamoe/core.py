@@ -187,7 +187,7 @@ def _normalise(kind, value, allowed, bounds, allow_inf, length):
 # %% notebooks/00b_core.py, exported cell 4
 BACKENDS = ("local", "ray")  # where a sweep trains (appendix 09c)
 DEFAULT_POPULATION = 16  # members per population: throughput rises with R up to here (make bench)
-EXPERIMENTS = ("main", "tricks", "noise", "all", "campaign", "budget", "gating", "sparse", "tuning", "top2")  # notebook 09's sweeps
+EXPERIMENTS = ("main", "tricks", "noise", "all", "campaign", "campaign_v2", "budget", "gating", "sparse", "tuning", "top2")  # notebook 09's sweeps
 READABLE_EXPERIMENTS = ("main", "tricks", "noise", "all", "campaign")  # those whose sparse-actor reading sweep --reading pins
 ACTOR_READINGS = ("ours", "paper")  # the sparse actor's two readings (appendix 05d)
 MECHANISMS = (  # the phase controller's switch-time mechanisms, each a PhaseControllerConfig switch (notebook 06)

@@ -366,6 +366,25 @@ def test_the_top2_arm_runs_the_sparse_methods_with_two_experts_under_the_papers_
     assert all((s.run_dir(tmp_path) / "done.json").is_file() for s in experiment_specs("top2", "ci", seeds=(0,)))
 
 
+def test_campaign_v2_is_the_campaign_under_its_readings_with_five_seeds_at_the_paper_scale():
+    from pemamoe.experiments import CAMPAIGN_V2_READINGS
+
+    v1, v2 = experiment_specs("campaign", "paper"), experiment_specs("campaign_v2", "paper")
+    assert len(v2) == 30 and sorted({s.seed for s in v2}) == [0, 1, 2, 3, 4]
+    assert sorted({s.method for s in v2}) == sorted({s.method for s in v1})
+    by_run = {(s.method, s.seed): s.to_config() for s in v1}
+    for spec in v2:
+        config = spec.to_config()
+        assert config.controller.log_std_value == CAMPAIGN_V2_READINGS["controller.log_std_value"] == 0.3
+        assert config.target_kl_check == CAMPAIGN_V2_READINGS["target_kl_check"] == "epoch"
+        if (spec.method, spec.seed) in by_run:  # v1's run of the same method and seed: only the readings differ
+            old = by_run[spec.method, spec.seed]
+            assert config.run_name() != old.run_name()
+            assert config.replace(target_kl_check=old.target_kl_check,
+                                  controller=old.controller).config_hash() == old.config_hash()
+    assert len(experiment_specs("campaign_v2", "ci")) == 4  # the four compared methods, one seed
+
+
 @pytest.mark.parametrize("reading", ["ours", "paper"])
 def test_a_pinned_reading_sets_the_gated_actors_and_leaves_mlp_and_the_rest_of_the_run(reading):
     """--reading pins the sparse actor of the gated methods only; pinning the defaults' own reading
