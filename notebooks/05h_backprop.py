@@ -192,6 +192,16 @@ def autograd_grads(pop, forward, g_out) -> torch.Tensor:
     return torch.zeros_like(flat) if grad is None else grad
 
 
+def head_and_trunk_grads(p, saved, g_out, gate, lb_coef) -> dict:
+    """One linear head on a trunk's features, and the trunk under it (an MLP's when `gate` is None,
+    else the gated experts'), from the gradient in the head's outputs g_out (R, n, out)."""
+    grads = dict(zip(("head.weight", "head.bias"), linear_grads(saved["features"], g_out)))
+    g_feat = linear_input_grad(g_out, p["head.weight"])
+    if gate is None:
+        return {**grads, **mlp_trunk_grads(p, saved, g_feat)}
+    return {**grads, **gated_grads(p, "gate.", gate, saved, g_feat, lb_coef, heads=False)}
+
+
 def actor_grads(actor: PopulationActor, saved: dict, g_mean, g_log_std) -> torch.Tensor:
     """(R, P): the gradient of each member's loss in the actor's parameters, from its gradient in
     the policy mean (R, n, A) and log-std (R, A), plus the router's balance loss at the kind's
@@ -204,12 +214,7 @@ def actor_grads(actor: PopulationActor, saved: dict, g_mean, g_log_std) -> torch
             actor.evaluate(obs, action, routing, flat=flat)), (g_mean, g_log_std, balance))
     grads = {"log_std": g_log_std}
     if isinstance(t, MLPActor) or t.cfg.expert_heads == "shared":
-        grads["head.weight"], grads["head.bias"] = linear_grads(saved["features"], g_mean)
-        g_feat = linear_input_grad(g_mean, p["head.weight"])
-        if isinstance(t, MLPActor):
-            grads.update(mlp_trunk_grads(p, saved, g_feat))
-        else:
-            grads.update(gated_grads(p, "gate.", t.gate, saved, g_feat, actor.lb_coef, heads=False))
+        grads.update(head_and_trunk_grads(p, saved, g_mean, None if isinstance(t, MLPActor) else t.gate, actor.lb_coef))
     else:
         grads.update(gated_grads(p, "gate.", t.gate, saved, g_mean, actor.lb_coef, heads=True))
     return _flat_grad(actor, grads)
@@ -224,15 +229,8 @@ def critic_grads(critic: PopulationCritic, saved: dict, g_value) -> torch.Tensor
         state, tau = saved["inputs"]
         balance = torch.full((critic.R,), float(critic.lb_coef), device=g_value.device)
         return autograd_grads(critic, lambda flat: critic(state, tau, flat=flat)[:2], (g_value, balance))
-    g_v = g_value.unsqueeze(-1)
-    grads = {}
-    grads["head.weight"], grads["head.bias"] = linear_grads(saved["features"], g_v)
-    g_feat = linear_input_grad(g_v, p["head.weight"])
-    if isinstance(t, MLPCritic):
-        grads.update(mlp_trunk_grads(p, saved, g_feat))
-    else:
-        grads.update(gated_grads(p, "gate.", t.gate, saved, g_feat, critic.lb_coef, heads=False))
-    return _flat_grad(critic, grads)
+    gate = None if isinstance(t, MLPCritic) else t.gate
+    return _flat_grad(critic, head_and_trunk_grads(p, saved, g_value.unsqueeze(-1), gate, critic.lb_coef))
 
 # %% [markdown]
 # **Checked against autograd.** One population of two members per network kind, a random
